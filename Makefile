@@ -1,0 +1,52 @@
+# fullperc — see README.md. Every recipe runs in bash with scripts/env.sh sourced.
+SHELL := /bin/bash
+.SHELLFLAGS := -eo pipefail -c
+PYTHON ?= python3
+VENV ?= .venv
+export PYTHON VENV
+
+ENV := source scripts/env.sh &&
+COLCON_FLAGS ?= --symlink-install --event-handlers console_direct- summary+
+PYTEST_ARGS ?=
+TASK ?= P-B-G-P
+
+.PHONY: setup build test unit system lint clean demo bench dataset eval lock
+
+setup:
+	@scripts/setup.sh
+
+# flock: parallel `make build` calls (several terminals, helpers) must not share build/ at once.
+build: setup
+	@$(ENV) flock .build.lock colcon build $(COLCON_FLAGS) \
+	    --cmake-args -DPython3_EXECUTABLE=$$Python3_EXECUTABLE
+
+lint: setup
+	@$(ENV) ruff check src test bench scripts
+
+test: build lint
+	@$(ENV) python -m pytest $(PYTEST_ARGS)
+
+unit: build
+	@$(ENV) python -m pytest src $(PYTEST_ARGS)
+
+system: build
+	@$(ENV) python -m pytest test $(PYTEST_ARGS)
+
+demo: build
+	@$(ENV) supervisor demo --task $(TASK)
+
+bench: build
+	@$(ENV) python bench/run_all.py
+
+dataset: build
+	@$(ENV) python -m fullperc_eval.dataset --out bags
+
+eval: build
+	@$(ENV) python -m fullperc_eval.evaluate_all --bags bags --json bags/eval.json
+
+# Re-pin requirements/lock-cpXY.txt from what is installed in the venv.
+lock: setup
+	@$(ENV) python scripts/lock.py
+
+clean:
+	rm -rf build install log .pytest_cache .ruff_cache

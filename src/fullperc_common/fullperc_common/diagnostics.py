@@ -1,0 +1,47 @@
+"""A small /diagnostics publisher: one DiagnosticStatus per component, published at a fixed rate.
+
+ROS's ``diagnostic_updater`` is not available as a wheel; this is the part of it we need.
+Components call :meth:`Diagnostics.set` whenever their state changes; a timer publishes the
+latest state of every component so late subscribers see it within one period.
+"""
+
+from __future__ import annotations
+
+import threading
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+OK = DiagnosticStatus.OK
+WARN = DiagnosticStatus.WARN
+ERROR = DiagnosticStatus.ERROR
+STALE = DiagnosticStatus.STALE
+
+
+class Diagnostics:
+    def __init__(self, node, hardware_id: str = "", period_s: float = 1.0) -> None:
+        self._node = node
+        self._hw = hardware_id
+        self._lock = threading.Lock()
+        self._status: dict[str, DiagnosticStatus] = {}
+        self._pub = node.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self._timer = node.create_timer(period_s, self.publish)
+
+    def set(self, name: str, level: int, message: str, values: dict | None = None) -> None:
+        st = DiagnosticStatus(
+            level=bytes([level]) if isinstance(DiagnosticStatus().level, bytes) else level,
+            name=f"{self._node.get_name()}: {name}",
+            message=message,
+            hardware_id=self._hw,
+            values=[KeyValue(key=str(k), value=str(v)) for k, v in (values or {}).items()],
+        )
+        with self._lock:
+            self._status[name] = st
+
+    def publish(self) -> None:
+        with self._lock:
+            statuses = list(self._status.values())
+        if not statuses:
+            return
+        arr = DiagnosticArray(status=statuses)
+        arr.header.stamp = self._node.get_clock().now().to_msg()
+        self._pub.publish(arr)

@@ -1,0 +1,38 @@
+import os
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = "fullperc_eval"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(exclude=["test"]),
+    package_data={"": ["*.c", "*.yaml"]},
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+        (os.path.join("share", package_name, "config"), glob("config/*.yaml") + glob("config/*.rom")),
+        (os.path.join("share", package_name, "launch"), glob("launch/*.launch.py")),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=True,
+    maintainer="fullperc developers",
+    maintainer_email="dev@fullperc.org",
+    description="Evaluation: operating-room digital twin, device emulators, rosbag2 record/replay, offline evaluation, process supervisor.",
+    license="Apache-2.0",
+    tests_require=["pytest"],
+    entry_points={
+        "console_scripts": [
+            'sim = fullperc_eval.sim_node:main',
+            'vega_emulator = fullperc_eval.vega_emulator:main',
+            'record = fullperc_eval.bag_record:main',
+            'play = fullperc_eval.bag_play:main',
+            'evaluate = fullperc_eval.evaluate:main',
+            'supervisor = fullperc_eval.supervisor:main',
+            'echo = fullperc_eval.topic_tools:echo_main',
+            'pub = fullperc_eval.topic_tools:pub_main',
+        ],
+    },
+)
