@@ -20,7 +20,7 @@ setup(
     zip_safe=True,
     maintainer="fullperc developers",
     maintainer_email="dev@fullperc.org",
-    description="Device drivers: NDI Combined API (Vega TCP, Spectra/Vicra serial), NOKOV motion capture, Diana 7 arm state.",
+    description="Device drivers: NDI Combined API (Vega TCP, Spectra/Vicra serial), NOKOV mocap, Diana 7 arm.",
     license="Apache-2.0",
     tests_require=["pytest"],
     entry_points={

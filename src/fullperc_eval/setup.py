@@ -20,7 +20,7 @@ setup(
     zip_safe=True,
     maintainer="fullperc developers",
     maintainer_email="dev@fullperc.org",
-    description="Evaluation: operating-room digital twin, device emulators, rosbag2 record/replay, offline evaluation, process supervisor.",
+    description="Evaluation: OR digital twin, device emulators, rosbag2 record/replay, offline evaluation, supervisor.",
     license="Apache-2.0",
     tests_require=["pytest"],
     entry_points={

@@ -20,7 +20,7 @@ setup(
     zip_safe=True,
     maintainer="fullperc developers",
     maintainer_email="dev@fullperc.org",
-    description="Estimation: frame chain, KF/BKF/CKF/CBKF filters, synchronizer, view-margin model; fusion_node and margin_node.",
+    description="Estimation: frame chain, KF/BKF/CKF/CBKF, synchronizer, view-margin model; fusion and margin nodes.",
     license="Apache-2.0",
     tests_require=["pytest"],
     entry_points={

@@ -1,1 +1,1 @@
-"""Evaluation: operating-room digital twin, device emulators, rosbag2 record/replay, offline evaluation, process supervisor."""
+"""Evaluation: OR digital twin, device emulators, rosbag2 record/replay, offline evaluation, supervisor."""
