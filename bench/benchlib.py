@@ -1,0 +1,40 @@
+"""Shared helpers for benchmarks: timing with medians and one JSON line per figure.
+
+These machines are noisy, so every figure is a median over repeats, and where a figure has a
+natural baseline (e.g. a plain numpy loop, or the same work without our code) the baseline is
+measured in the same run and reported as a ratio.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import sys
+import time
+from collections.abc import Callable
+
+
+def median_time(fn: Callable[[], object], repeats: int = 7, number: int = 1) -> float:
+    """Median wall time of ``number`` calls of ``fn`` over ``repeats`` repeats, per call [s]."""
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        for _ in range(number):
+            fn()
+        times.append((time.perf_counter() - t0) / number)
+    return statistics.median(times)
+
+
+def emit(name: str, value: float, unit: str, baseline: float | None = None, **extra) -> dict:
+    """Print one machine-readable result line; ``ratio`` = value / baseline when given."""
+    rec: dict = {"name": name, "value": round(float(value), 6), "unit": unit}
+    if baseline is not None:
+        rec["baseline"] = round(float(baseline), 6)
+        rec["ratio"] = round(float(value) / float(baseline), 4) if baseline else None
+    rec.update(extra)
+    print(json.dumps(rec), flush=True)
+    return rec
+
+
+if __name__ == "__main__":
+    sys.exit("benchlib is a library; run bench/run_all.py")
