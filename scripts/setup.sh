@@ -9,13 +9,14 @@
 #  * Idempotent: a stamp records the hash of the inputs; with nothing changed it exits at once.
 #
 # Environment: PYTHON (interpreter to build the venv with, default python3), VENV (default .venv),
-#              FULLPERC_USE_SYSTEM_ROS=0 to ignore /opt/ros/jazzy.
+#              FULLPERC_USE_SYSTEM_ROS=0 to ignore /opt/ros/jazzy, FULLPERC_REQUIREMENTS (dir, tests).
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
 PYTHON="${PYTHON:-python3}"
 VENV="${VENV:-.venv}"
 ROS_SETUP=/opt/ros/jazzy/setup.bash
+REQ="${FULLPERC_REQUIREMENTS:-requirements}"   # overridable for the setup tests
 
 die() { echo "fullperc setup: ERROR: $*" >&2; exit 1; }
 
@@ -28,8 +29,8 @@ tag="cp${pyver/./}"
 mode=wheels
 if [ -f "$ROS_SETUP" ] && [ "${FULLPERC_USE_SYSTEM_ROS:-1}" != 0 ]; then mode=system; fi
 
-lock="requirements/lock-$tag.txt"
-inputs=(requirements/ros-jazzy.txt requirements/python.txt scripts/setup.sh)
+lock="$REQ/lock-$tag.txt"
+inputs=("$REQ/ros-jazzy.txt" "$REQ/python.txt" scripts/setup.sh)
 [ -f "$lock" ] && inputs+=("$lock")
 stamp_want="$mode $pyver $(cat "${inputs[@]}" | sha256sum | cut -c1-16)"
 stamp_file="$VENV/.fullperc-setup"
@@ -83,8 +84,8 @@ if [ -f "$lock" ]; then
   fi
 else
   echo "fullperc setup: no $lock; installing from the loose lists (run 'make lock' to pin them)"
-  [ "$mode" = system ] || install_file requirements/ros-jazzy.txt
-  install_file requirements/python.txt
+  [ "$mode" = system ] || install_file "$REQ/ros-jazzy.txt"
+  install_file "$REQ/python.txt"
 fi
 
 # Check that what the build needs really imports, naming what does not.
