@@ -16,6 +16,5 @@ setup(
     maintainer_email="dev@fullperc.org",
     description="Shared rigid transforms, ROS message conversion, diagnostics and parameter checks.",
     license="Apache-2.0",
-    tests_require=["pytest"],
     entry_points={"console_scripts": []},
 )

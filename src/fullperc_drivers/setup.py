@@ -22,7 +22,6 @@ setup(
     maintainer_email="dev@fullperc.org",
     description="Device drivers: NDI Combined API (Vega TCP, Spectra/Vicra serial), NOKOV mocap, Diana 7 arm.",
     license="Apache-2.0",
-    tests_require=["pytest"],
     entry_points={
         "console_scripts": [
             'ndi_driver = fullperc_drivers.ndi_node:main',

@@ -22,7 +22,6 @@ setup(
     maintainer_email="dev@fullperc.org",
     description="Evaluation: OR digital twin, device emulators, rosbag2 record/replay, offline evaluation, supervisor.",
     license="Apache-2.0",
-    tests_require=["pytest"],
     entry_points={
         "console_scripts": [
             'sim = fullperc_eval.sim_node:main',

@@ -22,7 +22,6 @@ setup(
     maintainer_email="dev@fullperc.org",
     description="Estimation: frame chain, KF/BKF/CKF/CBKF, synchronizer, view-margin model; fusion and margin nodes.",
     license="Apache-2.0",
-    tests_require=["pytest"],
     entry_points={
         "console_scripts": [
             'fusion_node = fullperc_fusion.fusion_node:main',
