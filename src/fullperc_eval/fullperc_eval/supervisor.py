@@ -1,0 +1,301 @@
+"""A small process supervisor: starts a graph of executables from YAML, waits for readiness,
+prefixes their output, and shuts everything down cleanly.
+
+`ros2 launch` is not available with the PyPI wheels, and the demo and system tests need the same
+thing it does: separate processes, started in dependency order, each in its own process group so
+that nothing outlives the supervisor. The graph format (see config/demo_graph.yaml)::
+
+    name: demo
+    env: {FOO: bar}                      # added to every process
+    processes:
+      - name: sim
+        cmd: [fullperc_eval/sim, --task, "{task}"]   # "pkg/exe" -> install/pkg/lib/pkg/exe
+        ready: {log: "serving"}          # regex on an output line | {port: 8765} | {delay: 0.5}
+        after: [other]                   # start only once these are ready
+        output: show | quiet | "filter:<regex>"      # what reaches the console (all goes to the log file)
+        ends_graph: true                 # when it exits, the whole graph is shut down (task done)
+        required: true                   # a non-zero exit of a required process fails the run
+
+`{name}` placeholders in cmd and env are filled from ``--set name=value`` and the graph's ``vars``.
+Shutdown: SIGINT to each process group in reverse start order, SIGTERM after ``grace`` seconds,
+SIGKILL after another ``grace``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import yaml
+
+
+class GraphError(ValueError):
+    """The graph description is invalid; the message names the file and the field."""
+
+
+@dataclass
+class ProcSpec:
+    name: str
+    cmd: list[str]
+    ready: dict = field(default_factory=dict)
+    after: list[str] = field(default_factory=list)
+    output: str = "show"
+    ends_graph: bool = False
+    required: bool = True
+    env: dict = field(default_factory=dict)
+
+
+@dataclass
+class Graph:
+    name: str
+    processes: list[ProcSpec]
+    env: dict = field(default_factory=dict)
+    grace: float = 5.0
+    ready_timeout: float = 60.0
+
+
+def resolve_exe(token: str, root: Path) -> str:
+    """'pkg/exe' -> the installed executable (what `ros2 run pkg exe` runs); else PATH / as given."""
+    if "/" in token and not token.startswith(("/", ".")):
+        pkg, exe = token.split("/", 1)
+        for prefix in [root / "install" / pkg] + [Path(p) for p in os.environ.get("AMENT_PREFIX_PATH", "").split(":")
+                                                   if p]:
+            cand = prefix / "lib" / pkg / exe
+            if cand.exists():
+                return str(cand)
+        raise GraphError(f"executable {exe!r} of package {pkg!r} not found (is the workspace built?)")
+    return shutil.which(token) or token
+
+
+def load_graph(path: str | Path, values: dict[str, str]) -> Graph:
+    path = Path(path)
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as e:
+        raise GraphError(f"{path}: cannot read graph: {e}") from e
+    if not isinstance(doc, dict) or not isinstance(doc.get("processes"), list):
+        raise GraphError(f"{path}: field 'processes' (a list) is missing")
+    subst = {str(k): str(v) for k, v in (doc.get("vars") or {}).items()}
+    subst.update(values)
+
+    def fill(s: str, where: str) -> str:
+        def rep(m: re.Match) -> str:
+            if m.group(1) not in subst:
+                raise GraphError(f"{path}: {where}: no value for placeholder {{{m.group(1)}}}")
+            return subst[m.group(1)]
+
+        return re.sub(r"\{(\w+)\}", rep, str(s))
+
+    procs = []
+    names = set()
+    for i, p in enumerate(doc["processes"]):
+        where = f"processes[{i}]"
+        if not isinstance(p, dict) or "name" not in p or "cmd" not in p:
+            raise GraphError(f"{path}: {where}: 'name' and 'cmd' are required")
+        if p["name"] in names:
+            raise GraphError(f"{path}: {where}: duplicate name {p['name']!r}")
+        names.add(p["name"])
+        after = list(p.get("after") or [])
+        for a in after:
+            if a not in names:
+                raise GraphError(f"{path}: {where}.after: {a!r} is not an earlier process")
+        procs.append(ProcSpec(
+            name=p["name"], cmd=[fill(c, f"{where}.cmd") for c in p["cmd"]], ready=dict(p.get("ready") or {}),
+            after=after, output=str(p.get("output", "show")), ends_graph=bool(p.get("ends_graph", False)),
+            required=bool(p.get("required", True)),
+            env={k: fill(v, f"{where}.env.{k}") for k, v in (p.get("env") or {}).items()}))
+    return Graph(name=str(doc.get("name", path.stem)), processes=procs,
+                 env={k: fill(v, f"env.{k}") for k, v in (doc.get("env") or {}).items()},
+                 grace=float(doc.get("grace", 5.0)), ready_timeout=float(doc.get("ready_timeout", 60.0)))
+
+
+class _Running:
+    def __init__(self, spec: ProcSpec, popen: subprocess.Popen, log_path: Path) -> None:
+        self.spec = spec
+        self.popen = popen
+        self.log_path = log_path
+        self.ready = threading.Event()
+        self.lines = 0
+
+
+class Supervisor:
+    def __init__(self, graph: Graph, log_dir: Path, root: Path, out=None) -> None:
+        self.graph = graph
+        self.log_dir = log_dir
+        self.root = root
+        self.out = out
+        self.running: list[_Running] = []
+        self._print_lock = threading.Lock()
+        self._stop = threading.Event()
+        self.failed: list[str] = []
+
+    def say(self, name: str, line: str) -> None:
+        with self._print_lock:
+            out = self.out or sys.stdout
+            out.write(f"[{name}] {line}\n")
+            out.flush()
+
+    def _pump(self, r: _Running) -> None:
+        spec = r.spec
+        pattern = re.compile(spec.ready["log"]) if "log" in spec.ready else None
+        show_re = re.compile(spec.output[len("filter:"):]) if spec.output.startswith("filter:") else None
+        with open(r.log_path, "w") as log:
+            for raw in iter(r.popen.stdout.readline, b""):
+                line = raw.decode(errors="replace").rstrip("\n")
+                log.write(line + "\n")
+                log.flush()
+                r.lines += 1
+                if pattern is not None and not r.ready.is_set() and pattern.search(line):
+                    r.ready.set()
+                if spec.output == "show" or (show_re is not None and show_re.search(line)):
+                    self.say(spec.name, line)
+
+    def _wait_ready(self, r: _Running) -> bool:
+        spec = r.spec
+        end = time.monotonic() + self.graph.ready_timeout
+        while time.monotonic() < end and not self._stop.is_set():
+            if r.popen.poll() is not None and not r.ready.is_set():
+                return False
+            if "log" in spec.ready:
+                if r.ready.wait(0.05):
+                    return True
+            elif "port" in spec.ready:
+                with socket.socket() as s:
+                    s.settimeout(0.2)
+                    if s.connect_ex(("127.0.0.1", int(spec.ready["port"]))) == 0:
+                        r.ready.set()
+                        return True
+                time.sleep(0.05)
+            else:
+                time.sleep(float(spec.ready.get("delay", 0.0)))
+                r.ready.set()
+                return True
+        return False
+
+    def start(self) -> bool:
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        env = dict(os.environ, PYTHONUNBUFFERED="1", **self.graph.env)
+        for spec in self.graph.processes:
+            if self._stop.is_set():
+                return False
+            cmd = [resolve_exe(spec.cmd[0], self.root)] + spec.cmd[1:]
+            popen = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                     env=dict(env, **spec.env), start_new_session=True)
+            r = _Running(spec, popen, self.log_dir / f"{spec.name}.log")
+            self.running.append(r)
+            threading.Thread(target=self._pump, args=(r,), daemon=True).start()
+            self.say("supervisor", f"started {spec.name} (pid {popen.pid}): {' '.join(spec.cmd)}")
+            if not self._wait_ready(r):
+                self.say("supervisor", f"{spec.name} did not become ready (exit {popen.poll()}); "
+                                       f"see {r.log_path}")
+                self.failed.append(spec.name)
+                return False
+        return True
+
+    def wait(self, timeout: float | None = None) -> None:
+        """Block until a process marked ends_graph exits, a required process dies, or a signal arrives."""
+        end = None if timeout is None else time.monotonic() + timeout
+        while not self._stop.is_set():
+            for r in self.running:
+                rc = r.popen.poll()
+                if rc is None:
+                    continue
+                if r.spec.ends_graph:
+                    if rc != 0:
+                        self.failed.append(r.spec.name)
+                    self.say("supervisor", f"{r.spec.name} finished (exit {rc}); shutting down")
+                    return
+                if r.spec.required and r.spec.name not in self.failed:
+                    self.failed.append(r.spec.name)
+                    self.say("supervisor", f"{r.spec.name} exited unexpectedly (exit {rc}); shutting down")
+                    return
+            if end is not None and time.monotonic() > end:
+                self.say("supervisor", "time limit reached; shutting down")
+                return
+            self._stop.wait(0.1)
+
+    def request_stop(self, *_a) -> None:
+        self._stop.set()
+
+    def shutdown(self) -> dict[str, int | None]:
+        codes: dict[str, int | None] = {}
+        for r in reversed(self.running):
+            codes[r.spec.name] = stop_group(r.popen, self.graph.grace)
+        return codes
+
+
+def stop_group(p: subprocess.Popen, grace: float) -> int | None:
+    """SIGINT the process group, then SIGTERM, then SIGKILL; returns the exit code."""
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
+        if p.poll() is not None:
+            break
+        try:
+            os.killpg(p.pid, sig)
+        except ProcessLookupError:
+            break
+        try:
+            p.wait(grace if sig != signal.SIGKILL else None)
+        except subprocess.TimeoutExpired:
+            continue
+    # the group may still hold children that ignored their parent's exit
+    try:
+        os.killpg(p.pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    return p.poll()
+
+
+def run_graph(path: str | Path, values: dict[str, str], log_dir: Path, root: Path,
+              timeout: float | None = None) -> int:
+    graph = load_graph(path, values)
+    sup = Supervisor(graph, log_dir, root)
+    old = {s: signal.signal(s, sup.request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        if sup.start():
+            sup.wait(timeout)
+    finally:
+        codes = sup.shutdown()
+        for s, h in old.items():
+            signal.signal(s, h)
+    sup.say("supervisor", "all processes stopped: " + ", ".join(f"{k}={v}" for k, v in codes.items()))
+    return 1 if sup.failed else 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="supervisor", description=__doc__.split("\n\n")[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    r = sub.add_parser("run", help="run a graph file")
+    r.add_argument("graph")
+    r.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
+    r.add_argument("--logs", default="log/supervisor")
+    r.add_argument("--timeout", type=float, default=None, help="shut down after S seconds")
+    d = sub.add_parser("demo", help="the simulated-OR demo (see README)")
+    d.add_argument("--task", default="P-B-G-P")
+    d.add_argument("--seed", default="0")
+    d.add_argument("--out", default="demo_out")
+    args = ap.parse_args(argv)
+    root = Path(os.environ.get("FULLPERC_ROOT", os.getcwd()))
+    try:
+        if args.cmd == "run":
+            values = dict(kv.split("=", 1) for kv in args.set)
+            return run_graph(args.graph, values, Path(args.logs), root, args.timeout)
+        from .demo import run_demo
+
+        return run_demo(task=args.task, seed=args.seed, out=Path(args.out), root=root)
+    except GraphError as e:
+        print(f"supervisor: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

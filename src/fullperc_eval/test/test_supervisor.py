@@ -1,0 +1,110 @@
+"""The supervisor starts a graph in order, waits for readiness, and leaves no process behind."""
+
+import io
+import os
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from fullperc_eval.supervisor import GraphError, Supervisor, load_graph, run_graph
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    # a zombie is gone for our purposes
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
+    except OSError:
+        return False
+
+
+def _graph(tmp_path: Path, body: str) -> Path:
+    g = tmp_path / "g.yaml"
+    g.write_text(textwrap.dedent(body).replace("PY", sys.executable))
+    return g
+
+
+def test_order_readiness_and_clean_shutdown(tmp_path):
+    pidfile = tmp_path / "pids"
+    g = _graph(tmp_path, f"""
+        name: t
+        processes:
+          - name: stubborn
+            # ignores SIGINT and SIGTERM, and has a child: only the group SIGKILL ends it
+            cmd: [PY, -c, "import os,signal,subprocess,sys,time; signal.signal(signal.SIGINT, signal.SIG_IGN);
+                   signal.signal(signal.SIGTERM, signal.SIG_IGN);
+                   c=subprocess.Popen([sys.executable,'-c','import time; time.sleep(600)']);
+                   open('{pidfile}','a').write(f'{{os.getpid()}} {{c.pid}}\\\\n');
+                   print('up', flush=True); time.sleep(600)"]
+            ready: {{log: "^up$"}}
+          - name: listener
+            cmd: [PY, -c, "import socket,time; s=socket.socket();
+                   s.bind(('127.0.0.1', 0)); open('{tmp_path}/port','w').write(str(s.getsockname()[1])); s.listen();
+                   print('listening', flush=True); time.sleep(600)"]
+            after: [stubborn]
+            ready: {{log: listening}}
+          - name: task
+            cmd: [PY, -c, "print('task {{task}} done')"]
+            after: [listener]
+            ends_graph: true
+        grace: 0.5
+        """)
+    out = io.StringIO()
+    graph = load_graph(g, {"task": "P-B-G-P"})
+    sup = Supervisor(graph, tmp_path / "logs", tmp_path, out=out)
+    assert sup.start()
+    sup.wait(timeout=120)
+    codes = sup.shutdown()
+    text = out.getvalue()
+    assert text.index("started stubborn") < text.index("started listener") < text.index("started task")
+    assert "[task] task P-B-G-P done" in text
+    assert sup.failed == []
+    assert codes["task"] == 0 and codes["stubborn"] is not None
+    for line in pidfile.read_text().split("\n"):
+        for pid in map(int, line.split()):
+            assert not _alive(pid), f"process {pid} survived the supervisor"
+    assert (tmp_path / "logs" / "listener.log").read_text().startswith("listening\n")
+
+
+def test_crash_of_required_process_fails_run(tmp_path):
+    g = _graph(tmp_path, """
+        processes:
+          - name: ok
+            cmd: [PY, -c, "import time; print('ready', flush=True); time.sleep(600)"]
+            ready: {log: ready}
+          - name: crash
+            cmd: [PY, -c, "import sys, time; time.sleep(0.2); sys.exit(3)"]
+        grace: 0.5
+        """)
+    assert run_graph(g, {}, tmp_path / "logs", tmp_path, timeout=60) == 1
+
+
+def test_never_ready_fails_and_names_log(tmp_path, capsys):
+    g = _graph(tmp_path, """
+        processes:
+          - name: silent
+            cmd: [PY, -c, "import sys; print('oops', flush=True); sys.exit(1)"]
+            ready: {log: never}
+        grace: 0.5
+        """)
+    assert run_graph(g, {}, tmp_path / "logs", tmp_path) == 1
+    assert "silent did not become ready" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("body,msg", [
+    ("processes: 3", "'processes'"),
+    ("processes:\n  - name: a\n", "'name' and 'cmd'"),
+    ("processes:\n  - {name: a, cmd: [x], after: [b]}\n", "not an earlier process"),
+    ("processes:\n  - {name: a, cmd: ['{nope}']}\n", "placeholder {nope}"),
+])
+def test_bad_graph_names_file_and_field(tmp_path, body, msg):
+    g = tmp_path / "bad.yaml"
+    g.write_text(body)
+    with pytest.raises(GraphError) as e:
+        load_graph(g, {})
+    assert str(g) in str(e.value) and msg in str(e.value)
