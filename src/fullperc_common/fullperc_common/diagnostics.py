@@ -27,8 +27,10 @@ class Diagnostics:
         self._timer = node.create_timer(period_s, self.publish)
 
     def set(self, name: str, level: int, message: str, values: dict | None = None) -> None:
+        # DiagnosticStatus.level is a byte; accept the message constants (bytes) and plain ints alike
+        lvl = level if isinstance(level, bytes) else bytes([int(level)])
         st = DiagnosticStatus(
-            level=bytes([level]) if isinstance(DiagnosticStatus().level, bytes) else level,
+            level=lvl,
             name=f"{self._node.get_name()}: {name}",
             message=message,
             hardware_id=self._hw,

@@ -1,0 +1,42 @@
+"""Diagnostics.set accepts both the message's byte constants and plain ints."""
+
+from diagnostic_msgs.msg import DiagnosticArray
+
+from fullperc_common import diagnostics
+
+
+class _FakeNode:
+    def __init__(self):
+        self.published = []
+
+    def get_name(self):
+        return "n"
+
+    def create_publisher(self, *_a):
+        node = self
+
+        class P:
+            def publish(self, msg):
+                node.published.append(msg)
+
+        return P()
+
+    def create_timer(self, *_a):
+        return None
+
+    def get_clock(self):
+        import rclpy.clock
+
+        return rclpy.clock.Clock()
+
+
+def test_levels_bytes_and_int():
+    node = _FakeNode()
+    d = diagnostics.Diagnostics(node)
+    d.set("a", diagnostics.WARN, "warned", {"count": 3})
+    d.set("b", 2, "error")
+    d.publish()
+    arr: DiagnosticArray = node.published[-1]
+    levels = {s.name: s.level for s in arr.status}
+    assert levels == {"n: a": bytes([1]), "n: b": bytes([2])}
+    assert arr.status[0].values[0].key == "count" and arr.status[0].values[0].value == "3"
