@@ -1,0 +1,93 @@
+"""Fusion filter cost: median time of one filter step per kind, and samples/s through TargetPipeline.
+
+Baseline (same run): a bare 6-state constant-velocity numpy KF step (predict + 3-D update written
+inline, no validation, no NIS, no biased estimator) -- the floor for a Python/numpy filter step.
+Run: python bench/bench_filter.py
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from benchlib import emit, median_time
+from scipy.spatial.transform import Rotation as Rot
+
+from fullperc_common.transforms import inv_T, make_T
+from fullperc_fusion.filters import FusionFilter
+from fullperc_fusion.pipeline import TargetConfig, TargetPipeline
+
+N = 2000
+
+
+def bare_kf_steps(zs, dt=1 / 120, q=0.05, r=9e-8):
+    I3 = np.eye(3)
+    F = np.block([[I3, dt * I3], [0 * I3, I3]])
+    Q = q * np.block([[dt**3 / 3 * I3, dt**2 / 2 * I3], [dt**2 / 2 * I3, dt * I3]])
+    H = np.hstack([I3, 0 * I3])
+    R = r * I3
+    x = np.r_[zs[0], 0, 0, 0]
+    P = np.eye(6) * 1e-4
+    for z in zs:
+        x = F @ x
+        P = F @ P @ F.T + Q
+        K = P @ H.T @ np.linalg.inv(H @ P @ H.T + R)
+        x = x + K @ (z - H @ x)
+        P = (np.eye(6) - K @ H) @ P
+    return x
+
+
+def filter_steps(kind, zs, paired):
+    f = FusionFilter(kind)
+    for k, z in enumerate(zs):
+        t = (k + 1) * 8_333_333
+        if paired:
+            f.step(z_global=z, t_global=t, z_local=z, t_local=t)
+        else:
+            f.step(z_global=z, t_global=t)
+
+
+def pipeline_events(seconds=10.0):
+    T_omc_base = make_T([1.0, 0.5, 0.8], Rot.from_euler("z", 30, degrees=True).as_quat())
+    T_omc_ots = make_T([3.0, 1.0, 1.5], Rot.from_euler("z", 150, degrees=True).as_quat())
+    T_ots_base = inv_T(T_omc_ots) @ T_omc_base
+    rng = np.random.default_rng(0)
+    ev = []
+    for k in range(int(seconds * 120)):
+        t = k / 120
+        ns = 10**18 + round(t * 1e9)
+        Tt = make_T([0.5 + 0.1 * np.cos(t), 0.1 * np.sin(t), 0.3])
+        Tm = T_omc_base @ Tt
+        Tm[:3, 3] += rng.normal(0, 3e-4, 3)
+        ev += [("omc", "base", ns, T_omc_base), ("omc", "tool", ns, Tm)]
+        if k % 2 == 0:
+            ev += [("ots", "base", ns + 3_000_000, T_ots_base),
+                   ("ots", "tool", ns + 3_000_000, inv_T(T_omc_ots) @ T_omc_base @ Tt)]
+    return ev
+
+
+def run_pipeline(ev, filters):
+    pipe = TargetPipeline(TargetConfig(filters=filters))
+    n = 0
+    for dev, body, ns, T in ev:
+        (pipe.push_omc if dev == "omc" else pipe.push_ots)(body, ns, T)
+        n += len(pipe.poll())
+    return n + len(pipe.flush())
+
+
+def main() -> None:
+    zs = np.random.default_rng(1).normal(0, 1e-3, size=(N, 3)) + [0.5, 0.2, 0.3]
+    base = median_time(lambda: bare_kf_steps(zs), repeats=5) / N
+    emit("bare_numpy_kf6_step", base * 1e6, "us")
+    for kind in ("kf", "bkf", "ckf", "cbkf"):
+        for paired in (False, True):
+            t = median_time(lambda kind=kind, paired=paired: filter_steps(kind, zs, paired), repeats=5) / N
+            emit(f"{kind}_step_{'paired' if paired else 'global'}", t * 1e6, "us", baseline=base * 1e6)
+    ev = pipeline_events()
+    n_in = sum(1 for e in ev if e[1] == "tool")
+    for filters in (("cbkf",), ("cbkf", "ckf", "bkf", "kf", "omc")):
+        dt = median_time(lambda filters=filters: run_pipeline(ev, filters), repeats=3)
+        emit(f"pipeline_samples_per_s_{'+'.join(filters)}", n_in / dt, "samples/s",
+             note="target samples (OMC 120 Hz + OTS 60 Hz) pushed, synchronised, fused; real time needs 180/s")
+
+
+if __name__ == "__main__":
+    main()

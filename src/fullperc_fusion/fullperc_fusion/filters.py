@@ -1,0 +1,358 @@
+"""One Kalman filter, four configurations: KF, BKF, CKF, CBKF (paper §3.2, eq. 3-14).
+
+State per target (all in ``base``, metres): x = [p v b] (9 states) with the compensation (bias) term b
+of the global source, or x = [p v] (6 states) without it.
+
+=====  ==========  ===================  =====================================================
+kind   bias state  biased estimator M   meaning
+=====  ==========  ===================  =====================================================
+kf     no          no                   plain constant-velocity KF, both sources measure p
+bkf    no          yes                  biased KF of ref. [29]: x = M x'', P = M P M^T
+ckf    yes         no                   compensated KF: global measures p + b, local measures p
+cbkf   yes         yes                  the paper's method (default)
+=====  ==========  ===================  =====================================================
+
+Equations, with dt from the sample stamps:
+
+* prediction (eq. 9, 10): x' = F x, P' = F P F^T + Q, F = [[I, dt I, 0], [0, I, 0], [0, 0, I]];
+  Q is the white-acceleration constant-velocity model per axis, q_a [[dt^3/3, dt^2/2], [dt^2/2, dt]],
+  plus a bias random walk q_b dt I.
+* measurement (eq. 11): H_global = [I 0 I], H_local = [I 0 0] (without the bias state both are [I 0]);
+  a synchronised (global, local) pair is one stacked update with H = [[H_global], [H_local]].
+  When the two samples of a pair were taken at different stamps, the filter is predicted to the newer
+  one and the older sample, taken ``lag`` seconds earlier, is modelled exactly under constant velocity
+  as p(t - lag) = p(t) - lag v(t): its H row gets -lag I in the velocity block (lag = 0 gives eq. 11).
+* gain and update (eq. 12, 13): G = P' H^T (H P' H^T + R)^-1, x'' = x' + G (y - H x'), and
+  P = (I - G H) P' (I - G H)^T + G R G^T (Joseph form: equal to eq. 12's (I - G H) P' for the optimal
+  gain, but stays symmetric positive semi-definite in floating point).
+* biased estimator (eq. 4-8, 14): M = diag(m_i), m_i = x_i^2 / (var_i + x_i^2) with the unknown x_i
+  replaced by its unbiased estimate x''_i (plug-in, as in Thompson 1968 shrinkage) and var_i = P_ii;
+  x = M x''. (Eq. 6 prints x^b_i = (m_i)^2 x_i; eq. 4 defines x^b = M x, which is what eq. 7 minimises.)
+
+Decisions where the paper leaves room (each pinned by a test in test_filters.py):
+
+* Eq. (14), second line, reads P_k = M_k P'_k M_k^T with the *predicted* P'_k. We use the *updated*
+  P_k of eq. (12): P_k = M_k P_k M_k^T. Reasons: (a) with P'_k the information of every measurement is
+  thrown away -- P never shrinks, P_pp grows by Q each step without bound, the gain tends to I and the
+  filter degenerates into following the raw measurements; (b) eq. (12) computes P_k and nothing else
+  would use it; (c) eq. (5) takes the MSE of x^b = M x'' whose unbiased part has covariance P_k
+  (updated), so M P_k M^T is the covariance of the biased estimate. ``eq14_covariance='prior'``
+  reproduces the literal reading for the test that shows the divergence.
+* What M does to the gain: P = M P M^T scales row/column i of P by m_i, so the next prior P' and with
+  it the gain for state i shrink too -- a state whose estimate is small compared with its uncertainty
+  loses value *and* gain, step after step. Applied to every state as eq. (4) literally says, this
+  breaks the filter in two ways (measured on the synthetic B->P stream of test_filters.py):
+  - velocity: a target moving at a few cm/s has |v| comparable to sigma_v, so m_v ~ 0.03-0.5 at every
+    step; the velocity and its gain collapse, the constant-velocity model degenerates into a random
+    walk with tiny Q, and the estimate lags the moving target by several millimetres;
+  - bias: b starts at 0, so m_b = 0 and the b rows of P are zeroed; b = 0 is absorbing, the
+    compensation is never learned, and whatever was learned is multiplied by m_b < 1 at every
+    global-only step -- exactly when the compensation is needed (the B->P case).
+  Hence M acts on the position block only (``shrink_blocks``, default ("p",)). There, eq. (7) is a
+  shrinkage towards the origin of ``base``: positions are tens of centimetres with var ~1e-8 m^2, so
+  m = 1 - O(1e-7) and BKF stays within micrometres of KF, CBKF of CKF -- the same pattern as the
+  paper's Table 1 (BKF within 0.02 mm of KF, CBKF within 0.01 mm of CKF), which a velocity or bias
+  shrinkage could not produce. The other blocks stay selectable for experiments.
+* Hops: the normalised innovation squared of the global rows, NIS_g = y_g^T S_gg^-1 y_g, is compared
+  with a chi^2 gate (3 dof, 99.9 % -> 16.27). A hop is flagged for every kind. With a bias state and
+  ``hop_to_bias`` the bias variance is raised by y_g^2 (per axis) before the gain is computed, so a
+  step of the global source goes into b rather than p: hops come from the set of seeing cameras
+  changing, i.e. from the sensor, while the target moves smoothly. This is how the compensated
+  filters "counter hop errors when only global information is accessible" (paper §3.2).
+* A gap longer than ``max_gap_s`` without any sample re-initialises p and v from the next sample
+  (constant-velocity extrapolation over seconds is meaningless); b and its variance are kept.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+FILTER_KINDS = ("kf", "bkf", "ckf", "cbkf")
+SOURCE_GLOBAL = 1  # bit values as in fullperc_msgs/FusionStatus
+SOURCE_LOCAL = 2
+
+_I3 = np.eye(3)
+
+
+@dataclass
+class FilterParams:
+    """Noise and behaviour parameters; defaults are physical guesses for the simulated OR, not fits.
+
+    accel_noise  q_a, white-acceleration spectral density [m^2/s^3]: 0.05 lets a hand-guided or
+                 robot-carried tool change speed by ~0.2 m/s within a second.
+    bias_walk    q_b, bias random-walk density [m^2/s]: 1e-7 -> the OMC error drifts ~0.3 mm per
+                 sqrt(s) as the target moves through differently calibrated parts of the room.
+    global_std   OMC white noise per axis [m] (sub-millimetre jitter; the systematic part is b).
+    local_std    OTS chain noise per axis [m] (Vega ~0.1 mm RMS plus calibration of the chain).
+    init_*_std   prior standard deviations of p [m], v [m/s], b [m] at initialization.
+    hop_gate     chi^2 threshold on the 3-dof NIS of the global rows (99.9 % quantile).
+    """
+
+    accel_noise: float = 0.05
+    bias_walk: float = 1e-7
+    global_std: float = 0.3e-3
+    local_std: float = 0.15e-3
+    init_pos_std: float = 5e-3
+    init_vel_std: float = 0.1
+    init_bias_std: float = 5e-3
+    hop_gate: float = 16.266
+    hop_to_bias: bool = True
+    max_gap_s: float = 0.5
+    shrink_blocks: tuple[str, ...] = ("p",)
+    eq14_covariance: str = "posterior"   # 'posterior' (ours) | 'prior' (literal eq. 14, diverges)
+
+    def validate(self) -> FilterParams:
+        for name in ("accel_noise", "bias_walk", "init_pos_std", "init_vel_std", "init_bias_std"):
+            v = float(getattr(self, name))
+            if not (np.isfinite(v) and v >= 0):
+                raise ValueError(f"filter parameter {name} must be finite and >= 0, got {v!r}")
+        for name in ("global_std", "local_std", "hop_gate", "max_gap_s"):
+            v = float(getattr(self, name))
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"filter parameter {name} must be finite and > 0, got {v!r}")
+        if not set(self.shrink_blocks) <= {"p", "v", "b"}:
+            raise ValueError(f"shrink_blocks must be a subset of ('p', 'v', 'b'), got {self.shrink_blocks!r}")
+        if self.eq14_covariance not in ("posterior", "prior"):
+            raise ValueError(f"eq14_covariance must be 'posterior' or 'prior', got {self.eq14_covariance!r}")
+        return self
+
+
+# ---------------------------------------------------------------------------------------------
+# The equations as plain functions, so tests can check each step on its own.
+
+def transition(dt: float, has_bias: bool) -> np.ndarray:
+    """F of eq. (9): constant velocity for p, v; b constant."""
+    n = 9 if has_bias else 6
+    F = np.eye(n)
+    F[0:3, 3:6] = dt * _I3
+    return F
+
+
+def process_noise(dt: float, accel_noise: float, bias_walk: float, has_bias: bool) -> np.ndarray:
+    """Q of eq. (10): white-acceleration CV model per axis plus a bias random walk."""
+    n = 9 if has_bias else 6
+    Q = np.zeros((n, n))
+    qa = accel_noise
+    Q[0:3, 0:3] = qa * dt**3 / 3 * _I3
+    Q[0:3, 3:6] = Q[3:6, 0:3] = qa * dt**2 / 2 * _I3
+    Q[3:6, 3:6] = qa * dt * _I3
+    if has_bias:
+        Q[6:9, 6:9] = bias_walk * dt * _I3
+    return Q
+
+
+def measurement_matrix(source: int, has_bias: bool, lag_s: float = 0.0) -> np.ndarray:
+    """H of eq. (11) for one source; ``lag_s`` > 0 for a sample older than the filter time."""
+    n = 9 if has_bias else 6
+    H = np.zeros((3, n))
+    H[:, 0:3] = _I3
+    H[:, 3:6] = -lag_s * _I3
+    if has_bias and source == SOURCE_GLOBAL:
+        H[:, 6:9] = _I3
+    return H
+
+
+def biased_factors(x: np.ndarray, var: np.ndarray) -> np.ndarray:
+    """m_i = x_i^2 / (var_i + x_i^2) of eq. (7); 1 where var_i = 0 (nothing to trade)."""
+    x = np.asarray(x, dtype=float)
+    var = np.asarray(var, dtype=float)
+    x2 = x * x
+    den = var + x2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        m = np.where(den > 0, x2 / np.where(den > 0, den, 1.0), 1.0)
+    return np.where(var <= 0, 1.0, m)
+
+
+def kalman_update(x: np.ndarray, P: np.ndarray, z: np.ndarray, H: np.ndarray, R: np.ndarray):
+    """Eq. (12)-(13): returns x'', P (Joseph form), G, innovation y, S."""
+    y = z - H @ x
+    S = H @ P @ H.T + R
+    G = np.linalg.solve(S, H @ P).T   # P H^T S^-1, S symmetric
+    x_new = x + G @ y
+    IKH = np.eye(len(x)) - G @ H
+    P_new = IKH @ P @ IKH.T + G @ R @ G.T
+    return x_new, 0.5 * (P_new + P_new.T), G, y, S
+
+
+# ---------------------------------------------------------------------------------------------
+
+@dataclass
+class Step:
+    """Result of one filter step (one synchronizer item)."""
+
+    t_ns: int
+    p: np.ndarray
+    v: np.ndarray
+    b: np.ndarray                  # zeros for kinds without a bias state
+    P: np.ndarray                  # full state covariance after the step
+    sources: int                   # SOURCE_GLOBAL | SOURCE_LOCAL bits used
+    innovation: np.ndarray = field(default_factory=lambda: np.zeros(3))  # global rows if any, else local
+    nis: float = 0.0               # NIS of the whole (stacked) update, dof = rows of H
+    nis_global: float = 0.0        # NIS of the global rows alone (the hop test)
+    hop: bool = False
+    reset: bool = False            # this sample (re-)initialised the state; no update was made
+    m: np.ndarray | None = None    # diagonal of M (biased kinds)
+
+    @property
+    def pos_cov(self) -> np.ndarray:
+        return self.P[0:3, 0:3]
+
+
+class FusionFilter:
+    """The configurable filter; ``kind`` is one of :data:`FILTER_KINDS`.
+
+    Call :meth:`step` once per synchronised item with the global and/or the local position sample
+    (metres, in ``base``) and their acquisition stamps (int ns). Steps must come in non-decreasing
+    time; the synchronizer guarantees it, a direct caller gets ValueError otherwise.
+    """
+
+    def __init__(self, kind: str = "cbkf", params: FilterParams | None = None) -> None:
+        if kind not in FILTER_KINDS:
+            raise ValueError(f"filter kind '{kind}' is not one of {FILTER_KINDS}")
+        self.kind = kind
+        self.params = (params or FilterParams()).validate()
+        self.has_bias = kind in ("ckf", "cbkf")
+        self.biased = kind in ("bkf", "cbkf")
+        self.n = 9 if self.has_bias else 6
+        blocks = {"p": range(0, 3), "v": range(3, 6), "b": range(6, 9)}
+        self._shrink_idx = np.array(
+            sorted(i for blk in self.params.shrink_blocks for i in blocks[blk] if i < self.n), dtype=int)
+        self.reset()
+
+    def reset(self) -> None:
+        self.x = np.zeros(self.n)
+        self.P = np.eye(self.n)
+        self.t_ns: int | None = None
+
+    @property
+    def initialized(self) -> bool:
+        return self.t_ns is not None
+
+    @property
+    def bias(self) -> np.ndarray:
+        return self.x[6:9].copy() if self.has_bias else np.zeros(3)
+
+    def _init_state(self, t_ns: int, z_global, z_local, keep_bias: bool, dt: float) -> Step:
+        pr = self.params
+        b = self.x[6:9].copy() if (self.has_bias and keep_bias) else np.zeros(3)
+        Pbb = self.P[6:9, 6:9] + pr.bias_walk * dt * _I3 if (self.has_bias and keep_bias) else \
+            pr.init_bias_std**2 * _I3
+        p = np.asarray(z_local if z_local is not None else np.asarray(z_global) - b, dtype=float)
+        self.x = np.zeros(self.n)
+        self.x[0:3] = p
+        self.P = np.zeros((self.n, self.n))
+        self.P[0:3, 0:3] = pr.init_pos_std**2 * _I3
+        self.P[3:6, 3:6] = pr.init_vel_std**2 * _I3
+        if self.has_bias:
+            self.x[6:9] = b
+            self.P[6:9, 6:9] = Pbb
+        self.t_ns = int(t_ns)
+        src = (SOURCE_GLOBAL if z_global is not None else 0) | (SOURCE_LOCAL if z_local is not None else 0)
+        return Step(self.t_ns, p.copy(), np.zeros(3), self.bias, self.P.copy(), src, reset=True)
+
+    def step(self, z_global=None, t_global: int | None = None, z_local=None, t_local: int | None = None) -> Step:
+        """Predict to the newest stamp given and update with the sample(s) given."""
+        if z_global is None and z_local is None:
+            raise ValueError("step needs a global or a local sample")
+        if z_global is not None and t_global is None or z_local is not None and t_local is None:
+            raise ValueError("every sample needs its stamp")
+        zg = None if z_global is None else np.asarray(z_global, dtype=float).reshape(3)
+        zl = None if z_local is None else np.asarray(z_local, dtype=float).reshape(3)
+        for z in (zg, zl):
+            if z is not None and not np.all(np.isfinite(z)):
+                raise ValueError("non-finite measurement")
+        t = max(int(s) for s in (t_global, t_local) if s is not None)
+        pr = self.params
+        if self.t_ns is None:
+            return self._init_state(t, zg, zl, keep_bias=False, dt=0.0)
+        dt = (t - self.t_ns) * 1e-9
+        if dt < 0:
+            raise ValueError(f"time went backwards by {-dt:.6f} s (filter at {self.t_ns}, sample at {t})")
+        if dt > pr.max_gap_s:
+            return self._init_state(t, zg, zl, keep_bias=True, dt=dt)
+
+        # prediction, eq. (9)-(10)
+        F = transition(dt, self.has_bias)
+        x_pred = F @ self.x
+        P_pred = F @ self.P @ F.T + process_noise(dt, pr.accel_noise, pr.bias_walk, self.has_bias)
+
+        # measurement rows, eq. (11), global first
+        Hs, zs, Rs = [], [], []
+        if zg is not None:
+            Hs.append(measurement_matrix(SOURCE_GLOBAL, self.has_bias, (t - int(t_global)) * 1e-9))
+            zs.append(zg)
+            Rs.append(pr.global_std**2)
+        if zl is not None:
+            Hs.append(measurement_matrix(SOURCE_LOCAL, self.has_bias, (t - int(t_local)) * 1e-9))
+            zs.append(zl)
+            Rs.append(pr.local_std**2)
+        H = np.vstack(Hs)
+        z = np.concatenate(zs)
+        R = np.diag(np.repeat(Rs, 3))
+
+        y = z - H @ x_pred
+        S = H @ P_pred @ H.T + R
+        nis = float(y @ np.linalg.solve(S, y))
+        nis_g = 0.0
+        hop = False
+        if zg is not None:
+            yg, Sg = y[0:3], S[0:3, 0:3]
+            nis_g = float(yg @ np.linalg.solve(Sg, yg))
+            hop = nis_g > pr.hop_gate
+            if hop and self.has_bias and pr.hop_to_bias:
+                P_pred = P_pred.copy()
+                P_pred[6:9, 6:9] += np.diag(yg * yg)
+
+        # gain and update, eq. (12)-(13)
+        x_upd, P_upd, _G, y, _S = kalman_update(x_pred, P_pred, z, H, R)
+
+        # biased estimator, eq. (14) -- see the module docstring for the covariance decision
+        m = None
+        if self.biased:
+            m = np.ones(self.n)
+            idx = self._shrink_idx
+            m[idx] = biased_factors(x_upd[idx], np.diag(P_upd)[idx])
+            x_upd = m * x_upd
+            P_base = P_upd if pr.eq14_covariance == "posterior" else P_pred
+            P_upd = P_base * np.outer(m, m)
+
+        if not (np.all(np.isfinite(x_upd)) and np.all(np.isfinite(P_upd))):
+            self.reset()
+            raise FloatingPointError("filter produced a non-finite state; it was reset")
+        self.x, self.P, self.t_ns = x_upd, P_upd, t
+        src = (SOURCE_GLOBAL if zg is not None else 0) | (SOURCE_LOCAL if zl is not None else 0)
+        return Step(t, self.x[0:3].copy(), self.x[3:6].copy(), self.bias, self.P.copy(), src,
+                    innovation=y[0:3].copy(), nis=nis, nis_global=nis_g, hop=hop, m=m)
+
+
+class PassThrough:
+    """The ``omc`` "filter": the raw global measurement, for comparison (no state, no local data)."""
+
+    kind = "omc"
+
+    def __init__(self, params: FilterParams | None = None) -> None:
+        self.params = (params or FilterParams()).validate()
+        self.t_ns: int | None = None
+
+    def reset(self) -> None:
+        self.t_ns = None
+
+    def step(self, z_global=None, t_global=None, z_local=None, t_local=None) -> Step | None:
+        if z_global is None:
+            return None
+        zg = np.asarray(z_global, dtype=float).reshape(3)
+        if not np.all(np.isfinite(zg)):
+            raise ValueError("non-finite measurement")
+        self.t_ns = int(t_global)
+        P = np.zeros((6, 6))
+        P[0:3, 0:3] = np.eye(3) * self.params.global_std**2
+        return Step(self.t_ns, zg.copy(), np.zeros(3), np.zeros(3), P, SOURCE_GLOBAL)
+
+
+def make_filter(kind: str, params: FilterParams | None = None):
+    """A filter by name: one of :data:`FILTER_KINDS` or 'omc' (pass-through)."""
+    if kind == "omc":
+        return PassThrough(params)
+    return FusionFilter(kind, params)

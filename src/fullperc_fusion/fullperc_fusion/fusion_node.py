@@ -1,0 +1,304 @@
+"""fusion_node: driver poses in, fused target poses in ``base`` out. A thin wrapper of TargetPipeline.
+
+Subscribes (per target, shared between targets where the topic is the same):
+  /omc/<body>/pose  for the target's OMC body, the base body and the OTS rig body (PoseStamped, ``omc``)
+  /ots/<tool>/pose  for the target's OTS tool and the base tool (PoseStamped, ``ots``)
+  /fullperc/<target>/region (fullperc_msgs/Region, optional: fills FusionStatus.region)
+Publishes:
+  /fullperc/<target>/pose      PoseStamped, frame ``base``, stamp = acquisition stamp of the newest sample
+  /fullperc/<target>/pose_cov  PoseWithCovarianceStamped (same stamp/frame)
+  /fullperc/<target>/status    fullperc_msgs/FusionStatus
+  /fullperc/<target>/<filter>/pose and .../status  for every filter listed in ``filters`` (side by side)
+  /diagnostics                 one status per target: initialization, rejected input and why, silent sources
+Service:
+  ~/initialize (std_srvs/Trigger) re-estimates the static links of every target from the next samples.
+
+Parameters (defaults in config/fusion.yaml; names of nested ones use dots):
+  targets [tool]; <target>.omc_body, <target>.ots_tool (default: the target name)
+  omc_base_body base, omc_rig_body ots_rig, ots_base_tool base
+  local_chain static|tracked|direct, init_samples 30, T_rig_ots / T_base_ots [x y z qx qy qz qw] (optional)
+  filter cbkf|ckf|bkf|kf|omc (primary), filters [..] (side-by-side extras, optional)
+  noise.accel, noise.bias_walk, noise.global_std, noise.local_std, init.pos_std, init.vel_std,
+  init.bias_std, hop_gate, hop_to_bias, max_gap (see filters.FilterParams)
+  slop [s], reorder_delay [s], clock stamps|host, idle_flush [s], stale_timeout [s]
+  qos_reliability reliable|best_effort, qos_depth
+
+``clock``: with ``stamps`` (default) the synchronizer's notion of "now" is the newest stamp received,
+so output depends only on the data (live, replayed bags, simulated time alike); after ``idle_flush``
+seconds without any target sample everything pending is flushed. With ``host`` "now" is the node
+clock, for deployments where the stamps are on that clock and latency must not depend on traffic.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+import rclpy
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from std_srvs.srv import Trigger
+
+from fullperc_common import diagnostics as diag
+from fullperc_common.params import ParameterError, declare
+from fullperc_common.ros_conv import ns_to_stamp, pose_msg, pose_to_pq, stamp_to_ns, vector3
+from fullperc_msgs.msg import FusionStatus, Region
+
+from .filters import FilterParams
+from .frame_chain import LOCAL_CHAINS, ChainConfig
+from .pipeline import FILTER_NAMES, FusedOutput, TargetConfig, TargetPipeline
+
+# Diagnostics.set takes an int level (the diagnostic_msgs constants are bytes in rclpy).
+OK, WARN = 0, 1
+_PROBLEM_KEYS = ("rejected_nonfinite", "rejected_nonunit", "rejected_pose", "rejected_stamp", "late", "duplicate",
+                 "local_skipped", "filter_error", "nonfinite_output", "publish_error")
+
+
+def _pose7(value, name: str):
+    if value is None or len(value) == 0:
+        return None
+    if len(value) != 7:
+        raise ParameterError(f"parameter '{name}' must be [x y z qx qy qz qw], got {list(value)}")
+    return (np.asarray(value[:3], float), np.asarray(value[3:], float))
+
+
+class FusionNode(Node):
+    def __init__(self, **kw) -> None:
+        super().__init__("fusion_node", **kw)
+        pos = lambda v: v > 0  # noqa: E731
+        nonneg = lambda v: v >= 0  # noqa: E731
+        targets = list(declare(self, "targets", ["tool"], lambda v: len(v) > 0 and all(v), "at least one name"))
+        omc_base = declare(self, "omc_base_body", "base")
+        omc_rig = declare(self, "omc_rig_body", "ots_rig")
+        ots_base = declare(self, "ots_base_tool", "base")
+        local_chain = declare(self, "local_chain", "static", lambda v: v in LOCAL_CHAINS, f"one of {LOCAL_CHAINS}")
+        init_samples = declare(self, "init_samples", 30, pos, "must be > 0")
+        T_rig_ots = _pose7(self.declare_parameter("T_rig_ots", Parameter.Type.DOUBLE_ARRAY).value, "T_rig_ots")
+        T_base_ots = _pose7(self.declare_parameter("T_base_ots", Parameter.Type.DOUBLE_ARRAY).value, "T_base_ots")
+        primary = declare(self, "filter", "cbkf", lambda v: v in FILTER_NAMES, f"one of {FILTER_NAMES}")
+        extra = self.declare_parameter("filters", Parameter.Type.STRING_ARRAY).value or []
+        for f in extra:
+            if f not in FILTER_NAMES:
+                raise ParameterError(f"parameter 'filters' contains '{f}', not one of {FILTER_NAMES}")
+        d = FilterParams()
+        try:
+            params = FilterParams(
+                accel_noise=declare(self, "noise.accel", d.accel_noise, nonneg, "must be >= 0"),
+                bias_walk=declare(self, "noise.bias_walk", d.bias_walk, nonneg, "must be >= 0"),
+                global_std=declare(self, "noise.global_std", d.global_std, pos, "must be > 0"),
+                local_std=declare(self, "noise.local_std", d.local_std, pos, "must be > 0"),
+                init_pos_std=declare(self, "init.pos_std", d.init_pos_std, nonneg, "must be >= 0"),
+                init_vel_std=declare(self, "init.vel_std", d.init_vel_std, nonneg, "must be >= 0"),
+                init_bias_std=declare(self, "init.bias_std", d.init_bias_std, nonneg, "must be >= 0"),
+                hop_gate=declare(self, "hop_gate", d.hop_gate, pos, "must be > 0"),
+                hop_to_bias=declare(self, "hop_to_bias", d.hop_to_bias),
+                max_gap_s=declare(self, "max_gap", d.max_gap_s, pos, "must be > 0"),
+            ).validate()
+        except ValueError as e:
+            raise ParameterError(str(e)) from e
+        slop = declare(self, "slop", 0.004, nonneg, "must be >= 0 [s]")
+        delay = declare(self, "reorder_delay", 0.05, nonneg, "must be >= 0 [s]")
+        self._clock_mode = declare(self, "clock", "stamps", lambda v: v in ("stamps", "host"), "stamps or host")
+        self._idle_flush = declare(self, "idle_flush", 0.5, pos, "must be > 0 [s]")
+        self._stale = declare(self, "stale_timeout", 1.0, pos, "must be > 0 [s]")
+        self._problem_hold = declare(self, "problem_hold", 10.0, pos, "must be > 0 [s]")
+        rel = declare(self, "qos_reliability", "reliable", lambda v: v in ("reliable", "best_effort"),
+                      "reliable or best_effort")
+        depth = declare(self, "qos_depth", 100, pos, "must be > 0")
+        qos = QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE if rel == "reliable"
+                         else ReliabilityPolicy.BEST_EFFORT)
+
+        self._primary = primary
+        self._extra = list(dict.fromkeys(extra))
+        filters = tuple(dict.fromkeys([primary, *self._extra]))
+        self._diag = diag.Diagnostics(self, hardware_id="fullperc_fusion")
+        self.pipes: dict[str, TargetPipeline] = {}
+        self._pubs: dict[tuple[str, str], tuple] = {}
+        self._region: dict[str, int] = {}
+        self._last_rx: dict[str, dict[str, float]] = {}
+        self._problem_seen: dict[str, dict[str, tuple[int, float]]] = {}
+        self._last_target_rx = time.monotonic()
+        routes_omc: dict[str, list[str]] = {}
+        routes_ots: dict[str, list[str]] = {}
+        for t in targets:
+            omc_body = declare(self, f"{t}.omc_body", t)
+            ots_tool = declare(self, f"{t}.ots_tool", t)
+            chain = ChainConfig(omc_target=omc_body, ots_target=ots_tool, omc_base=omc_base, omc_rig=omc_rig,
+                                ots_base=ots_base, local_chain=local_chain, init_samples=init_samples,
+                                T_rig_ots=T_rig_ots, T_base_ots=T_base_ots)
+            self.pipes[t] = TargetPipeline(TargetConfig(
+                name=t, chain=chain, filters=filters, params=params,
+                slop_ns=int(slop * 1e9), delay_ns=int(delay * 1e9)))
+            for b in (omc_body, omc_base, omc_rig):
+                routes_omc.setdefault(b, []).append(t)
+            for b in (ots_tool, ots_base):
+                routes_ots.setdefault(b, []).append(t)
+            self._pubs[(t, "")] = (
+                self.create_publisher(PoseStamped, f"/fullperc/{t}/pose", qos),
+                self.create_publisher(PoseWithCovarianceStamped, f"/fullperc/{t}/pose_cov", qos),
+                self.create_publisher(FusionStatus, f"/fullperc/{t}/status", qos))
+            for f in self._extra:
+                self._pubs[(t, f)] = (
+                    self.create_publisher(PoseStamped, f"/fullperc/{t}/{f}/pose", qos), None,
+                    self.create_publisher(FusionStatus, f"/fullperc/{t}/{f}/status", qos))
+            self.create_subscription(Region, f"/fullperc/{t}/region",
+                                     lambda m, t=t: self._region.__setitem__(t, int(m.label)), 10)
+            self._last_rx[t] = {"omc": None, "ots": None}
+            self._problem_seen[t] = {}
+        self._targets_of_omc = {b: list(dict.fromkeys(ts)) for b, ts in routes_omc.items()}
+        self._targets_of_ots = {b: list(dict.fromkeys(ts)) for b, ts in routes_ots.items()}
+        for b in self._targets_of_omc:
+            self.create_subscription(PoseStamped, f"/omc/{b}/pose", lambda m, b=b: self._on_pose("omc", b, m), qos)
+        for b in self._targets_of_ots:
+            self.create_subscription(PoseStamped, f"/ots/{b}/pose", lambda m, b=b: self._on_pose("ots", b, m), qos)
+        self.create_service(Trigger, "~/initialize", self._on_initialize)
+        self.create_timer(0.01, self._on_timer)
+        self.create_timer(0.5, self._update_diagnostics)
+        self._update_diagnostics()
+        self.get_logger().info(
+            f"fusing targets {targets} with {filters[0]} (side by side: {self._extra or 'none'}), "
+            f"local chain '{local_chain}', clock '{self._clock_mode}'")
+
+    # ---- input ------------------------------------------------------------------------------
+    def _on_pose(self, dev: str, body: str, msg: PoseStamped) -> None:
+        t_ns = stamp_to_ns(msg.header.stamp)
+        p, q = pose_to_pq(msg.pose)
+        now = time.monotonic()
+        targets = self._targets_of_omc[body] if dev == "omc" else self._targets_of_ots[body]
+        for t in targets:
+            pipe = self.pipes[t]
+            c = pipe.config.chain
+            if dev == "omc":
+                pipe.push_omc(body, t_ns, (p, q))
+                if body == c.omc_target:
+                    self._last_rx[t]["omc"] = now
+                    self._last_target_rx = now
+            else:
+                pipe.push_ots(body, t_ns, (p, q))
+                if body == c.ots_target:
+                    self._last_rx[t]["ots"] = now
+                    self._last_target_rx = now
+            self._publish(t, pipe.poll(self._now_ns()))
+
+    def _now_ns(self) -> int | None:
+        return self.get_clock().now().nanoseconds if self._clock_mode == "host" else None
+
+    def _on_timer(self) -> None:
+        idle = time.monotonic() - self._last_target_rx > self._idle_flush
+        for t, pipe in self.pipes.items():
+            if pipe.sync.pending == 0:
+                continue
+            self._publish(t, pipe.flush() if (idle and self._clock_mode == "stamps") else pipe.poll(self._now_ns()))
+
+    def _on_initialize(self, _req, resp):
+        for pipe in self.pipes.values():
+            pipe.request_initialize()
+        n = next(iter(self.pipes.values())).config.chain.init_samples
+        resp.success = True
+        resp.message = (f"re-estimating static links of {list(self.pipes)} from the next {n} samples per body; "
+                        "the previous links stay in use until then")
+        self.get_logger().info(resp.message)
+        self._update_diagnostics()
+        return resp
+
+    # ---- output -----------------------------------------------------------------------------
+    def _publish(self, target: str, outs: list[FusedOutput]) -> None:
+        for o in outs:
+            keys = ([""] if o.filter == self._primary else []) + ([o.filter] if o.filter in self._extra else [])
+            for key in keys:
+                pose_pub, cov_pub, status_pub = self._pubs[(target, key)]
+                try:
+                    pose = pose_msg(o.p, o.q)
+                except ValueError as e:   # never publish NaN; the pipeline should have caught it already
+                    self.pipes[target]._problem("publish_error", f"{o.filter}: {e}", o.t_ns)
+                    continue
+                ps = PoseStamped()
+                ps.header.stamp = ns_to_stamp(o.t_ns)
+                ps.header.frame_id = "base"
+                ps.pose = pose
+                pose_pub.publish(ps)
+                if cov_pub is not None:
+                    pc = PoseWithCovarianceStamped()
+                    pc.header = ps.header
+                    pc.pose.pose = pose
+                    pc.pose.covariance = [float(x) for x in o.cov.reshape(-1)]
+                    cov_pub.publish(pc)
+                st = FusionStatus()
+                st.header = ps.header
+                st.target = target
+                st.filter = o.filter
+                st.sources = int(o.sources)
+                st.orientation_source = int(o.orientation_source)
+                st.bias = vector3(o.bias)
+                st.innovation = vector3(o.innovation)
+                st.nis = float(o.nis)
+                st.hop = bool(o.hop)
+                st.time_since_local = float(o.time_since_local)
+                st.region = self._region.get(target, 0)
+                status_pub.publish(st)
+
+    def _update_diagnostics(self) -> None:
+        now = time.monotonic()
+        for t, pipe in self.pipes.items():
+            s = pipe.stats()
+            values = {k: v for k, v in s.items() if k != "init_progress"}
+            values.update({f"init_{k}": v for k, v in s["init_progress"].items()})
+            level, msgs = OK, []
+            if s["global_link"] != "ready":
+                level = WARN
+                msgs.append(f"initializing: waiting for {pipe.config.chain.init_samples} samples of the base "
+                            f"marker (have {s['init_progress']})")
+            elif s["local_link"] != "ready":
+                level = WARN
+                msgs.append("local link not calibrated yet (the OTS must see the base marker, or give T_rig_ots)")
+            seen = self._problem_seen[t]
+            for key in _PROBLEM_KEYS:
+                n = pipe.counts[key]
+                if n > seen.get(key, (0, 0.0))[0]:
+                    seen[key] = (n, now)
+            for key, (n, when) in seen.items():
+                if now - when < self._problem_hold:
+                    level = max(level, WARN)
+                    msgs.append(f"{key} x{n}: {pipe.problems.get(key, '')}")
+            rx = self._last_rx[t]
+            for dev, name in (("omc", "OMC (global)"), ("ots", "OTS (local)")):
+                last = rx[dev]
+                if last is None:
+                    msgs.append(f"no {name} sample received yet")
+                    if dev == "omc":
+                        level = max(level, WARN)
+                elif now - last > self._stale:
+                    msgs.append(f"no {name} sample for {now - last:.1f} s"
+                                + (" (target occluded or out of the OTS volume: global only, bias compensated)"
+                                   if dev == "ots" else ""))
+                    if dev == "omc":
+                        level = max(level, WARN)
+            o = pipe.last_output.get(self._primary)
+            if o is not None:
+                values.update(bias_mm=np.round(1e3 * o.bias, 3).tolist(), last_stamp_ns=o.t_ns, nis=round(o.nis, 3))
+            self._diag.set(f"target {t}", level, "; ".join(msgs) or "ok", values)
+
+
+def main(args=None) -> int:
+    rclpy.init(args=args)
+    try:
+        node = FusionNode()
+    except (ParameterError, ValueError) as e:
+        print(f"fusion_node: {e}", file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

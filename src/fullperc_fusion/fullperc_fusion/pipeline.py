@@ -1,0 +1,257 @@
+"""Per-target fusion pipeline: raw device poses in, fused poses out. ROS-free.
+
+This is the one class both ``fusion_node`` (live) and the offline evaluator run, so a bag replayed
+through :class:`TargetPipeline` gives exactly what the node published::
+
+    pipe = TargetPipeline(TargetConfig(name="tool", filters=("cbkf", "kf")))
+    for each device sample, in arrival order:
+        pipe.push_omc(body, t_ns, T_omc_body)      # 4x4 array or (p, q_xyzw); metres, stamps int ns
+        pipe.push_ots(tool, t_ns, T_ots_tool)
+        for out in pipe.poll():                    # or poll(now_ns) with a live host clock
+            ...                                    # FusedOutput: one per filter per processed item
+    outputs = pipe.flush()                         # end of data
+
+Data flow: every pose is validated (:func:`frame_chain.pose_to_T`; NaN/inf, non-unit quaternions
+and bad stamps are rejected, counted and described in :attr:`TargetPipeline.last_problem`, never
+raised); base / rig samples feed the static links of the :class:`~frame_chain.FrameChain`; target
+samples go through the :class:`~synchronizer.ApproxSync` as raw device poses and are mapped into
+``base`` only when they come out (so a base-marker sample of the same OTS frame that arrived a little
+later can still be used for eq. 2); each item then steps every configured filter once.
+
+The fused orientation is not filtered (the paper fuses position): it is the orientation of the best
+source in the item -- the local (OTS) one when present, else the global one -- mapped into ``base``,
+and ``orientation_source`` says which. The ``omc`` pass-through always carries the global one.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fullperc_common.transforms import T_to_pq
+
+from .filters import SOURCE_GLOBAL, SOURCE_LOCAL, FilterParams, Step, make_filter
+from .frame_chain import BadSample, ChainConfig, FrameChain, pose_to_T
+from .synchronizer import GLOBAL, LOCAL, ApproxSync, SyncItem
+
+FILTER_NAMES = ("cbkf", "ckf", "bkf", "kf", "omc")
+
+
+@dataclass
+class TargetConfig:
+    """Everything one target needs. ``filters[0]`` is the primary filter of the node."""
+
+    name: str = "tool"
+    chain: ChainConfig = field(default_factory=ChainConfig)
+    filters: tuple[str, ...] = ("cbkf",)
+    params: FilterParams = field(default_factory=FilterParams)
+    slop_ns: int = 4_000_000        # pair samples closer than this (below half the OMC period at 120 Hz)
+    delay_ns: int = 50_000_000      # reorder / transport delay the synchronizer waits for
+    orientation_std_local: float = 0.002   # [rad] reported in pose_cov when the OTS orientation is used
+    orientation_std_global: float = 0.01   # [rad] when the OMC orientation is used
+
+    def __post_init__(self) -> None:
+        self.filters = tuple(self.filters)
+        if not self.filters:
+            raise ValueError(f"target '{self.name}': at least one filter is needed")
+        for f in self.filters:
+            if f not in FILTER_NAMES:
+                raise ValueError(f"target '{self.name}': filter '{f}' is not one of {FILTER_NAMES}")
+        if len(set(self.filters)) != len(self.filters):
+            raise ValueError(f"target '{self.name}': duplicate filter in {self.filters}")
+        self.params.validate()
+
+
+@dataclass
+class FusedOutput:
+    """One fused estimate of one target by one filter (all vectors in ``base``, SI units)."""
+
+    target: str
+    filter: str
+    t_ns: int                      # acquisition stamp of the newest sample used
+    p: np.ndarray                  # (3,) position [m]
+    q: np.ndarray                  # (4,) orientation x y z w
+    cov: np.ndarray                # (6, 6) pose covariance, ROS order (x y z rotX rotY rotZ)
+    bias: np.ndarray               # (3,) estimated global-source bias [m] (zeros without a bias state)
+    innovation: np.ndarray         # (3,) global innovation if a global sample was used, else local [m]
+    nis: float
+    hop: bool
+    sources: int                   # SOURCE_GLOBAL | SOURCE_LOCAL bits
+    orientation_source: int
+    time_since_local: float        # [s] since the last local sample used; -1 if never
+    reset: bool                    # the filter (re-)initialised on this item
+    t_global: int | None = None    # stamps of the samples used
+    t_local: int | None = None
+    local_equation: str = ""       # 'eq1' | 'eq2' | 'static' for the local measurement used
+
+
+class TargetPipeline:
+    """Frame chain -> synchronizer -> filters for one target; see the module docstring."""
+
+    def __init__(self, config: TargetConfig) -> None:
+        self.config = config
+        self.chain = FrameChain(config.chain)
+        self.sync = ApproxSync(config.slop_ns, config.delay_ns)
+        self.filters = {name: make_filter(name, config.params) for name in config.filters}
+        self.counts: Counter[str] = Counter()
+        self.last_problem = ""          # the most recent reason something was rejected or skipped
+        self.problems: dict[str, str] = {}   # the most recent reason per kind (key of ``counts``)
+        self.last_problem_t_ns: int | None = None
+        self.last_local_ns: int | None = None
+        self.last_global_ns: int | None = None
+        self.last_output: dict[str, FusedOutput] = {}
+
+    # ---- input ------------------------------------------------------------------------------
+    def _problem(self, key: str, msg: str, t_ns: int | None) -> None:
+        self.counts[key] += 1
+        self.last_problem = msg
+        self.problems[key] = msg
+        self.last_problem_t_ns = t_ns
+
+    def _validate(self, what: str, t_ns, pose) -> tuple[int, np.ndarray] | None:
+        try:
+            t = int(t_ns)
+        except (TypeError, ValueError, OverflowError):
+            self._problem("rejected_stamp", f"{what}: invalid stamp {t_ns!r}", None)
+            return None
+        if t <= 0:
+            self._problem("rejected_stamp", f"{what}: invalid stamp {t}", None)
+            return None
+        try:
+            return t, pose_to_T(pose)
+        except BadSample as e:
+            why = str(e)
+            key = "rejected_nonfinite" if "non-finite" in why else "rejected_nonunit" if "non-unit" in why \
+                else "rejected_pose"
+            self._problem(key, f"{what}: {why}", t)
+            return None
+
+    def push_omc(self, body: str, t_ns: int, pose) -> bool:
+        """One OMC sample of ``body`` (pose of the body in ``omc``). False if rejected or unused."""
+        c = self.config.chain
+        if body not in (c.omc_target, c.omc_base, c.omc_rig):
+            return False
+        v = self._validate(f"OMC body '{body}'", t_ns, pose)
+        if v is None:
+            return False
+        t, T = v
+        self.chain.observe_omc(body, t, T)
+        if body == c.omc_target:
+            return self._enqueue(GLOBAL, f"OMC body '{body}'", t, T)
+        return True
+
+    def push_ots(self, tool: str, t_ns: int, pose) -> bool:
+        """One OTS sample of ``tool`` (pose of the tool in ``ots``). False if rejected or unused."""
+        c = self.config.chain
+        if tool not in (c.ots_target, c.ots_base):
+            return False
+        v = self._validate(f"OTS tool '{tool}'", t_ns, pose)
+        if v is None:
+            return False
+        t, T = v
+        self.chain.observe_ots(tool, t, T)
+        if tool == c.ots_target:
+            return self._enqueue(LOCAL, f"OTS tool '{tool}'", t, T)
+        return True
+
+    def _enqueue(self, stream: int, what: str, t: int, T: np.ndarray) -> bool:
+        r = self.sync.push(stream, t, T)
+        if r == "late":
+            self._problem("late", f"{what}: sample at {t} ns is older than the processed horizon "
+                                  f"{self.sync.horizon_ns} ns (time went backwards or arrived too late); dropped", t)
+        elif r == "duplicate":
+            self._problem("duplicate", f"{what}: duplicate stamp {t} ns; dropped", t)
+        return r == "ok"
+
+    def request_initialize(self) -> None:
+        """Re-estimate the static links from the next samples (the old ones stay in use meanwhile)."""
+        self.chain.reinitialize()
+
+    # ---- output -----------------------------------------------------------------------------
+    def poll(self, now_ns: int | None = None) -> list[FusedOutput]:
+        """Process every synchronizer item that is final at ``now_ns`` (default: newest stamp seen)."""
+        return self._process(self.sync.poll(now_ns))
+
+    def flush(self) -> list[FusedOutput]:
+        """Process everything pending (end of a recording)."""
+        return self._process(self.sync.flush())
+
+    def _process(self, items: list[SyncItem]) -> list[FusedOutput]:
+        out: list[FusedOutput] = []
+        for item in items:
+            out.extend(self._process_item(item))
+        return out
+
+    def _process_item(self, item: SyncItem) -> list[FusedOutput]:
+        Tg = Tl = None
+        eq = ""
+        links = self.chain.links
+        if item.glob is not None:
+            Tg = self.chain.global_T(item.glob.payload)
+            if Tg is None:   # only possible before T_omc_base is known
+                self.counts["waiting_for_links"] += 1
+        if item.local is not None:
+            Tl, eq = self.chain.local_T(item.local.t_ns, item.local.payload)
+            if Tl is None:
+                if links.local_ready:   # e.g. no rig pose near this stamp (tracked mode)
+                    self._problem("local_skipped", f"local sample skipped: {self.chain.why_not}", item.local.t_ns)
+                else:
+                    self.counts["waiting_for_links"] += 1
+        if Tg is None and Tl is None:
+            return []
+        tg = item.glob.t_ns if Tg is not None else None
+        tl = item.local.t_ns if Tl is not None else None
+        pg, qg = T_to_pq(Tg) if Tg is not None else (None, None)
+        pl, ql = T_to_pq(Tl) if Tl is not None else (None, None)
+        if tl is not None:
+            self.last_local_ns = tl
+        if tg is not None:
+            self.last_global_ns = tg
+        outs = []
+        for name, f in self.filters.items():
+            try:
+                st: Step | None = f.step(z_global=pg, t_global=tg, z_local=pl, t_local=tl)
+            except (ValueError, FloatingPointError, np.linalg.LinAlgError) as e:
+                self._problem("filter_error", f"filter {name}: {e}", item.t_ns)
+                continue
+            if st is None:
+                continue
+            if name == "omc" or ql is None:
+                q, osrc, ostd = qg, SOURCE_GLOBAL, self.config.orientation_std_global
+            else:
+                q, osrc, ostd = ql, SOURCE_LOCAL, self.config.orientation_std_local
+            cov = np.zeros((6, 6))
+            cov[0:3, 0:3] = st.pos_cov
+            cov[3:6, 3:6] = np.eye(3) * ostd**2
+            if not (np.all(np.isfinite(st.p)) and np.all(np.isfinite(cov)) and np.all(np.isfinite(q))):
+                f.reset()
+                self._problem("nonfinite_output", f"filter {name}: non-finite estimate; filter reset", st.t_ns)
+                continue
+            since = -1.0 if self.last_local_ns is None else (st.t_ns - self.last_local_ns) * 1e-9
+            o = FusedOutput(
+                target=self.config.name, filter=name, t_ns=st.t_ns, p=st.p, q=np.asarray(q), cov=cov,
+                bias=st.b, innovation=st.innovation, nis=st.nis, hop=st.hop, sources=st.sources,
+                orientation_source=osrc, time_since_local=since, reset=st.reset,
+                t_global=tg if st.sources & SOURCE_GLOBAL else None,
+                t_local=tl if st.sources & SOURCE_LOCAL else None,
+                local_equation=eq if st.sources & SOURCE_LOCAL else "")
+            self.last_output[name] = o
+            outs.append(o)
+        self.counts["items"] += 1
+        return outs
+
+    # ---- state for diagnostics ----------------------------------------------------------------
+    def stats(self) -> dict:
+        L = self.chain.links
+        d = {
+            "global_link": "ready" if L.global_ready else "waiting",
+            "local_link": "ready" if L.local_ready else "waiting",
+            "collecting": L.collecting,
+            "init_progress": L.progress(),
+            "pending": self.sync.pending,
+        }
+        d.update({f"sync_{k}": v for k, v in self.sync.counts.items()})
+        d.update(dict(self.counts))
+        return d

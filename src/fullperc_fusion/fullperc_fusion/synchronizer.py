@@ -1,0 +1,150 @@
+"""Approximate-time pairing of (global, local) samples that never drops a lone sample.
+
+message_filters' ApproximateTimeSynchronizer only ever emits complete sets, so while the OTS is
+occluded the OMC stream would be thrown away -- exactly wrong for fusion. This synchronizer emits
+*every* sample exactly once, in stamp order, either paired with the other stream's sample or alone:
+
+* Two samples pair when their stamps differ by less than ``slop`` and each is the other's nearest
+  candidate (with ``slop`` below half the faster stream's period the match is unique anyway).
+* A sample is final once no partner and no closer competitor can still arrive: all samples stamped up
+  to ``now - delay`` are assumed to have arrived (``delay`` is the bounded reorder / transport delay),
+  and a competitor of a partner can be stamped up to 2·slop after the sample, so a sample at t is
+  emitted when ``now >= t + 2·slop + delay``. Latency of the output is therefore 2·slop + delay.
+* ``now`` is either given (host clock in a live node) or, by default, the *watermark* -- the newest
+  stamp pushed so far on any stream -- which makes the output a pure function of the stamps (offline
+  evaluation, replays). A silent stream never blocks the other: the watermark moves with the stream
+  that is alive, and :meth:`flush` emits everything at the end.
+* Items come out in non-decreasing processing stamp (the newer stamp of a pair).
+
+Defined behaviour for bad timing (each counted in :attr:`counts`, tested in test_synchronizer.py):
+
+* duplicate: a sample with the same stamp as a pending or already emitted sample of the *same* stream
+  is dropped (``'duplicate'``); the first one wins. Equal stamps on the two streams simply pair.
+* out of order: a sample older than others of its stream but newer than the processing horizon is
+  sorted in and handled normally -- that is what the reorder delay is for.
+* late: a sample stamped before the horizon (the stamp of the last emitted item) cannot be processed
+  without rewinding the filter; it is dropped and counted (``'late'``). Raise ``delay`` if this
+  happens in normal operation.
+* overflow: more than ``max_pending`` samples waiting on one stream (e.g. ``now`` stuck far behind)
+  forces the oldest out early -- still emitted, never dropped.
+"""
+
+from __future__ import annotations
+
+import bisect
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any
+
+GLOBAL = 0
+LOCAL = 1
+_NAMES = ("global", "local")
+
+
+@dataclass(frozen=True)
+class Sample:
+    t_ns: int
+    payload: Any
+
+
+@dataclass(frozen=True)
+class SyncItem:
+    """One unit of work for the filter: a global sample, a local sample, or a pair."""
+
+    t_ns: int                    # processing stamp: the newer stamp of the item
+    glob: Sample | None
+    local: Sample | None
+
+
+class ApproxSync:
+    """Pairs global and local samples within ``slop_ns``; see the module docstring for the rules."""
+
+    def __init__(self, slop_ns: int = 4_000_000, delay_ns: int = 50_000_000, max_pending: int = 4096) -> None:
+        if slop_ns < 0 or delay_ns < 0 or max_pending < 1:
+            raise ValueError("slop and delay must be >= 0 and max_pending >= 1")
+        self.slop = int(slop_ns)
+        self.delay = int(delay_ns)
+        self.max_pending = int(max_pending)
+        self._t: tuple[list[int], list[int]] = ([], [])      # sorted stamps per stream
+        self._p: tuple[list[Any], list[Any]] = ([], [])      # payloads, parallel to _t
+        self._last_emitted: list[int | None] = [None, None]
+        self.horizon_ns: int | None = None    # processing stamp of the last emitted item
+        self.watermark_ns: int | None = None  # newest stamp pushed
+        self.counts: Counter[str] = Counter()
+
+    @property
+    def pending(self) -> int:
+        return len(self._t[0]) + len(self._t[1])
+
+    def push(self, stream: int, t_ns: int, payload: Any = None) -> str:
+        """Queue one sample; returns 'ok', 'late' or 'duplicate' (the latter two are dropped)."""
+        t_ns = int(t_ns)
+        ts = self._t[stream]
+        i = bisect.bisect_left(ts, t_ns)
+        if (i < len(ts) and ts[i] == t_ns) or self._last_emitted[stream] == t_ns:
+            self.counts[f"{_NAMES[stream]}_duplicate"] += 1
+            return "duplicate"
+        if self.horizon_ns is not None and t_ns < self.horizon_ns:
+            self.counts[f"{_NAMES[stream]}_late"] += 1
+            return "late"
+        ts.insert(i, t_ns)
+        self._p[stream].insert(i, payload)
+        if self.watermark_ns is None or t_ns > self.watermark_ns:
+            self.watermark_ns = t_ns
+        self.counts[f"{_NAMES[stream]}_in"] += 1
+        return "ok"
+
+    def poll(self, now_ns: int | None = None) -> list[SyncItem]:
+        """Emit every item that is final at ``now_ns`` (default: the watermark)."""
+        now = self.watermark_ns if now_ns is None else int(now_ns)
+        if now is None:
+            return []
+        return self._drain(lambda t: now >= t + 2 * self.slop + self.delay)
+
+    def flush(self) -> list[SyncItem]:
+        """Emit everything pending (end of data, or a stream stop)."""
+        return self._drain(lambda t: True)
+
+    def _pop(self, stream: int, i: int) -> Sample:
+        t = self._t[stream].pop(i)
+        return Sample(t, self._p[stream].pop(i))
+
+    def _nearest(self, stream: int, t_ns: int) -> int | None:
+        """Index of the pending sample of ``stream`` nearest to t_ns (earlier one on ties)."""
+        ts = self._t[stream]
+        if not ts:
+            return None
+        i = bisect.bisect_left(ts, t_ns)
+        cands = [j for j in (i - 1, i) if 0 <= j < len(ts)]
+        return min(cands, key=lambda j: (abs(ts[j] - t_ns), ts[j]))
+
+    def _drain(self, final) -> list[SyncItem]:
+        out: list[SyncItem] = []
+        while True:
+            heads = [(ts[0], s) for s, ts in enumerate(self._t) if ts]
+            if not heads:
+                break
+            t_e, s_e = min(heads)  # earliest; on equal stamps the global one first (it pairs anyway)
+            overflow = len(self._t[s_e]) > self.max_pending
+            if not (final(t_e) or overflow):
+                break
+            if overflow and not final(t_e):
+                self.counts["forced_by_overflow"] += 1
+            e = self._pop(s_e, 0)
+            other = 1 - s_e
+            j = self._nearest(other, t_e)
+            partner = None
+            if j is not None and abs(self._t[other][j] - t_e) < self.slop:
+                t_b = self._t[other][j]
+                k = self._nearest(s_e, t_b)  # a closer competitor of e's own stream?
+                if k is None or abs(self._t[s_e][k] - t_b) >= abs(t_b - t_e):
+                    partner = self._pop(other, j)
+            g, loc = (e, partner) if s_e == GLOBAL else (partner, e)
+            t_item = max(x.t_ns for x in (g, loc) if x is not None)
+            for s, x in ((GLOBAL, g), (LOCAL, loc)):
+                if x is not None:
+                    self._last_emitted[s] = x.t_ns
+            self.horizon_ns = t_item
+            self.counts["pairs" if partner is not None else f"{_NAMES[s_e]}_alone"] += 1
+            out.append(SyncItem(t_item, g, loc))
+        return out

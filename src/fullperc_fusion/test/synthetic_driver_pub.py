@@ -1,0 +1,129 @@
+"""Stand-in for the three drivers in fusion_node's multi-process test: publishes synthetic
+/omc/<body>/pose (120 Hz, frame omc) and /ots/<tool>/pose (60 Hz, frame ots) in real time.
+
+The target (OMC body and OTS tool ``tool``) moves slowly in ``base``; the OMC sees it with a constant
+offset, the OTS sees it only during [ots_from, ots_to) seconds. With ``--bad`` it also publishes a NaN
+OMC pose, an OTS pose with a non-unit quaternion and an OMC pose stamped 0.5 s in the past.
+Everything published is written as JSON lines to ``--log`` (kind, body, stamp, position, flags) so the
+test can check the node's output against exactly what went in.
+
+Run: python synthetic_driver_pub.py --log out.jsonl [--duration 4] [--bad]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+
+import numpy as np
+import rclpy
+from geometry_msgs.msg import PoseStamped
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from scipy.spatial.transform import Rotation as Rot
+
+from fullperc_common.ros_conv import ns_to_stamp
+from fullperc_common.transforms import T_to_pq, inv_T, make_T
+
+T_OMC_BASE = make_T([1.0, 0.5, 0.8], Rot.from_euler("z", 30, degrees=True).as_quat())
+T_OMC_OTS = make_T([3.0, 1.0, 1.5], Rot.from_euler("zyx", [150, 20, 0], degrees=True).as_quat())
+OMC_OFFSET = np.array([3e-3, -2e-3, 1e-3])
+
+
+def truth(t: float) -> np.ndarray:
+    """T_base_tool at t seconds after start."""
+    return make_T([0.5 + 0.05 * math.cos(0.5 * t), 0.05 * math.sin(0.5 * t), 0.3],
+                  Rot.from_euler("z", 5 * t, degrees=True).as_quat())
+
+
+def msg(stamp_ns: int, frame: str, p, q) -> PoseStamped:
+    m = PoseStamped()
+    m.header.stamp = ns_to_stamp(stamp_ns)
+    m.header.frame_id = frame
+    m.pose.position.x, m.pose.position.y, m.pose.position.z = (float(v) for v in p)
+    m.pose.orientation.x, m.pose.orientation.y, m.pose.orientation.z, m.pose.orientation.w = (float(v) for v in q)
+    return m
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--log", required=True)
+    ap.add_argument("--duration", type=float, default=4.0)
+    ap.add_argument("--ots-from", type=float, default=0.8)
+    ap.add_argument("--ots-to", type=float, default=2.5)
+    ap.add_argument("--bad", action="store_true")
+    ap.add_argument("--wait", type=float, default=30.0, help="max seconds to wait for the fusion_node")
+    a = ap.parse_args()
+
+    rclpy.init()
+    node = rclpy.create_node("synthetic_driver_pub")
+    qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    pubs = {k: node.create_publisher(PoseStamped, k, qos) for k in
+            ("/omc/base/pose", "/omc/ots_rig/pose", "/omc/tool/pose", "/ots/base/pose", "/ots/tool/pose")}
+    end = time.monotonic() + a.wait
+    while time.monotonic() < end and any(p.get_subscription_count() == 0 for p in pubs.values()):
+        rclpy.spin_once(node, timeout_sec=0.05)
+    if any(p.get_subscription_count() == 0 for p in pubs.values()):
+        print("no subscriber appeared", file=sys.stderr)
+        return 1
+    time.sleep(0.5)  # let the other direction of discovery settle too
+
+    rng = np.random.default_rng(0)
+    log = open(a.log, "w")  # noqa: SIM115 - closed below
+
+    def pub(topic, kind, body, ns, frame, p, q, **flags):
+        pubs[topic].publish(msg(ns, frame, p, q))
+        log.write(json.dumps({"kind": kind, "body": body, "t_ns": ns, "p": [float(v) for v in p], **flags}) + "\n")
+
+    t0_ns = time.time_ns()
+    t0 = time.monotonic()
+    T_ots_base = inv_T(T_OMC_OTS) @ T_OMC_BASE
+    k = 0
+    bad_done = set()
+    while True:
+        t = k / 120.0
+        if t > a.duration:
+            break
+        while time.monotonic() - t0 < t:
+            time.sleep(0.0005)
+        ns = t0_ns + round(t * 1e9)
+        Tt = T_OMC_BASE @ truth(t)
+        p, q = T_to_pq(Tt)
+        p = p + OMC_OFFSET + rng.normal(0, 2e-4, 3)
+        pub("/omc/base/pose", "omc", "base", ns, "omc", *T_to_pq(T_OMC_BASE))
+        pub("/omc/ots_rig/pose", "omc", "ots_rig", ns, "omc", *T_to_pq(T_OMC_OTS))
+        if a.bad and t >= 1.5 and "nan" not in bad_done:
+            bad_done.add("nan")
+            pub("/omc/tool/pose", "omc", "tool", ns, "omc", [math.nan, p[1], p[2]], q, bad="nan")
+        elif a.bad and t >= 2.0 and "backwards" not in bad_done:
+            bad_done.add("backwards")
+            pub("/omc/tool/pose", "omc", "tool", ns, "omc", p, q)
+            pub("/omc/tool/pose", "omc", "tool", ns - 500_000_000, "omc", p, q, bad="backwards")
+        else:
+            pub("/omc/tool/pose", "omc", "tool", ns, "omc", p, q)
+        if k % 2 == 0:
+            ns_l = ns + 3_000_000
+            pub("/ots/base/pose", "ots", "base", ns_l, "ots", *T_to_pq(T_ots_base))
+            if a.ots_from <= t < a.ots_to:
+                Tl = T_ots_base @ truth(t + 0.003)
+                pl, ql = T_to_pq(Tl)
+                pl = pl + rng.normal(0, 1e-4, 3)
+                if a.bad and t >= 1.7 and "nonunit" not in bad_done:
+                    bad_done.add("nonunit")
+                    pub("/ots/tool/pose", "ots", "tool", ns_l, "ots", pl, 1.5 * ql, bad="nonunit")
+                else:
+                    pub("/ots/tool/pose", "ots", "tool", ns_l, "ots", pl, ql)
+        rclpy.spin_once(node, timeout_sec=0)
+        k += 1
+    log.write(json.dumps({"kind": "meta", "t0_ns": t0_ns}) + "\n")
+    log.close()
+    time.sleep(1.0)   # keep the publishers alive until reliable delivery completed
+    node.destroy_node()
+    rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

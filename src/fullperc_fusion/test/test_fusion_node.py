@@ -1,0 +1,174 @@
+"""fusion_node across processes: synthetic driver topics from one process, the installed fusion_node in
+another, and this test subscribing to its outputs over DDS."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fullperc_common.testing import installed_exe, wait_for
+
+HERE = Path(__file__).resolve().parent
+PUB = HERE / "synthetic_driver_pub.py"
+pytestmark = pytest.mark.system
+
+
+def _load_pub_module():
+    spec = importlib.util.spec_from_file_location("synthetic_driver_pub", PUB)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+class Listener:
+    """Subscribes to the node's outputs in this process (own context, spun in a thread)."""
+
+    def __init__(self, ctx, topics):
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+        from fullperc_msgs.msg import FusionStatus
+
+        self.node = rclpy.create_node("fusion_test_listener", context=ctx)
+        qos = QoSProfile(depth=2000, reliability=ReliabilityPolicy.RELIABLE)
+        self.got: dict[str, list] = {t: [] for t in topics}
+        self.diag: list = []
+        types = {"pose": PoseStamped, "pose_cov": PoseWithCovarianceStamped, "status": FusionStatus}
+        for t in topics:
+            self.node.create_subscription(types[t.rsplit("/", 1)[1]], t, lambda m, t=t: self.got[t].append(m), qos)
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self.diag.append, 100)
+        self.ex = SingleThreadedExecutor(context=ctx)
+        self.ex.add_node(self.node)
+        self._stop = False
+        self.th = threading.Thread(target=self._spin, daemon=True)
+        self.th.start()
+
+    def _spin(self):
+        while not self._stop:
+            self.ex.spin_once(timeout_sec=0.05)
+
+    def call_initialize(self, timeout=20.0):
+        from std_srvs.srv import Trigger
+        cli = self.node.create_client(Trigger, "/fusion_node/initialize")
+        wait_for(lambda: cli.service_is_ready(), timeout, what="~/initialize service")
+        fut = cli.call_async(Trigger.Request())
+        wait_for(fut.done, timeout, what="~/initialize response")
+        return fut.result()
+
+    def close(self):
+        self._stop = True
+        self.th.join(2)
+        self.node.destroy_node()
+
+
+def _read_log(path):
+    rows = [json.loads(line) for line in Path(path).read_text().splitlines()]
+    meta = next(r for r in rows if r["kind"] == "meta")
+    return [r for r in rows if r["kind"] != "meta"], meta["t0_ns"]
+
+
+def _ns(stamp):
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+def test_fusion_node_end_to_end(procs, rclpy_context, python_exe, tmp_path):
+    topics = ["/fullperc/tool/pose", "/fullperc/tool/pose_cov", "/fullperc/tool/status",
+              "/fullperc/tool/kf/pose", "/fullperc/tool/kf/status"]
+    lis = Listener(rclpy_context, topics)
+    try:
+        node = procs.start([installed_exe("fullperc_fusion", "fusion_node"), "--ros-args",
+                            "-p", "filters:=[kf]", "-p", "init_samples:=20"], name="fusion_node")
+        # start the data only once this listener is matched with every output of the node
+        wait_for(lambda: all(lis.node.count_publishers(t) > 0 for t in topics), 30, what="node's publishers")
+        wait_for(lambda: all(p.get_publisher_count() > 0 for p in lis.node.subscriptions if p.topic_name in topics),
+                 30, what="subscriptions matched")
+        log = tmp_path / "pub.jsonl"
+        pub = procs.start([python_exe, str(PUB), "--log", str(log), "--bad", "--duration", "4.0"], name="pub")
+        # liveness bounds only: discovery + 4 s of data
+        wait_for(lambda: pub.poll() is not None, 60, what="publisher to finish")
+        assert pub.returncode == 0, procs.log(pub)
+        wait_for(lambda: len(lis.got["/fullperc/tool/pose"]) > 0 and node.poll() is None, 10,
+                 what="fused poses")
+        rows, t0 = _read_log(log)
+        n_good_in = sum(1 for r in rows if r["body"] == "tool" and "bad" not in r)
+        # all pending items are flushed after idle_flush: wait until the counts stop growing
+        last = [-1]
+
+        def settled():
+            n = len(lis.got["/fullperc/tool/pose"])
+            done = n == last[0]
+            last[0] = n
+            return done
+        wait_for(settled, 20, interval=1.0, what="outputs to settle")
+        resp = lis.call_initialize()
+        assert resp.success and "re-estimating" in resp.message
+        assert node.poll() is None, procs.log(node)
+    finally:
+        lis.close()
+
+    mod = _load_pub_module()
+    good = {(r["kind"], r["t_ns"]) for r in rows if r["body"] == "tool" and "bad" not in r}
+    good_stamps = {t for _, t in good}
+    poses = lis.got["/fullperc/tool/pose"]
+    covs = lis.got["/fullperc/tool/pose_cov"]
+    stats = lis.got["/fullperc/tool/status"]
+    assert len(poses) == len(covs) == len(stats)
+    # frames, stamps = acquisition stamps of good input samples, no NaN, in order
+    stamps = [_ns(m.header.stamp) for m in poses]
+    assert stamps == sorted(stamps)
+    for m in poses + covs:
+        assert m.header.frame_id == "base"
+    assert set(stamps) <= good_stamps
+    for m in poses:
+        v = [m.pose.position.x, m.pose.position.y, m.pose.position.z, m.pose.orientation.x,
+             m.pose.orientation.y, m.pose.orientation.z, m.pose.orientation.w]
+        assert all(math.isfinite(x) for x in v)
+        assert abs(np.linalg.norm(v[3:]) - 1) < 1e-6
+    for m in covs:
+        assert all(math.isfinite(x) for x in m.pose.covariance) and m.pose.covariance[0] > 0
+    # nothing lost: one output per processed item; at most the items before initialization are missing
+    assert len(poses) >= 0.8 * (n_good_in - len([r for r in rows if r["kind"] == "ots" and r["body"] == "tool"]))
+    # accuracy against the publisher's truth once both sources were seen (cbkf, bias compensated)
+    errs = []
+    for m in poses:
+        t = (_ns(m.header.stamp) - t0) / 1e9
+        if 1.5 < t < 2.5:
+            p = np.array([m.pose.position.x, m.pose.position.y, m.pose.position.z])
+            errs.append(np.linalg.norm(p - mod.truth(t)[:3, 3]))
+    assert errs and 1e3 * np.mean(errs) < 0.8
+    # status: primary filter, both sources while the OTS sees the target, a bias estimate of the offset
+    assert all(s.filter == "cbkf" and s.target == "tool" for s in stats)
+    assert any(s.sources == 3 and s.orientation_source == 2 for s in stats)
+    late = [s for s in stats if (_ns(s.header.stamp) - t0) / 1e9 > 3.0]
+    assert late and all(s.sources == 1 and s.time_since_local > 0.4 for s in late)
+    offset_base = mod.T_OMC_BASE[:3, :3].T @ mod.OMC_OFFSET
+    b = late[-1].bias
+    assert np.linalg.norm(np.array([b.x, b.y, b.z]) - offset_base) < 0.5e-3
+    # side-by-side filter
+    kf = lis.got["/fullperc/tool/kf/pose"]
+    assert kf and all(m.header.frame_id == "base" for m in kf)
+    assert [_ns(m.header.stamp) for m in kf] == stamps
+    assert all(s.filter == "kf" for s in lis.got["/fullperc/tool/kf/status"])
+    # diagnostics explained the bad input
+    texts = " | ".join(st.message for arr in lis.diag for st in arr.status if st.name.startswith("fusion_node"))
+    assert "non-finite pose" in texts
+    assert "non-unit quaternion" in texts
+    assert "older than the processed horizon" in texts
+    assert "no OTS (local) sample for" in texts      # the OTS went silent at 2.5 s
+
+
+def test_fusion_node_rejects_bad_parameters(procs):
+    p = procs.start([installed_exe("fullperc_fusion", "fusion_node"), "--ros-args", "-p", "noise.global_std:=-1.0"],
+                    name="bad_params")
+    wait_for(lambda: p.poll() is not None, 30, what="fusion_node to exit")
+    assert p.returncode != 0
+    assert "noise.global_std" in procs.log(p)
