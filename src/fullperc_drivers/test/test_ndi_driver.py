@@ -1,0 +1,142 @@
+"""Driver core units without a device: retries on CRC errors and timeouts, the frame clock,
+the bring-up command sequence, and the refusal of non-finite poses (scripted fake transport)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fullperc_drivers.ndi import replies as R
+from fullperc_drivers.ndi.driver import DriverConfig, FrameClock, NdiClient, NdiDriver, ToolConfig
+from fullperc_drivers.ndi.protocol import NdiDeviceError, decode_command, encode_ascii_reply, encode_binary_reply
+from fullperc_drivers.ndi.rom import TOOLS, write_rom
+from fullperc_drivers.ndi.transport import NdiLinkError, Transport
+
+
+class ScriptedTransport(Transport):
+    """Answers each command with the next scripted reply (bytes, or None for silence)."""
+
+    def __init__(self, responder):
+        self.responder = responder
+        self.sent: list[bytes] = []
+        self._out = bytearray()
+        self._open = False
+
+    def open(self):
+        self._open = True
+
+    def close(self):
+        self._open = False
+
+    @property
+    def is_open(self):
+        return self._open
+
+    def write(self, data):
+        self.sent.append(data)
+        r = self.responder(data)
+        if r:
+            self._out += r
+
+    def read(self, timeout):
+        out, self._out = bytes(self._out), bytearray()
+        return out
+
+
+def okay(_cmd=None):
+    return encode_ascii_reply("OKAY")
+
+
+def test_crc_error_is_counted_and_the_command_repeated():
+    replies = iter([b"OKAYA897\r", b"OKAYA896\r"])
+    t = ScriptedTransport(lambda c: next(replies))
+    c = NdiClient(t, read_timeout=0.05)
+    c.init()
+    assert c.counters.crc_errors == 1 and c.counters.retries == 1
+    assert t.sent == [b"INIT:E3A5\r", b"INIT:E3A5\r"]
+
+
+def test_timeouts_then_link_error():
+    t = ScriptedTransport(lambda c: None)
+    c = NdiClient(t, read_timeout=0.01, max_retries=2)
+    with pytest.raises(NdiLinkError):
+        c.tstart()
+    assert c.counters.timeouts == 3 and len(t.sent) == 3
+
+
+def test_garbled_tracking_reply_is_retried():
+    good = R.TrackingData([R.ToolTransform(1, "missing", port_status=0x31, frame_number=5)], 0)
+    replies = iter([encode_binary_reply(b"\x01\x01\x09"), encode_binary_reply(R.format_bx(good))])
+    c = NdiClient(ScriptedTransport(lambda cmd: next(replies)), read_timeout=0.05)
+    d = c.bx()
+    assert d.tools[0].frame_number == 5 and c.counters.garbled == 1
+
+
+def test_device_error_names_the_code():
+    c = NdiClient(ScriptedTransport(lambda cmd: encode_ascii_reply("ERROR0C")), read_timeout=0.05)
+    with pytest.raises(NdiDeviceError) as ei:
+        c.tstart()
+    assert ei.value.code == 0x0C and c.counters.device_errors == 1
+
+
+def test_frame_clock_lower_envelope_and_reset():
+    clk = FrameClock(100.0)
+    rng = np.random.default_rng(1)
+    true_c0 = 5_000_000_000
+    stamps = []
+    for f in range(1000, 1300):
+        capture = true_c0 + (f - 1000) * 10_000_000
+        recv = capture + 2_000_000 + int(rng.exponential(3e6))
+        stamps.append(clk.stamp(f, recv) - capture)
+    # after the window filled, the stamp error is the minimum delay (2 ms) plus at most the
+    # smallest sampled excess - never the mean delay (5 ms)
+    late = np.array(stamps[100:])
+    assert np.all(late >= 2_000_000) and np.all(late < 3_000_000)
+    clk.stamp(10, 9_000_000_000)  # frame number went backwards: device re-initialised
+    assert clk.resets == 1
+
+
+def _bx_device(poses):
+    """A minimal device for the bring-up sequence: returns handle 01.. and BX with ``poses``."""
+    state = {"next": 1, "frame": 100}
+
+    def respond(raw):
+        c = decode_command(raw)
+        if c.name == "PHSR":
+            if c.params == "04":
+                return encode_ascii_reply(R.format_phsr([(h, 0x31) for h in range(1, state["next"])]))
+            return encode_ascii_reply("00")
+        if c.name == "PHRQ":
+            state["next"] += 1
+            return encode_ascii_reply(f"{state['next'] - 1:02X}")
+        if c.name == "VER":
+            return encode_ascii_reply("Freeze Tag: test")
+        if c.name == "BX":
+            state["frame"] += 1
+            tools = [R.ToolTransform(h, "valid" if p is not None else "missing", *(p or (None, None, None)),
+                                     port_status=0x31, frame_number=state["frame"]) for h, p in poses.items()]
+            return encode_binary_reply(R.format_bx(R.TrackingData(tools, 0)))
+        return okay()
+
+    return respond
+
+
+def test_bringup_sequence_and_nonfinite_pose_refused():
+    rom = write_rom(TOOLS["tool"][1], "8700339")
+    nan_q = np.array([np.nan, 0, 0, 0])
+    poses = {1: (np.array([1.0, 0, 0, 0]), np.array([1.0, 2.0, -1500.0]), 0.1), 2: (nan_q, np.zeros(3), 0.1),
+             3: None}
+    t = ScriptedTransport(_bx_device(poses))
+    cfg = DriverConfig(tools=[ToolConfig("a", rom), ToolConfig("b", rom, "S"), ToolConfig("c", rom)])
+    d = NdiDriver(cfg, transport=t)
+    d.connect()
+    names = [decode_command(s).name for s in t.sent]
+    assert names[:4] == ["INIT", "VER", "PHSR", "PHRQ"]
+    assert names.count("PVWR") == 3 * 12 and names.count("PINIT") == 3 and names[-1] == "TSTART"
+    pena = [decode_command(s).params for s in t.sent if decode_command(s).name == "PENA"]
+    assert pena == ["01D", "02S", "03D"]
+    fr = d.poll_once()
+    assert fr.tools["a"].visible and fr.tools["a"].position_m == pytest.approx([0.001, 0.002, -1.5])
+    assert not fr.tools["b"].visible and fr.tools["b"].position_m is None  # NaN quaternion refused
+    assert not fr.tools["c"].visible
+    assert d.counters.bad_poses == 1
