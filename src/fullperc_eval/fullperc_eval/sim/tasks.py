@@ -1,0 +1,436 @@
+"""The six evaluation tasks of the paper's Table 1 and the generator that realises them on the Diana.
+
+A task is a region order, e.g. ``"P-B-G-P"``: the target starts in the poor view volume, enters the
+OTS volume (best), leaves it into the good view volume, and ends in the poor one. :func:`plan_task`
+finds a single-joint arc (the paper's protocol) whose ground-truth target path crosses the regions in
+exactly that order, using the margin model of :mod:`fullperc_fusion.margin` on the same layout the
+simulated cameras use:
+
+1. place the arm's cart (seeded, inside ``diana.base_zone`` of scene.yaml: beside the table, any yaw) and draw a
+   start configuration q0 (inside the joint limits, 5 deg clear of them);
+2. for each moving joint, sweep it over its range at ``sweep_step_deg``, drop poses where the arm hits the
+   table/equipment or dips below the base, and label the target positions (BVV/GVV/PVV);
+3. look for a window of consecutive label runs equal to the order, where each inner region is crossed over
+   at least ``min_region_path_m`` of path and the first/last regions contribute ``lead_path_m`` (less if the
+   run is shorter, but at least ``min_region_path_m``);
+4. check the physics on the noise-free scene without staff: in the B part the Vega must measure the tool in
+   at least ``min_ots_fraction`` of its frames, and over the whole arc the OMC must track it in at least
+   ``min_omc_fraction`` of its frames (a task no tracker can see would test nothing). An arc whose B part the
+   Vega sees in >= ``good_ots_fraction`` is taken at once, else the best of the first ``max_candidates``
+   valid arcs. (The margin model's BVV is "inside the frustum" without the Vega's line of sight; in the
+   default layout the B|P boundary lies below the table edge, hidden from the Vega by the table top.)
+5. sample the final :class:`~fullperc_eval.sim.trajectories.JointArc` at the OMC frame times and assert that
+   the compressed label sequence is exactly the order.
+
+The search is deterministic (its own seed, ``tasks.search_seed`` in scene.yaml, mixed with the task index),
+so a task is the same arc for every run seed. If no arc is found within ``max_attempts`` start
+configurations, :class:`TaskPlanningError` is raised naming the task and what was tried — never a silent
+fallback to a different order.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from fullperc_fusion.margin import BVV, GVV, PVV, label_points
+
+from .occluders import points_in_boxes
+from .trajectories import JointArc, arm_geometry, link_capsules
+
+TASKS: tuple[str, ...] = ("G-B-P", "P-G-B", "P-G-B-P", "P-B-G", "B-G-P", "P-B-G-P")
+_LETTER = {"B": BVV, "G": GVV, "P": PVV}
+_NAME = {BVV: "B", GVV: "G", PVV: "P"}
+
+
+class TaskPlanningError(RuntimeError):
+    """No single-joint arc realises the requested region order in this scene."""
+
+
+def parse_task(task: str) -> tuple[int, ...]:
+    """``"P-B-G"`` -> (PVV, BVV, GVV); rejects unknown letters and repeated neighbours."""
+    parts = task.strip().upper().split("-")
+    if len(parts) < 2 or any(p not in _LETTER for p in parts):
+        raise ValueError(f"task {task!r}: expected letters B/G/P joined by '-', e.g. 'P-B-G-P'")
+    if any(a == b for a, b in zip(parts, parts[1:], strict=False)):
+        raise ValueError(f"task {task!r}: the same region twice in a row is not a crossing")
+    return tuple(_LETTER[p] for p in parts)
+
+
+def compress(labels: np.ndarray) -> tuple[int, ...]:
+    """Run-length compress a label sequence to the order of regions visited: [3,3,1,1,2] -> (3, 1, 2)."""
+    lab = np.asarray(labels)
+    if lab.size == 0:
+        return ()
+    keep = np.concatenate([[True], lab[1:] != lab[:-1]])
+    return tuple(int(v) for v in lab[keep])
+
+
+def order_name(order: tuple[int, ...]) -> str:
+    return "-".join(_NAME[int(o)] for o in order)
+
+
+@dataclass(frozen=True)
+class TaskPlan:
+    """A planned task: the arc, and how it was found (for the record)."""
+
+    task: str
+    arc: JointArc
+    T_omc_diana_base: np.ndarray  # where the generator placed the arm's cart
+    attempts: int
+    region_path_m: tuple[float, ...]  # path length of the target in each region of the order
+    ots_fraction_b: float = float("nan")  # share of the B part where the Vega sees the tool (noise-free, no staff)
+    omc_fraction: float = float("nan")  # share of the arc where the OMC tracks the tool (noise-free, no staff)
+
+
+def _settings(scene) -> dict:
+    d = {"search_seed": 7, "max_attempts": 400, "sweep_step_deg": 1.0, "joint_margin_deg": 5.0,
+         "min_region_path_m": 0.04, "lead_path_m": 0.10, "max_arc_deg": 160.0, "move_s": 24.0, "hold_s": 2.0,
+         "min_clearance_m": 0.05, "min_ots_fraction": 0.0,
+         "good_ots_fraction": 0.8, "max_candidates": 4, "min_omc_fraction": 0.8, "check_rate_hz": 30.0,
+         "moving_joints": [0, 1, 2, 3, 4, 5]}
+    d.update(scene.config.get("tasks") or {})
+    return d
+
+
+def feasible_poses(scene, origins: np.ndarray, p_tool_omc: np.ndarray, clearance: float) -> np.ndarray:
+    """(N,) True where the arm's links (beyond the base column) and the tool stay ``clearance`` + link radius
+    clear of every box (table, patient, the robot's cart, ...) and above the floor."""
+    a, b, r = link_capsules(origins, scene.T_omc_diana_base)
+    a, b, r = a[:, 1:], b[:, 1:], r[1:]  # the base column stands on the cart
+    u = np.linspace(0.0, 1.0, 6)
+    pts = a[:, :, None, :] + (b - a)[:, :, None, :] * u[None, None, :, None]  # (N, L, 6, 3)
+    ok = np.all(pts[..., 2] >= r[None, :, None] + clearance, axis=(1, 2)) & (p_tool_omc[:, 2] >= clearance)
+    for li in range(len(r)):
+        ok &= ~np.any(points_in_boxes(pts[:, li], scene.boxes, margin=r[li] + clearance), axis=1)
+    ok &= ~points_in_boxes(p_tool_omc, scene.boxes, margin=clearance + 0.05)
+    return ok
+
+
+def _runs(labels: np.ndarray) -> list[tuple[int, int, int]]:
+    """(label, start, end_exclusive) of each run."""
+    out = []
+    start = 0
+    for i in range(1, len(labels) + 1):
+        if i == len(labels) or labels[i] != labels[start]:
+            out.append((int(labels[start]), start, i))
+            start = i
+    return out
+
+
+def _candidate_windows(labels: np.ndarray, s: np.ndarray, order: tuple[int, ...], min_path: float,
+                       lead: float) -> list[tuple[int, int]]:
+    """Index windows [i0, i1] of a feasible sweep whose compressed labels equal ``order``.
+
+    s: cumulative path length along the sweep. The first run contributes its last ``lead`` metres, the last run
+    its first ``lead`` metres; every run must offer at least ``min_path`` metres.
+    """
+    runs = _runs(labels)
+    n = len(order)
+    out = []
+    for k in range(len(runs) - n + 1):
+        win = runs[k:k + n]
+        if tuple(r[0] for r in win) != order:
+            continue
+        lengths = [s[min(e, len(s) - 1)] - s[b] for _, b, e in win]
+        if min(lengths) < min_path:
+            continue
+        first_b, first_e = win[0][1], win[0][2]
+        last_b, last_e = win[-1][1], win[-1][2]
+        # start `lead` metres before the first boundary, end `lead` metres after the last one
+        i0 = int(np.searchsorted(s, s[first_e] - lead, side="left"))
+        i0 = min(max(i0, first_b), first_e - 1)
+        i1 = int(np.searchsorted(s, s[last_b] + lead, side="right")) - 1
+        i1 = max(min(i1, last_e - 1), last_b)
+        out.append((i0, i1))
+    return out
+
+
+def tool_positions(scene, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Joint origins (N,7,3) in diana_base, flange (N,4,4) in diana_base, tool origin (N,3) in omc."""
+    origins, flange = arm_geometry(scene.dk, Q)
+    T = scene.T_omc_diana_base @ flange @ scene.T_flange_tool
+    return origins, flange, T[:, :3, 3]
+
+
+def _physics(scene, arc: JointArc, order: tuple[int, ...], st: dict) -> tuple[bool, str, float, float]:
+    from .run import simulate_ideal_visibility
+
+    frac_ots_b, frac_omc = simulate_ideal_visibility(scene, arc, rate_hz=float(st["check_rate_hz"]))
+    if BVV in order and frac_ots_b < st["min_ots_fraction"]:
+        return False, "Vega sees the tool too little in the B part", frac_ots_b, frac_omc
+    if frac_omc < st["min_omc_fraction"]:
+        return False, "OMC tracks the tool too little", frac_ots_b, frac_omc
+    return True, "", frac_ots_b, frac_omc
+
+
+def _boundary_points(scene, step: float = 0.05) -> dict[frozenset, np.ndarray]:
+    """Midpoints between grid neighbours of different regions in the robot's reach, per region pair.
+
+    Boundaries such as PVV|BVV are thin in a good layout (the OTS looks where the OMC sees well), so a random
+    start configuration rarely puts the target next to one; the generator aims the arm at these points instead.
+    """
+    key = (id(scene.layout), step)
+    if key in _BOUNDARY_CACHE:
+        return _BOUNDARY_CACHE[key]
+    zone = (scene.config.get("diana") or {}).get("base_zone") or {}
+    bx = zone.get("x", [scene.T_omc_diana_base[0, 3]] * 2)
+    by = zone.get("y", [scene.T_omc_diana_base[1, 3]] * 2)
+    reach = 1.1
+    z0 = scene.T_omc_diana_base[2, 3] + 0.2856
+    xs = np.arange(bx[0] - reach, bx[1] + reach + 1e-9, step)
+    ys = np.arange(by[0] - reach, by[1] + reach + 1e-9, step)
+    zs = np.arange(max(0.1, z0 - reach), z0 + reach + 1e-9, step)
+    G = np.stack(np.meshgrid(xs, ys, zs, indexing="ij"), axis=-1)
+    P = G.reshape(-1, 3)
+    lab = label_points(scene.layout, P)[0].astype(np.int64)
+    lab[points_in_boxes(P, scene.static_boxes, margin=0.05)] = 0
+    for box in scene.static_boxes:  # under a box (e.g. below the table top) the arm cannot get in
+        local = (P - box.center) @ box.R
+        under = np.all(np.abs(local[:, :2]) <= box.half[:2] + 0.1, axis=1) & (local[:, 2] < box.half[2])
+        lab[under] = 0
+    L = lab.reshape(G.shape[:3])
+    out: dict[frozenset, list] = {}
+    for ax in range(3):
+        a = [slice(None)] * 3
+        b = [slice(None)] * 3
+        a[ax] = slice(0, -1)
+        b[ax] = slice(1, None)
+        la, lb = L[tuple(a)], L[tuple(b)]
+        m = (la != lb) & (la > 0) & (lb > 0)
+        mid = (G[tuple(a)][m] + G[tuple(b)][m]) / 2
+        for pa, pb, pt in zip(la[m], lb[m], mid, strict=True):
+            out.setdefault(frozenset((int(pa), int(pb))), []).append(pt)
+    res = {k: np.asarray(v) for k, v in out.items()}
+    _BOUNDARY_CACHE[key] = res
+    return res
+
+
+_BOUNDARY_CACHE: dict = {}
+
+
+def _ik_position(scene, q0: np.ndarray, target_omc: np.ndarray, iters: int = 60, tol: float = 0.005):
+    """Damped least-squares IK of the tool origin to ``target_omc`` starting from q0 (joint limits clipped)."""
+    lo, hi = scene.dk.joint_limits
+    q = q0.copy()
+    eps = 1e-5
+    for _ in range(iters):
+        _, _, p = tool_positions(scene, q[None])
+        e = target_omc - p[0]
+        if np.linalg.norm(e) < tol:
+            return q
+        Qd = q[None] + eps * np.eye(7)
+        _, _, pd = tool_positions(scene, Qd)
+        J = ((pd - p[0]) / eps).T  # (3, 7)
+        dq = J.T @ np.linalg.solve(J @ J.T + 1e-4 * np.eye(3), e)
+        n = np.linalg.norm(dq)
+        if n > 0.2:
+            dq *= 0.2 / n
+        q = np.clip(q + dq, lo, hi)
+    return None
+
+
+def _face_tool_to_vega(scene, q: np.ndarray) -> np.ndarray:
+    """Turn joint 7 (it spins the tool about its mount axis, the target origin stays put) so the tool's plate
+    faces the Vega as well as it can at q — as a user mounts a tracked tool to face the camera."""
+    normal = scene.bodies["tool"].normal
+    if normal is None:
+        return q
+    lo, hi = scene.dk.joint_limits
+    cand = np.linspace(lo[6] + 0.1, hi[6] - 0.1, 72)
+    Q = np.tile(q, (len(cand), 1))
+    Q[:, 6] = cand
+    _, flange = arm_geometry(scene.dk, Q)
+    T = scene.T_omc_diana_base @ flange @ scene.T_flange_tool
+    to_vega = scene.T_omc_ots[:3, 3] - T[:, :3, 3]
+    cosang = np.einsum("nij,j,ni->n", T[:, :3, :3], normal, to_vega) / np.linalg.norm(to_vega, axis=1)
+    out = q.copy()
+    out[6] = cand[int(np.argmax(cosang))]
+    return out
+
+
+PLAN_VERSION = 1  # bump when the search changes: invalidates cached plans
+
+
+def _cache_key(task: str, scene) -> str:
+    cfg = {k: v for k, v in scene.config.items() if k != "_source"}
+    try:
+        layout_text = Path(scene.layout.source).read_text()
+    except OSError:
+        layout_text = repr(scene.layout)
+    blob = json.dumps([PLAN_VERSION, task, cfg, layout_text], sort_keys=True, default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:24]
+
+
+def _cache_dir() -> Path:
+    return Path(os.environ.get("FULLPERC_CACHE", Path.home() / ".cache" / "fullperc")) / "task_plans"
+
+
+_MEM_CACHE: dict[str, TaskPlan] = {}
+
+
+def plan_task(task: str, scene, cache: bool = True) -> TaskPlan:
+    """:func:`search_task` with a cache (memory, then ``$FULLPERC_CACHE``/~/.cache/fullperc/task_plans).
+
+    The search is deterministic, so the cache only saves time (a minute or two for the hardest orders); a
+    cached plan is re-checked against the region order on the current scene before it is used, and the key
+    covers the task, scene.yaml and the layout file's text.
+    """
+    order = parse_task(task)
+    key = _cache_key(task, scene)
+    if cache:
+        plan = _MEM_CACHE.get(key)
+        if plan is None:
+            f = _cache_dir() / f"{key}.json"
+            try:
+                d = json.loads(f.read_text())
+                plan = TaskPlan(d["task"], JointArc(tuple(d["arc"]["q0"]), *d["arc"]["rest"]),
+                                np.asarray(d["T_omc_diana_base"]), d["attempts"], tuple(d["region_path_m"]),
+                                d["ots_fraction_b"], d["omc_fraction"])
+            except (OSError, ValueError, KeyError, TypeError):
+                plan = None
+        if plan is not None and not check_arc_order(scene.with_diana_base(plan.T_omc_diana_base), plan.arc, order,
+                                                    rate_hz=float(scene.config["omc"]["rate_hz"])):
+            _MEM_CACHE[key] = plan
+            return plan
+    plan = search_task(task, scene)
+    _MEM_CACHE[key] = plan
+    if cache:
+        a = plan.arc
+        d = {"task": plan.task, "arc": {"q0": list(a.q0), "rest": [a.joint, a.start, a.end, a.move, a.hold_start,
+                                                                  a.hold_end]},
+             "T_omc_diana_base": plan.T_omc_diana_base.tolist(), "attempts": plan.attempts,
+             "region_path_m": list(plan.region_path_m), "ots_fraction_b": plan.ots_fraction_b,
+             "omc_fraction": plan.omc_fraction}
+        try:
+            _cache_dir().mkdir(parents=True, exist_ok=True)
+            tmp = _cache_dir() / f"{key}.json.tmp{os.getpid()}"
+            tmp.write_text(json.dumps(d))
+            tmp.replace(_cache_dir() / f"{key}.json")
+        except OSError:
+            pass  # a read-only home only costs time
+    return plan
+
+
+def search_task(task: str, scene) -> TaskPlan:
+    """Find a single-joint arc realising ``task`` in ``scene`` (see module docstring); raises TaskPlanningError."""
+    order = parse_task(task)
+    st = _settings(scene)
+    lo, hi = scene.dk.joint_limits
+    m = np.radians(st["joint_margin_deg"])
+    idx = TASKS.index(task) if task in TASKS else len(TASKS)
+    rng = np.random.default_rng([int(st["search_seed"]), idx])
+    step = np.radians(st["sweep_step_deg"])
+    rejected: dict[str, int] = {}
+    best: TaskPlan | None = None
+    found = 0
+    zone = (scene.config.get("diana") or {}).get("base_zone")
+    base_scene = scene
+    for attempt in range(1, int(st["max_attempts"]) + 1):
+        # every other attempt: aim the target at a boundary between two neighbouring regions of the order
+        target = None
+        if attempt % 4 != 1:  # three attempts in four aim at a boundary, the rarest boundaries most often
+            bpts = _boundary_points(base_scene)
+            pairs = [frozenset(p) for p in zip(order, order[1:], strict=False)]
+            pairs = [p for p in pairs if p in bpts and len(bpts[p])]
+            if pairs:
+                w = np.array([1.0 / len(bpts[p]) for p in pairs])
+                bnd = bpts[pairs[int(rng.choice(len(pairs), p=w / w.sum()))]]
+                target = bnd[int(rng.integers(len(bnd)))]
+        if zone:
+            for _ in range(100):  # with a target: put the cart within reach of it
+                x = rng.uniform(*zone["x"])
+                y = rng.uniform(*zone["y"])
+                if target is None or 0.25 <= np.hypot(x - target[0], y - target[1]) <= 0.85:
+                    break
+            yaw = np.radians(rng.uniform(*zone["yaw_deg"]))
+            T = base_scene.T_omc_diana_base.copy()
+            T[:3, :3] = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+            T[:2, 3] = (x, y)
+            scene = base_scene.with_diana_base(T)
+        q0 = rng.uniform(lo + m, hi - m)
+        if target is not None:
+            qi = _ik_position(scene, q0, target)
+            if qi is None or np.any(qi < lo + m) or np.any(qi > hi - m):
+                rejected["no IK to a boundary"] = rejected.get("no IK to a boundary", 0) + 1
+                continue
+            q0 = qi
+        q0 = _face_tool_to_vega(scene, q0)
+        joints = list(st["moving_joints"])
+        rng.shuffle(joints)
+        for j in joints:
+            angles = np.arange(lo[j] + m, hi[j] - m + 1e-12, step)
+            Q = np.tile(q0, (len(angles), 1))
+            Q[:, j] = angles
+            origins, _, p = tool_positions(scene, Q)
+            ok = feasible_poses(scene, origins, p, st["min_clearance_m"])
+            labels = np.zeros(len(angles), dtype=np.int64)
+            if ok.any():
+                labels[ok] = label_points(scene.layout, p[ok])[0]
+            s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+            # split the sweep at infeasible poses (label 0 never matches an order)
+            # the order may appear along the sweep (joint moving up) or against it (joint moving down)
+            cands = [(i0, i1, True) for i0, i1 in
+                     _candidate_windows(labels, s, order, st["min_region_path_m"], st["lead_path_m"])]
+            if order[::-1] != order:
+                cands += [(i0, i1, False) for i0, i1 in
+                          _candidate_windows(labels, s, order[::-1], st["min_region_path_m"], st["lead_path_m"])]
+            for i0, i1, forward in cands:
+                if np.degrees(angles[i1] - angles[i0]) > st["max_arc_deg"]:
+                    rejected["arc too long"] = rejected.get("arc too long", 0) + 1
+                    continue
+                a, b = (angles[i0], angles[i1]) if forward else (angles[i1], angles[i0])
+                q_start = q0.copy()
+                q_start[j] = a
+                arc = JointArc(tuple(float(v) for v in q_start), int(j), float(a), float(b), float(st["move_s"]),
+                               float(st["hold_s"]), float(st["hold_s"]))
+                if arc.peak_velocity > scene.dk.model.velocityLimit[j]:
+                    rejected["too fast"] = rejected.get("too fast", 0) + 1
+                    continue
+                err = check_arc_order(scene, arc, order, rate_hz=float(scene.config["omc"]["rate_hz"]))
+                if err:
+                    rejected["dense check"] = rejected.get("dense check", 0) + 1
+                    continue
+                good, why, f_ots, f_omc = _physics(scene, arc, order, st)
+                if not good:
+                    rejected[why] = rejected.get(why, 0) + 1
+                    continue
+                t = np.linspace(0, arc.duration, 400)
+                _, _, pp = tool_positions(scene, arc.sample(t)[0])
+                lab = label_points(scene.layout, pp)[0]
+                seg = np.concatenate([[0.0], np.linalg.norm(np.diff(pp, axis=0), axis=1)])
+                lens = tuple(float(seg[1:][lab[1:] == r].sum()) for r in order)
+                plan = TaskPlan(task, arc, scene.T_omc_diana_base.copy(), attempt, lens, f_ots, f_omc)
+                if best is None or f_ots > best.ots_fraction_b:
+                    best = plan
+                found += 1
+                # a Vega that sees the B part is what the task is for: take the first such arc, else the
+                # best of the first `max_candidates` valid ones
+                if BVV not in order or f_ots >= st["good_ots_fraction"] or found >= int(st["max_candidates"]):
+                    return best
+                break  # next start configuration
+    if best is not None:
+        return best
+    raise TaskPlanningError(
+        f"task {task}: no single-joint arc of the Diana crosses {order_name(order)} in this scene after "
+        f"{st['max_attempts']} start configurations (rejections: {rejected or 'no window with that order'}); "
+        "check the layout (OTS volume, cameras) and the Diana base pose in scene.yaml")
+
+
+def check_arc_order(scene, arc: JointArc, order: tuple[int, ...], rate_hz: float = 120.0) -> str:
+    """'' when the target path of ``arc`` sampled at ``rate_hz`` visits exactly ``order``, else a reason."""
+    t = np.arange(0.0, arc.duration, 1.0 / rate_hz)
+    Q, _ = arc.sample(t)
+    origins, _, p = tool_positions(scene, Q)
+    ok = feasible_poses(scene, origins, p, 0.0)
+    if not ok.all():
+        return f"{int((~ok).sum())} poses collide with obstacles"
+    got = compress(label_points(scene.layout, p)[0])
+    if got != tuple(order):
+        return f"visits {order_name(got)}"
+    return ""

@@ -1,0 +1,86 @@
+"""The installed ``sim`` executable serves what the offline run computes: OMC and Diana UDP streams and the
+Vega emulator on TCP, then exits at the end of the task (multi-process, real sockets)."""
+
+from __future__ import annotations
+
+import json
+import socket
+import time
+
+import numpy as np
+import pytest
+
+from fullperc_common.testing import installed_exe, wait_for
+from fullperc_drivers.streams import decode_diana, decode_omc
+from fullperc_eval.sim.run import run_task
+
+TASK, SEED = "P-G-B", 2
+
+
+def _udp() -> socket.socket:
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
+    s.bind(("127.0.0.1", 0))
+    s.settimeout(0.2)
+    return s
+
+
+@pytest.mark.slow
+def test_sim_serves_the_offline_measurements(procs, tmp_path):
+    offline = run_task(TASK, seed=SEED)  # before the sim starts, so this test drains its sockets promptly
+    so, sd = _udp(), _udp()
+    port_file = tmp_path / "vega.port"
+    offset = 7_000_000_000  # device clocks 7 s ahead of the host clock
+    p = procs.start([installed_exe("fullperc_eval", "sim"), "--task", TASK, "--seed", str(SEED), "--speed", "8",
+                     "--omc-addr", f"127.0.0.1:{so.getsockname()[1]}",
+                     "--diana-addr", f"127.0.0.1:{sd.getsockname()[1]}", "--vega-port", "0",
+                     "--vega-port-file", str(port_file), "--device-clock-offset-ns", str(offset)], name="sim")
+
+    omc, dia = [], []
+
+    def drain() -> bool:
+        for s, out, dec in ((so, omc, decode_omc), (sd, dia, decode_diana)):
+            try:
+                while True:
+                    out.append((dec(s.recv(65536)), time.time_ns()))
+            except (TimeoutError, BlockingIOError):
+                pass
+        return p.poll() is not None
+
+    # the Vega emulator answers the Combined API while the task plays
+    port = int(wait_for(lambda: port_file.exists() and port_file.read_text().strip(), 120, what="Vega port"))
+    with socket.create_connection(("127.0.0.1", port), timeout=5) as c:
+        c.sendall(b"INIT \r")
+        assert c.recv(64).startswith(b"OKAY")
+    wait_for(drain, timeout=120, interval=0.01, what="sim to finish the task")
+    drain()
+    assert p.returncode == 0, procs.log(p)
+
+    # every OMC frame arrived, in order, with the offline values (mm on the wire)
+    fn = np.array([f.frame_number for f, _ in omc])
+    np.testing.assert_array_equal(fn, offline.omc.frame_number)
+    tool = offline.omc.bodies["tool"]
+    for i in range(0, len(omc), 97):
+        f = omc[i][0]
+        b = {x.name: x for x in f.bodies}
+        assert set(b) == {"base", "ots_rig", "tool"}
+        assert b["tool"].tracked == bool(tool.tracked[i])
+        if tool.tracked[i]:
+            np.testing.assert_allclose(b["tool"].position_mm, tool.position[i] * 1000.0, rtol=0, atol=1e-9)
+            np.testing.assert_allclose(b["tool"].quat_xyzw, tool.quat_xyzw[i], atol=1e-12)
+        assert f.latency_s == pytest.approx(offline.omc.latency_s / 8, rel=1e-6)
+    # device time stamps: capture times on the offset device clock, spaced like the simulation (scaled by speed)
+    ts = np.array([f.timestamp_ns for f, _ in omc], dtype=np.int64)
+    np.testing.assert_allclose(np.diff(ts), np.diff(offline.omc.t_ns) / 8, atol=2)
+    recv = np.array([r for _, r in omc], dtype=np.int64)
+    assert np.median(ts - offset - recv) < 0  # stamped before it was received: capture, not send time
+    # the joint stream carries the offline joint angles
+    assert len(dia) == len(offline.diana.t_ns)
+    k = len(dia) // 2
+    np.testing.assert_array_equal(dia[k][0].q, offline.diana.q[k])
+
+    log = [json.loads(line) for line in procs.log(p).splitlines() if line.startswith("{")]
+    events = [r["event"] for r in log]
+    assert events[0] == "plan" and "start" in events and events[-1] == "end"
+    regions = [r["region"] for r in log if r["event"] == "region"]
+    assert regions == ["PVV", "GVV", "BVV"]
