@@ -1,0 +1,356 @@
+"""``make dataset``: the six evaluation tasks simulated offline and written as rosbag2 (MCAP) bags.
+
+    python -m fullperc_eval.dataset --out bags [--tasks G-B-P P-G-B ...] [--seed 0]
+
+Each task becomes ``<out>/<task>/`` holding what a ``record`` of the live system would hold -- the driver
+topics with the drivers' types, frames, units and stamps -- plus the calibration the evaluator needs:
+
+* ``/omc/<body>/pose`` (PoseStamped, frame ``omc``; only when tracked) and ``/omc/<body>/quality``
+  (TrackingQuality, every frame) for the bodies ``base``, ``ots_rig``, ``tool``;
+* ``/ots/<tool>/pose`` (frame ``ots``; only when visible) and ``/ots/<tool>/quality`` for ``tool``, ``base``;
+* ``/diana/joint_states`` (JointState, ``joint1..joint7``, frame ``diana_base``) and ``/diana/flange_pose``
+  (PoseStamped, FK of the nominal DH table, frame ``diana_base``);
+* ``calibration.yaml``: T_base_diana_base, T_flange_tool, T_omc_base -- the simulator's true values
+  (see :mod:`fullperc_eval.ground_truth` for why the evaluator does not estimate them);
+* ``metadata.yaml`` ``custom_data``: generator, task, seed (the evaluator takes the task name from here).
+
+Stamps: ``header.stamp`` is the acquisition time on the host clock (simulator time + a fixed epoch, so the
+bags are reproducible bit for bit); the bag (receive) time is the stamp plus the device's latency (OMC and
+Vega latencies from the simulator's scene, 1 ms for the arm's state push), so messages appear in the bag in
+the order a recorder would have received them. MCAP chunks are zstd-compressed.
+
+:func:`write_bag` is independent of the simulator (arrays in, bag out); the tests use it to write synthetic
+bags with known errors.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from fullperc_common.transforms import T_to_pq, inv_T
+
+from .bag_io import BagError, BagWriter, load_metadata, make_qos
+from .ground_truth import Calibration, save_calibration
+
+EPOCH_NS = 1_700_000_000_000_000_000   # 2023-11-14T22:13:20Z: fixed "host clock" start of every bag
+DIANA_LATENCY_NS = 1_000_000           # joint state push -> host (UDP on the robot LAN); an assumption
+GENERATOR = "fullperc_eval.dataset"
+PORT_STATUS_OK = 0x31                  # NDI PSTAT: occupied | initialized | enabled (what the Vega reports)
+
+
+@dataclass
+class BodyArrays:
+    """One rigid body (OMC) or tool (OTS) over all device frames; NaN pose where not visible."""
+
+    visible: np.ndarray            # (F,) bool
+    position: np.ndarray           # (F, 3) [m] in the device frame
+    quat_xyzw: np.ndarray          # (F, 4)
+    fit_error: np.ndarray | None = None   # (F,) [m]; NaN/None -> -1 (unknown)
+    markers: np.ndarray | None = None     # (F,)
+
+
+@dataclass
+class DeviceStream:
+    """Frames of one tracking device: capture stamps on the host clock [ns] and the bodies in them."""
+
+    frame_id: str
+    t_ns: np.ndarray               # (F,) int64 acquisition stamps
+    bodies: dict[str, BodyArrays]
+    latency_ns: int = 0
+    frame_number: np.ndarray | None = None
+    port_status: int = 0           # NDI port status of a tracked port (0 for the OMC)
+    qos_depth: int = 10
+
+
+@dataclass
+class JointStream:
+    t_ns: np.ndarray               # (N,) int64 acquisition stamps
+    q: np.ndarray                  # (N, 7) [rad]
+    dq: np.ndarray | None = None   # (N, 7) [rad/s]
+    latency_ns: int = DIANA_LATENCY_NS
+    frame_id: str = "diana_base"
+
+
+@dataclass
+class BagContent:
+    omc: DeviceStream
+    ots: DeviceStream
+    diana: JointStream
+    calibration: Calibration
+    custom_data: dict[str, str] = field(default_factory=dict)
+
+
+def _types(ts):
+    T = ts.types
+    return (T["geometry_msgs/msg/PoseStamped"], T["std_msgs/msg/Header"], T["builtin_interfaces/msg/Time"],
+            T["geometry_msgs/msg/Pose"], T["geometry_msgs/msg/Point"], T["geometry_msgs/msg/Quaternion"],
+            T["fullperc_msgs/msg/TrackingQuality"], T["sensor_msgs/msg/JointState"])
+
+
+def write_bag(path: str | Path, content: BagContent, *, compression: str = "zstd") -> Path:
+    """Write ``content`` as a rosbag2 MCAP bag directory at ``path`` (must not exist) + calibration.yaml."""
+    from fullperc_drivers.diana_kinematics import JOINT_NAMES, DianaKinematics
+
+    path = Path(path)
+    w = BagWriter(path, storage="mcap", compression=compression, custom_data=content.custom_data,
+                  flush_interval=3600.0)
+    ts = w.typestore
+    PoseStamped, Header, Time, Pose, Point, Quaternion, Quality, JointState = _types(ts)
+
+    def header(t_ns: int, frame: str):
+        return Header(stamp=Time(sec=int(t_ns // 1_000_000_000), nanosec=int(t_ns % 1_000_000_000)), frame_id=frame)
+
+    events: list[tuple[int, int, str, object]] = []   # (receive ns, sequence, topic, message)
+    seq = 0
+    with w:
+        for prefix, dev in (("/omc", content.omc), ("/ots", content.ots)):
+            for name in dev.bodies:
+                w.add_topic(f"{prefix}/{name}/pose", "geometry_msgs/msg/PoseStamped", [make_qos(depth=dev.qos_depth)])
+                w.add_topic(f"{prefix}/{name}/quality", "fullperc_msgs/msg/TrackingQuality",
+                            [make_qos(depth=dev.qos_depth)])
+            t = np.asarray(dev.t_ns, dtype=np.int64)
+            fn = dev.frame_number if dev.frame_number is not None else np.arange(1, len(t) + 1)
+            for k in range(len(t)):
+                tk = int(t[k])
+                recv = tk + int(dev.latency_ns)
+                for name, b in dev.bodies.items():
+                    vis = bool(b.visible[k])
+                    if vis:
+                        p, q = b.position[k], b.quat_xyzw[k]
+                        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
+                            vis = False   # a driver never publishes NaN: reported as not visible
+                        else:
+                            msg = PoseStamped(header=header(tk, dev.frame_id), pose=Pose(
+                                position=Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
+                                orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))))
+                            events.append((recv, seq, f"{prefix}/{name}/pose", msg))
+                            seq += 1
+                    fe = np.nan if b.fit_error is None else float(b.fit_error[k])
+                    qm = Quality(header=header(tk, dev.frame_id), body=name, visible=vis,
+                                 fit_error=np.float32(fe if np.isfinite(fe) else -1.0),
+                                 frame_number=int(fn[k]) & 0xFFFFFFFF,
+                                 markers_used=int(0 if b.markers is None else max(0, min(int(b.markers[k]), 65535))),
+                                 latency=np.float32(dev.latency_ns * 1e-9),
+                                 port_status=int(dev.port_status))
+                    events.append((recv, seq, f"{prefix}/{name}/quality", qm))
+                    seq += 1
+        d = content.diana
+        w.add_topic("/diana/joint_states", "sensor_msgs/msg/JointState", [make_qos(depth=10)])
+        w.add_topic("/diana/flange_pose", "geometry_msgs/msg/PoseStamped", [make_qos(depth=10)])
+        kin = DianaKinematics()
+        Q = np.asarray(d.q, dtype=float)
+        F = kin.fk_many(Q)
+        for k, tk in enumerate(np.asarray(d.t_ns, dtype=np.int64).tolist()):
+            recv = tk + int(d.latency_ns)
+            js = JointState(header=header(tk, d.frame_id), name=list(JOINT_NAMES),
+                            position=Q[k].astype(np.float64),
+                            velocity=(np.asarray(d.dq[k], dtype=np.float64) if d.dq is not None
+                                      else np.zeros(0, np.float64)),
+                            effort=np.zeros(0, np.float64))
+            events.append((recv, seq, "/diana/joint_states", js))
+            seq += 1
+            p, q = T_to_pq(F[k])
+            events.append((recv, seq, "/diana/flange_pose", PoseStamped(header=header(tk, d.frame_id), pose=Pose(
+                position=Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
+                orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))))))
+            seq += 1
+        events.sort(key=lambda e: (e[0], e[1]))
+        for recv, _, topic, msg in events:
+            w.write_msg(topic, recv, msg)
+    save_calibration(path, content.calibration)
+    return path
+
+
+# ------------------------------------------------------------------------------------------- synthetic
+def _grid(duration_s: float, rate_hz: float, phase_s: float = 0.0) -> np.ndarray:
+    n = int(np.floor((duration_s - phase_s) * rate_hz + 1e-9)) + 1
+    return np.round((phase_s + np.arange(n) / rate_hz) * 1e9).astype(np.int64)
+
+
+def synthetic_content(duration_s: float = 10.0, *, omc_offset=(0.003, 0.0, 0.0), omc_offset_after=None,
+                      t_offset_change_s: float | None = None, ots_window_s=(0.0, 5.0), omc_noise_m: float = 0.0,
+                      ots_noise_m: float = 0.0, joint: int = 0, joint_speed: float = 0.05, seed: int = 0,
+                      epoch_ns: int = EPOCH_NS) -> tuple[BagContent, dict[str, np.ndarray]]:
+    """A recording with *known* errors, for tests and benchmarks (no simulator, no cameras).
+
+    The Diana turns ``joint`` at a constant ``joint_speed`` [rad/s] (so linear joint interpolation is exact);
+    the OMC sees the tool with a constant position error ``omc_offset`` [m, omc axes] (``omc_offset_after``
+    from ``t_offset_change_s`` on: a hop), the base marker and the rig exactly (+ noise); the Vega sees the
+    base marker always and the tool only inside ``ots_window_s`` (+ noise). Rates: OMC 120 Hz, Vega 60 Hz,
+    arm 100 Hz. Returns the content and the truth: ``t_omc_ns`` and ``p_base_true`` (F, 3) at the OMC frames,
+    ``offset_base`` (F, 3) -- the injected error expressed in ``base``.
+    """
+    from fullperc_drivers.diana_kinematics import DianaKinematics
+    from fullperc_fusion.layout import default_layout_path, load_layout
+
+    rng = np.random.default_rng(seed)
+    lay = load_layout(default_layout_path())
+    T_omc_ots = np.asarray(lay.ots.T_omc_ots, float)
+    q_base = np.array([0.0, -0.7071067811865476, 0.0, 0.7071067811865476])
+    from fullperc_common.transforms import make_T
+
+    T_omc_base = make_T([-0.6, 0.35, 1.10], q_base)
+    T_omc_diana_base = make_T([0.2, -0.65, 0.8], [0, 0, 0, 1])
+    T_flange_tool = make_T([0, 0, -0.06], [1, 0, 0, 0])
+    T_ots_rig = make_T([-0.05, 0.12, 0.05], [-0.7071067811865476, 0, 0, 0.7071067811865476])
+    q0 = np.array([0.3, 0.5, 0.0, 1.6, 0.0, 0.6, 0.0])
+    kin = DianaKinematics()
+
+    def q_at(t_ns):
+        Q = np.tile(q0, (len(t_ns), 1))
+        Q[:, joint] += joint_speed * (np.asarray(t_ns) * 1e-9)
+        return Q
+
+    def tool_omc(t_ns):
+        return T_omc_diana_base @ kin.fk_many(q_at(t_ns)) @ T_flange_tool
+
+    t_omc, t_ots, t_dia = _grid(duration_s, 120.0), _grid(duration_s, 60.0, 0.0031), _grid(duration_s, 100.0)
+    F, V = len(t_omc), len(t_ots)
+    off = np.tile(np.asarray(omc_offset, float), (F, 1))
+    if omc_offset_after is not None and t_offset_change_s is not None:
+        off[t_omc * 1e-9 >= t_offset_change_s] = np.asarray(omc_offset_after, float)
+    T_tool = tool_omc(t_omc)
+    quat = lambda Ts: np.array([T_to_pq(T)[1] for T in Ts])  # noqa: E731
+
+    def body(Ts, noise, extra=None, visible=None):
+        p = Ts[:, :3, 3] + (0 if extra is None else extra) + noise * rng.standard_normal((len(Ts), 3))
+        vis = np.ones(len(Ts), bool) if visible is None else visible
+        p = np.where(vis[:, None], p, np.nan)
+        return BodyArrays(vis, p, np.where(vis[:, None], quat(Ts), np.nan), np.full(len(Ts), 1e-4),
+                          np.full(len(Ts), 4))
+
+    omc = DeviceStream("omc", t_omc + epoch_ns, {
+        "base": body(np.broadcast_to(T_omc_base, (F, 4, 4)), omc_noise_m),
+        "ots_rig": body(np.broadcast_to(T_omc_ots @ inv_T(T_ots_rig), (F, 4, 4)), omc_noise_m),
+        "tool": body(T_tool, omc_noise_m, off)}, latency_ns=8_000_000, frame_number=np.arange(1, F + 1))
+    in_win = (t_ots * 1e-9 >= ots_window_s[0]) & (t_ots * 1e-9 < ots_window_s[1])
+    T_ots_omc = inv_T(T_omc_ots)
+    ots = DeviceStream("ots", t_ots + epoch_ns, {
+        "tool": body(T_ots_omc @ tool_omc(t_ots), ots_noise_m, visible=in_win),
+        "base": body(np.broadcast_to(T_ots_omc @ T_omc_base, (V, 4, 4)), ots_noise_m)},
+        latency_ns=14_000_000, frame_number=np.arange(1, V + 1), port_status=PORT_STATUS_OK, qos_depth=50)
+    dq = np.zeros((len(t_dia), 7))
+    dq[:, joint] = joint_speed
+    diana = JointStream(t_dia + epoch_ns, q_at(t_dia), dq)
+    cal = Calibration(inv_T(T_omc_base) @ T_omc_diana_base, T_flange_tool, T_omc_base, source="synthetic truth")
+    R_base_omc = inv_T(T_omc_base)[:3, :3]
+    truth = {"t_omc_ns": t_omc + epoch_ns, "p_base_true": (inv_T(T_omc_base) @ T_tool)[:, :3, 3],
+             "offset_base": off @ R_base_omc.T}
+    return BagContent(omc, ots, diana, cal, {"generator": "synthetic", "task": "synthetic"}), truth
+
+
+# ------------------------------------------------------------------------------------------- simulator
+def device_precision(b: BodyArrays, device: str) -> BodyArrays:
+    """What the driver publishes for a pose the device sent with its own wire precision.
+
+    Both devices send float32: the NOKOV SDK's ``sRigidBodyData`` (x y z [mm], qx qy qz qw, MeanError [mm];
+    reference/nokov_mocap.md) and the NDI BX reply (``<8f``: q0 qx qy qz, tx ty tz [mm], error [mm]). The
+    drivers convert exactly like this: position float64(float32 mm) * 1e-3 (omc_driver) or / 1000 (ndi_driver),
+    quaternion renormalised (nokov/frames.py, ndi/driver.py). (The simulator's own UDP stream carries float64;
+    the dataset mirrors the real devices.)
+    """
+    with np.errstate(invalid="ignore"):
+        mm = (np.asarray(b.position, float) * 1000.0).astype(np.float32).astype(float)
+        p = mm * 1e-3 if device == "omc" else mm / 1000.0
+        q = np.asarray(b.quat_xyzw, float).astype(np.float32).astype(float)
+        q = q / np.linalg.norm(q, axis=1, keepdims=True)
+        err = None if b.fit_error is None else \
+            (np.asarray(b.fit_error, float) * 1000.0).astype(np.float32).astype(float) / 1000.0
+    return BodyArrays(b.visible, p, q, err, b.markers)
+
+
+def content_from_sim(run, epoch_ns: int = EPOCH_NS, wire_precision: bool = True) -> BagContent:
+    """The bag content of one :class:`fullperc_eval.sim.run.SimRun` (simulator time + ``epoch_ns``).
+
+    ``wire_precision``: poses as the drivers publish them from the devices' float32 replies
+    (:func:`device_precision`); False keeps the simulator's float64 values.
+    """
+    o, v = run.omc, run.ots
+    wp = device_precision if wire_precision else (lambda b, _d: b)
+    omc = DeviceStream("omc", np.asarray(o.t_ns, np.int64) + epoch_ns,
+                       {n: wp(BodyArrays(b.tracked, b.position, b.quat_xyzw, b.mean_error, b.markers_used), "omc")
+                        for n, b in o.bodies.items()},
+                       latency_ns=int(round(o.latency_s * 1e9)), frame_number=o.frame_number, qos_depth=10)
+    ots = DeviceStream("ots", np.asarray(v.t_ns, np.int64) + epoch_ns,
+                       {n: wp(BodyArrays(t.visible, t.position, t.quat_xyzw, t.rms, t.markers_used), "ots")
+                        for n, t in v.tools.items()},
+                       latency_ns=int(round(v.latency_s * 1e9)), frame_number=v.frame_number,
+                       port_status=PORT_STATUS_OK, qos_depth=50)
+    diana = JointStream(np.asarray(run.diana.t_ns, np.int64) + epoch_ns, run.diana.q, run.diana.dq)
+    s = run.static
+    cal = Calibration(T_base_diana_base=inv_T(s["T_omc_base"]) @ s["T_omc_diana_base"],
+                      T_flange_tool=np.asarray(s["T_flange_tool"], float),
+                      T_omc_base=np.asarray(s["T_omc_base"], float),
+                      source=f"simulator truth ({GENERATOR}, task {run.task}, seed {run.seed})")
+    return BagContent(omc, ots, diana, cal, {"generator": GENERATOR, "task": str(run.task), "seed": str(run.seed)})
+
+
+def _is_ours(bagdir: Path) -> bool:
+    try:
+        info = load_metadata(bagdir)
+    except BagError:
+        return False
+    return (info.get("custom_data") or {}).get("generator") == GENERATOR
+
+
+def generate(out: str | Path, tasks, seed: int = 0, log=print) -> list[Path]:
+    """Simulate ``tasks`` and write one bag per task into ``out``; replaces bags this generator wrote before."""
+    from .sim.run import run_task
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for task in tasks:
+        dest = out / task
+        if dest.exists() and not _is_ours(dest):
+            raise BagError(f"{dest} exists and was not written by {GENERATOR}; refusing to overwrite it")
+        t0 = time.monotonic()
+        run = run_task(task, seed=seed)
+        t1 = time.monotonic()
+        tmp_parent = out / f".{task}.partial"
+        if tmp_parent.exists():
+            shutil.rmtree(tmp_parent)
+        tmp = write_bag(tmp_parent / task, content_from_sim(run))   # storage file is named <task>_0.mcap
+        if dest.exists():
+            shutil.rmtree(dest)
+        tmp.rename(dest)
+        tmp_parent.rmdir()
+        size = sum(f.stat().st_size for f in dest.iterdir())
+        log(f"{task}: simulated {run.duration_s:.1f} s in {t1 - t0:.1f} s, wrote {dest} "
+            f"({size / 1e6:.2f} MB) in {time.monotonic() - t1:.1f} s")
+        written.append(dest)
+    return written
+
+
+def main(argv: list[str] | None = None) -> int:
+    from .sim.tasks import TASKS
+
+    ap = argparse.ArgumentParser(prog="python -m fullperc_eval.dataset", description=__doc__.split("\n")[0])
+    ap.add_argument("--out", default="bags", help="directory for the bags (default: bags)")
+    ap.add_argument("--tasks", nargs="+", default=list(TASKS), help=f"tasks to generate (default: {' '.join(TASKS)})")
+    ap.add_argument("--seed", type=int, default=0, help="simulator seed (default 0)")
+    args = ap.parse_args(argv)
+    for t in args.tasks:
+        if t not in TASKS:
+            print(f"error: unknown task {t!r} (one of {', '.join(TASKS)})", file=sys.stderr)
+            return 2
+    t0 = time.monotonic()
+    try:
+        paths = generate(args.out, args.tasks, args.seed)
+    except (BagError, OSError, ValueError, RuntimeError) as e:
+        print(f"error: {type(e).__name__}: {e}", file=sys.stderr)
+        return 1
+    total = sum(f.stat().st_size for p in paths for f in p.iterdir())
+    print(f"dataset: {len(paths)} bags, {total / 1e6:.2f} MB in total, {time.monotonic() - t0:.1f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,230 @@
+"""Offline evaluator core: ground truth, calibration, segments, metrics on bags with *known* injected errors.
+
+Expected values here come from the construction of the synthetic recordings (an injected OMC offset, exact
+joint motion), or from hand-written label sequences -- never from running the evaluator and copying its output.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+import yaml
+
+from fullperc_common.transforms import make_T
+from fullperc_drivers.diana_kinematics import DianaKinematics
+from fullperc_eval import evaluate as ev
+from fullperc_eval.dataset import synthetic_content, write_bag
+from fullperc_eval.ground_truth import (
+    Calibration,
+    CalibrationError,
+    GroundTruth,
+    load_calibration,
+    save_calibration,
+)
+from fullperc_fusion.filters import FilterParams
+from fullperc_fusion.frame_chain import ChainConfig
+from fullperc_fusion.pipeline import TargetConfig
+
+OFFSET = (0.003, 0.001, -0.002)   # injected OMC error [m]; |OFFSET| = sqrt(14) mm
+
+
+@pytest.fixture(scope="module")
+def synth(tmp_path_factory):
+    content, truth = synthetic_content(8.0, omc_offset=OFFSET, ots_window_s=(0.0, 4.0))
+    path = write_bag(tmp_path_factory.mktemp("synth") / "synth", content)
+    return path, content, truth
+
+
+@pytest.fixture(scope="module")
+def synth_eval(synth):
+    return ev.evaluate_bag(synth[0], progress=False)
+
+
+# ------------------------------------------------------------------------------------------- ground truth
+def _cal():
+    return Calibration(make_T([0.1, -0.2, 0.3], [0, 0, 0.3826834323650898, 0.9238795325112867]),
+                       make_T([0, 0, -0.06], [1, 0, 0, 0]))
+
+
+def test_ground_truth_interpolates_linear_joint_motion_exactly():
+    kin = DianaKinematics()
+    cal = _cal()
+    t = np.arange(0, 1_000_000_001, 10_000_000, dtype=np.int64)          # 100 Hz, 1 s
+    q0 = np.array([0.2, 0.4, -0.1, 1.2, 0.3, 0.5, -0.2])
+    rate = np.array([0.3, -0.2, 0.1, 0.25, 0.0, -0.3, 0.4])                 # rad/s on every joint
+    Q = q0 + np.outer(t * 1e-9, rate)
+    gt = GroundTruth(t, Q, cal, kin)
+    tq = np.array([5_000_000, 123_456_789, 990_000_000, 1_000_000_000])    # between and on samples
+    P, ok = gt.position_base(tq)
+    assert ok.all()
+    want = cal.T_base_diana_base @ kin.fk_many(q0 + np.outer(tq * 1e-9, rate)) @ cal.T_flange_tool
+    np.testing.assert_allclose(P, want[:, :3, 3], atol=1e-12)
+
+
+def test_ground_truth_refuses_extrapolation_and_gaps():
+    t = np.array([0, 10, 20, 200, 210], dtype=np.int64) * 1_000_000       # a 180 ms gap
+    Q = np.zeros((5, 7))
+    Q[:, 3] = 1.0
+    gt = GroundTruth(t, Q, _cal(), max_gap_ns=50_000_000)
+    _, ok = gt.position_base(np.array([-1, 0, 15, 100, 205, 210, 211]) * 1_000_000)
+    assert ok.tolist() == [False, True, True, False, True, True, False]
+
+
+def test_ground_truth_rejects_bad_joint_arrays():
+    with pytest.raises(ValueError, match="N, 7"):
+        GroundTruth([0, 1], np.zeros((2, 6)), _cal())
+    with pytest.raises(ValueError, match="at least 2"):
+        GroundTruth([0], np.zeros((1, 7)), _cal())
+    with pytest.raises(ValueError, match="NaN"):
+        GroundTruth([0, 1], np.full((2, 7), np.nan), _cal())
+
+
+def test_calibration_roundtrip_and_clear_errors(tmp_path):
+    cal = _cal()
+    cal.T_omc_base = make_T([1, 2, 3], [0, 0, 0, 1])
+    cal.source = "unit test"
+    save_calibration(tmp_path, cal)
+    back = load_calibration(tmp_path)
+    np.testing.assert_allclose(back.T_base_diana_base, cal.T_base_diana_base, atol=1e-12)
+    np.testing.assert_allclose(back.T_flange_tool, cal.T_flange_tool, atol=1e-12)
+    np.testing.assert_allclose(back.T_omc_base, cal.T_omc_base, atol=1e-12)
+    assert back.source == "unit test"
+    f = tmp_path / "calibration.yaml"
+    f.write_text(yaml.safe_dump({"T_flange_tool": [0, 0, 0, 0, 0, 0, 1]}))
+    with pytest.raises(CalibrationError, match="missing T_base_diana_base"):
+        load_calibration(tmp_path)
+    f.write_text(yaml.safe_dump({"T_flange_tool": [0, 0, 0, 0, 0, 0, 1], "T_base_diana_base": [0, 0, 0, 0, 0, 0, 2]}))
+    with pytest.raises(CalibrationError, match="norm"):
+        load_calibration(tmp_path)
+    f.write_text("T_flange_tool: [0, 0\n")
+    with pytest.raises(CalibrationError, match="YAML"):
+        load_calibration(tmp_path)
+    with pytest.raises(CalibrationError, match="no calibration file"):
+        load_calibration(tmp_path / "nowhere")
+
+
+# ---------------------------------------------------------------------------------------------- segments
+def test_runs_and_transition_segments_follow_the_documented_definition():
+    t = np.arange(10) * 10
+    #          0  1  2  3  4  5  6  7  8  9
+    labels = [2, 2, 1, 1, 1, 3, 3, 3, 2, 2]
+    assert ev.runs(labels) == [(2, 0, 1), (1, 2, 4), (3, 5, 7), (2, 8, 9)]
+    segs = ev.transition_segments(t, np.array(labels))
+    assert [(s["from"], s["to"], s["t0_ns"], s["t1_ns"]) for s in segs] == [
+        ("G", "B", 10, 40),   # last G sample .. last B sample
+        ("B", "P", 40, 70),   # last B sample .. end of the following P run
+        ("P", "G", 70, 90)]
+    assert ev.transition_segments(t[:3], np.array([1, 1, 1])) == []
+
+
+# ---------------------------------------------------------------------------------------------- metrics
+def test_omc_mae_is_the_injected_offset(synth_eval):
+    r = synth_eval.result
+    want = float(np.linalg.norm(OFFSET) * 1e3)
+    assert r["mae_mm"]["omc"] == pytest.approx(want, abs=1e-6)
+    assert r["max_mm"]["omc"] == pytest.approx(want, abs=1e-6)
+    assert r["outputs"]["omc"] > 0.9 * 8.0 * 120 - 60   # every OMC frame after the 30-sample base init
+
+
+def test_compensated_filters_keep_the_bias_after_the_ots_leaves(synth_eval, synth):
+    """Physics of the setup, not a number: with the OTS gone after 4 s and a constant OMC offset, a filter
+    without a bias state converges to the biased OMC, the compensated ones keep the learned offset."""
+    r = synth_eval.result
+    s = synth_eval.series
+    late = {m: s["errors"][m][(s["outputs"][m]["t_ns"] - synth[2]["t_omc_ns"][0]) * 1e-9 > 6.0] for m in ev.METHODS}
+    off = np.linalg.norm(OFFSET) * 1e3
+    assert np.median(late["kf"]) == pytest.approx(off, rel=0.02)
+    assert np.median(late["cbkf"]) < 0.05 * off
+    assert np.median(late["ckf"]) < 0.05 * off
+    assert r["mae_mm"]["cbkf"] < r["mae_mm"]["kf"] < r["mae_mm"]["omc"]
+
+
+def test_errors_use_the_truth_at_each_output_stamp(synth_eval, synth):
+    """The pass-through outputs exactly the recorded OMC samples: error = injected offset expressed in base."""
+    _, _, truth = synth
+    o = synth_eval.series["outputs"]["omc"]
+    idx = np.searchsorted(truth["t_omc_ns"], o["t_ns"])
+    assert np.array_equal(truth["t_omc_ns"][idx], o["t_ns"])
+    np.testing.assert_allclose(o["p"] - truth["p_base_true"][idx], truth["offset_base"][idx], atol=1e-9)
+
+
+def test_common_stamp_mae_and_region_split_are_consistent(synth_eval):
+    r = synth_eval.result
+    assert r["common_stamps"] > 0
+    assert r["mae_common_mm"]["omc"] == pytest.approx(np.linalg.norm(OFFSET) * 1e3, abs=1e-6)
+    fr = r["regions"]["fraction"]
+    assert sum(fr.values()) == pytest.approx(1.0)
+    # the region means, weighted by their output counts, give back the overall MAE
+    s = synth_eval.series
+    for m in ev.METHODS:
+        ok = s["valid"][m]
+        assert np.nanmean(s["errors"][m][ok]) == pytest.approx(r["mae_mm"][m])
+
+
+def test_evaluation_is_deterministic(synth, synth_eval):
+    again = ev.evaluate_bag(synth[0], progress=False).result
+    assert json.dumps(ev.to_json(again), sort_keys=True) == json.dumps(ev.to_json(synth_eval.result), sort_keys=True)
+
+
+def test_result_has_the_eval_json_schema(synth_eval):
+    r = ev.to_json(synth_eval.result)
+    json.dumps(r, allow_nan=False)
+    assert set(r["mae_mm"]) == {"omc", "kf", "bkf", "ckf", "cbkf"}
+    assert r["task"] == "synthetic" and r["b_to_p"] is None    # this path never enters BVV then PVV
+
+
+# ------------------------------------------------------------------------------------------ configuration
+def test_fusion_yaml_maps_to_the_node_defaults():
+    """fusion.yaml says every value equals the node's built-in default: loading it must give the dataclass
+    defaults (a drift between the file and the code would make live and offline disagree)."""
+    cfg, flat = ev.load_fusion_config()
+    want = TargetConfig(name="tool", chain=ChainConfig(), filters=ev.METHODS, params=FilterParams())
+    assert cfg.params == want.params
+    assert (cfg.slop_ns, cfg.delay_ns) == (want.slop_ns, want.delay_ns)
+    for f in dataclasses.fields(ChainConfig):
+        a, b = getattr(cfg.chain, f.name), getattr(want.chain, f.name)
+        assert (a is None and b is None) or np.array_equal(a, b), f.name
+    assert flat["idle_flush"] == 0.5
+
+
+def test_fusion_config_values_are_mapped_and_checked(tmp_path):
+    p = tmp_path / "f.yaml"
+    p.write_text(yaml.safe_dump({"fusion_node": {"ros__parameters": {
+        "noise": {"accel": 0.2, "global_std": 0.001}, "hop_to_bias": False, "slop": 0.002, "reorder_delay": 0.1,
+        "local_chain": "direct", "init_samples": 5, "tool": {"omc_body": "t1"},
+        "T_base_ots": [1, 2, 3, 0, 0, 0, 1]}}}))
+    cfg, _ = ev.load_fusion_config(p)
+    assert cfg.params.accel_noise == 0.2 and cfg.params.global_std == 0.001 and cfg.params.hop_to_bias is False
+    assert (cfg.slop_ns, cfg.delay_ns) == (2_000_000, 100_000_000)
+    assert cfg.chain.local_chain == "direct" and cfg.chain.init_samples == 5 and cfg.chain.omc_target == "t1"
+    np.testing.assert_allclose(cfg.chain.T_base_ots[:3, 3], [1, 2, 3])
+    p.write_text(yaml.safe_dump({"fusion_node": {"ros__parameters": {"T_rig_ots": [1, 2, 3]}}}))
+    with pytest.raises(ev.EvaluationError, match="T_rig_ots"):
+        ev.load_fusion_config(p)
+    p.write_text(yaml.safe_dump({"fusion_node": {"ros__parameters": {"noise": {"global_std": -1.0}}}}))
+    with pytest.raises(ev.EvaluationError, match="global_std"):
+        ev.load_fusion_config(p)
+
+
+def test_a_changed_filter_changes_the_numbers(synth, synth_eval):
+    cfg, _ = ev.load_fusion_config()
+    cfg.params = dataclasses.replace(cfg.params, hop_to_bias=False, bias_walk=1e-5)
+    other = ev.evaluate_bag(synth[0], progress=False, config=cfg).result
+    assert other["mae_mm"]["omc"] == synth_eval.result["mae_mm"]["omc"]
+    assert other["mae_mm"]["cbkf"] != synth_eval.result["mae_mm"]["cbkf"]
+
+
+# ------------------------------------------------------------------------------------------------ report
+def test_report_writes_plots_and_html(synth_eval, tmp_path):
+    from fullperc_eval.report import write_report
+
+    index = write_report(synth_eval, tmp_path)
+    text = index.read_text()
+    for name in ("trajectory.png", "errors.png"):
+        assert (tmp_path / name).stat().st_size > 10_000
+        assert name in text
+    assert f"{synth_eval.result['mae_mm']['omc']:.2f}" in text
+    assert not (tmp_path / "box_b_to_p.png").exists()     # no B->P segment on this path

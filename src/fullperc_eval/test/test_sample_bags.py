@@ -1,0 +1,107 @@
+"""The committed sample bags (``bags/<task>/``) reproduce the numbers committed beside them (``bags/eval.json``).
+
+``bags/eval.json`` is written by ``make eval`` from the bags that ``make dataset`` generated; these tests evaluate
+the bags again and compare every pinned figure. A change anywhere in the chain -- bag reading, frame chain,
+synchronizer, any of the filters, the ground truth, the margin labels -- shows up as a mismatch, and
+:func:`test_the_pin_detects_a_changed_filter` proves that a small change in one filter is caught. When a change
+is intended, regenerate with ``make eval`` (and ``make dataset`` if the simulator changed) and commit both.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import pytest
+
+from fullperc_common.testing import workspace_root
+from fullperc_eval.evaluate import evaluate_bag, load_fusion_config
+from fullperc_eval.evaluate_all import TASK_ORDER
+
+BAGS = workspace_root() / "bags"
+EVAL_JSON = BAGS / "eval.json"
+REL = 1e-9          # same machine: bit-identical; other CPUs/BLAS: last-digit differences at most
+MAX_TOTAL_BYTES = 12_000_000
+
+
+@pytest.fixture(scope="module")
+def stored() -> dict[str, dict]:
+    if not EVAL_JSON.is_file():
+        pytest.fail(f"{EVAL_JSON} is missing: run `make dataset && make eval` and commit bags/")
+    rows = json.loads(EVAL_JSON.read_text())["tasks"]
+    return {r["task"]: r for r in rows}
+
+
+_cache: dict[str, dict] = {}
+
+
+def fresh(task: str) -> dict:
+    if task not in _cache:
+        _cache[task] = evaluate_bag(BAGS / task, progress=False).result
+    return _cache[task]
+
+
+def _close(a, b) -> bool:
+    if a is None or b is None:
+        return a is None and b is None
+    if isinstance(a, int | float) and isinstance(b, int | float):
+        return math.isclose(a, b, rel_tol=REL, abs_tol=1e-12)
+    return a == b
+
+
+def differences(old: dict, new: dict) -> list[str]:
+    """Every pinned figure that differs between a stored row and a fresh evaluation."""
+    out = []
+    for key in ("mae_mm", "mae_common_mm", "rmse_mm", "max_mm", "median_mm", "outputs"):
+        for m, v in old[key].items():
+            if not _close(v, new[key].get(m)):
+                out.append(f"{key}.{m}: stored {v!r}, now {new[key].get(m)!r}")
+    if (old["b_to_p"] is None) != (new["b_to_p"] is None):
+        out.append(f"b_to_p: stored {old['b_to_p']!r}, now {new['b_to_p']!r}")
+    elif old["b_to_p"] is not None:
+        for key in ("max_mm", "median_mm", "n"):
+            for m, v in old["b_to_p"][key].items():
+                if not _close(v, new["b_to_p"][key].get(m)):
+                    out.append(f"b_to_p.{key}.{m}: stored {v!r}, now {new['b_to_p'][key].get(m)!r}")
+        for key in ("t0_s", "t1_s"):
+            if not _close(old["b_to_p"][key], new["b_to_p"][key]):
+                out.append(f"b_to_p.{key}: stored {old['b_to_p'][key]!r}, now {new['b_to_p'][key]!r}")
+    for key in ("messages",):
+        if old[key] != new[key]:
+            out.append(f"{key}: stored {old[key]!r}, now {new[key]!r}")
+    if old["regions"]["order"] != new["regions"]["order"]:
+        out.append(f"regions.order: stored {old['regions']['order']}, now {new['regions']['order']}")
+    return out
+
+
+def test_every_task_has_a_committed_bag_and_row(stored):
+    assert list(stored) == list(TASK_ORDER)
+    for task in TASK_ORDER:
+        bag = BAGS / task
+        assert (bag / "metadata.yaml").is_file() and (bag / "calibration.yaml").is_file(), bag
+        assert stored[task]["bag"] == f"bags/{task}"
+        # the simulator realised the task: the margin model labels the true path with the task's order
+        assert stored[task]["regions"]["order"] == task
+
+
+def test_sample_bags_are_small():
+    total = sum(f.stat().st_size for t in TASK_ORDER for f in (BAGS / t).iterdir())
+    assert total < MAX_TOTAL_BYTES, f"sample bags take {total / 1e6:.1f} MB"
+
+
+@pytest.mark.parametrize("task", TASK_ORDER)
+def test_committed_bag_reproduces_its_numbers(task, stored):
+    diff = differences(stored[task], fresh(task))
+    assert not diff, f"{task}: evaluation of bags/{task} no longer matches bags/eval.json:\n  " + "\n  ".join(diff)
+
+
+def test_the_pin_detects_a_changed_filter(stored):
+    """A 20 % change of one noise parameter of the filters must break the pin (the test above can fail)."""
+    task = next(t for t in TASK_ORDER if stored[t]["b_to_p"] is not None)
+    cfg, _ = load_fusion_config()
+    cfg.params = dataclasses.replace(cfg.params, bias_walk=cfg.params.bias_walk * 1.2)
+    changed = evaluate_bag(BAGS / task, progress=False, config=cfg).result
+    diff = differences(stored[task], changed)
+    assert any(d.startswith("mae_mm.cbkf") for d in diff), diff
+    assert not any(d.startswith("mae_mm.omc") for d in diff), diff   # the pass-through has no bias state
