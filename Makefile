@@ -33,7 +33,7 @@ system: build
 	@$(ENV) python -m pytest test $(PYTEST_ARGS)
 
 demo: build
-	@$(ENV) supervisor demo --task $(TASK)
+	@$(ENV) install/fullperc_eval/lib/fullperc_eval/supervisor demo --task $(TASK) $(DEMO_ARGS)
 
 bench: build
 	@$(ENV) python bench/run_all.py

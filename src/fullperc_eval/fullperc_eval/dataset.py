@@ -284,12 +284,17 @@ def content_from_sim(run, epoch_ns: int = EPOCH_NS, wire_precision: bool = True)
                        latency_ns=int(round(v.latency_s * 1e9)), frame_number=v.frame_number,
                        port_status=PORT_STATUS_OK, qos_depth=50)
     diana = JointStream(np.asarray(run.diana.t_ns, np.int64) + epoch_ns, run.diana.q, run.diana.dq)
+    return BagContent(omc, ots, diana, sim_calibration(run),
+                      {"generator": GENERATOR, "task": str(run.task), "seed": str(run.seed)})
+
+
+def sim_calibration(run) -> Calibration:
+    """The calibration of a simulated run: the simulator's true static transforms (for ground truth)."""
     s = run.static
-    cal = Calibration(T_base_diana_base=inv_T(s["T_omc_base"]) @ s["T_omc_diana_base"],
-                      T_flange_tool=np.asarray(s["T_flange_tool"], float),
-                      T_omc_base=np.asarray(s["T_omc_base"], float),
-                      source=f"simulator truth ({GENERATOR}, task {run.task}, seed {run.seed})")
-    return BagContent(omc, ots, diana, cal, {"generator": GENERATOR, "task": str(run.task), "seed": str(run.seed)})
+    return Calibration(T_base_diana_base=inv_T(s["T_omc_base"]) @ s["T_omc_diana_base"],
+                       T_flange_tool=np.asarray(s["T_flange_tool"], float),
+                       T_omc_base=np.asarray(s["T_omc_base"], float),
+                       source=f"simulator truth ({GENERATOR}, task {run.task}, seed {run.seed})")
 
 
 def _is_ours(bagdir: Path) -> bool:

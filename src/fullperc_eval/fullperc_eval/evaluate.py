@@ -325,6 +325,64 @@ def replay(bag: str | Path, config: TargetConfig, idle_flush_s: float = 0.5, pro
                   pipeline_stats=stats, warnings=warnings, messages=n, seconds=time.perf_counter() - t_start)
 
 
+def live_replay(bag: str | Path, target: str = "tool", primary: str = "cbkf", base_body: str = "base") -> Replay:
+    """The fused poses that ``fusion_node`` published live and ``record`` stored, as a :class:`Replay`.
+
+    ``--live`` evaluates these instead of re-running the filters, so a recording of the live graph can be
+    compared with the offline replay of its own raw measurements (the demo and the system test do).
+    Method ``f`` is read from ``/fullperc/<target>/<f>/pose``; the primary filter also from
+    ``/fullperc/<target>/pose``. Sources, hop flags and biases are not in the pose topics (zeros here).
+    """
+    t_start = time.perf_counter()
+    try:
+        reader = BagReader(bag)
+    except BagError as e:
+        raise EvaluationError(str(e)) from None
+    topics = {f"/fullperc/{target}/{f}/pose": f for f in METHODS}
+    if f"/fullperc/{target}/{primary}/pose" not in reader.topics:
+        topics[f"/fullperc/{target}/pose"] = primary
+    present = [t for t in (*topics, JOINT_TOPIC, f"/omc/{base_body}/pose") if t in reader.topics]
+    if not any(t in reader.topics for t in topics):
+        raise EvaluationError(f"bag {str(reader.path)!r} holds no fused poses /fullperc/{target}/.../pose "
+                              "(was fusion_node recorded?)")
+    outs = {f: Outputs() for f in dict.fromkeys(topics[t] for t in topics if t in reader.topics)}
+    joint_t: list[int] = []
+    joint_q: list[np.ndarray] = []
+    base_poses: list[tuple[np.ndarray, np.ndarray]] = []
+    counts = {t: 0 for t in present}
+    try:
+        reader.open()
+        for m in reader.messages(present):
+            counts[m.topic] += 1
+            msg = reader.deserialize(m.data, m.msgtype)
+            if m.topic == JOINT_TOPIC:
+                joint_t.append(_stamp_ns(msg.header))
+                joint_q.append(np.asarray(msg.position, dtype=float))
+                continue
+            pp, qq = msg.pose.position, msg.pose.orientation
+            p = np.array([pp.x, pp.y, pp.z])
+            if m.topic in topics:
+                o = outs[topics[m.topic]]
+                o.t_ns.append(_stamp_ns(msg.header))
+                o.p.append(p)
+                o.sources.append(0)
+                o.hop.append(False)
+                o.bias.append(np.zeros(3))
+            else:
+                base_poses.append((p, np.array([qq.x, qq.y, qq.z, qq.w])))
+    except BagError as e:
+        raise EvaluationError(str(e)) from None
+    finally:
+        reader.close()
+    if len(joint_t) < 2:
+        raise EvaluationError(f"bag {str(reader.path)!r}: fewer than 2 joint states; no ground truth")
+    return Replay(bag=reader.path, task=_task_name(reader), start_ns=reader.start_time,
+                  outputs={f: o.arrays() for f, o in outs.items()}, joint_t_ns=np.asarray(joint_t, np.int64),
+                  joint_q=np.asarray(joint_q, float), omc_base_poses=base_poses, counts=counts,
+                  pipeline_stats={}, warnings=[], messages=sum(counts.values()),
+                  seconds=time.perf_counter() - t_start)
+
+
 # ------------------------------------------------------------------------------------------------ metrics
 def runs(labels: np.ndarray) -> list[tuple[int, int, int]]:
     """(label, first index, last index inclusive) of each run of equal labels."""
@@ -482,8 +540,11 @@ def evaluate_replay(rep: Replay, calibration: Calibration, layout, kinematics=No
 
 def evaluate_bag(bag: str | Path, *, calibration: str | Path | None = None, layout: str | Path | None = None,
                  fusion_config: str | Path | None = None, target: str = "tool", progress: bool = True,
-                 config: TargetConfig | None = None) -> Evaluation:
-    """Replay + metrics for one bag; ``config`` overrides the fusion config file (tests, benchmarks)."""
+                 config: TargetConfig | None = None, live: bool = False) -> Evaluation:
+    """Replay + metrics for one bag; ``config`` overrides the fusion config file (tests, benchmarks).
+
+    ``live``: evaluate the fused poses recorded from ``fusion_node`` (:func:`live_replay`) instead.
+    """
     from fullperc_fusion.layout import LayoutError, default_layout_path, load_layout
 
     from .bag_io import load_metadata
@@ -503,7 +564,10 @@ def evaluate_bag(bag: str | Path, *, calibration: str | Path | None = None, layo
         lay = load_layout(layout if layout is not None else default_layout_path())
     except (LayoutError, FileNotFoundError) as e:
         raise EvaluationError(f"layout: {e}") from None
-    rep = replay(bag, config, idle_flush_s=float(flat.get("idle_flush", 0.5)), progress=progress)
+    if live:
+        rep = live_replay(bag, target=target, primary=str(flat.get("filter", "cbkf")))
+    else:
+        rep = replay(bag, config, idle_flush_s=float(flat.get("idle_flush", 0.5)), progress=progress)
     ev = evaluate_replay(rep, cal, lay)
     ev.result["config"] = {"fusion_config": flat.get("_source", "<given>"), "layout": str(lay.source),
                            "filter_params": {k: v for k, v in vars(config.params).items()},
@@ -572,10 +636,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fusion-config", help="fusion_node params file (default: fullperc_fusion's fusion.yaml)")
     ap.add_argument("--target", default="tool", help="fused target name (default: tool)")
     ap.add_argument("--quiet", action="store_true", help="no progress output")
+    ap.add_argument("--live", action="store_true",
+                    help="evaluate the fused poses recorded live (/fullperc/<target>/...) instead of re-running")
     args = ap.parse_args(argv)
     try:
         ev = evaluate_bag(args.bag, calibration=args.calibration, layout=args.layout,
-                          fusion_config=args.fusion_config, target=args.target, progress=not args.quiet)
+                          fusion_config=args.fusion_config, target=args.target, progress=not args.quiet,
+                          live=args.live)
         r = ev.result
         print(format_table1([r]))
         print()

@@ -72,6 +72,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--layout", help="camera layout (default: installed fullperc_fusion/config/or_layout.yaml)")
     ap.add_argument("--save-npz", help="also write the offline arrays (measurements + ground truth) here")
     ap.add_argument("--no-serve", action="store_true", help="only simulate (and --save-npz), do not serve")
+    ap.add_argument("--calibration-out", help="write the run's calibration.yaml (true T_base_diana_base, "
+                    "T_flange_tool) here, for evaluating a recording of this run")
     return ap
 
 
@@ -102,6 +104,11 @@ def main(argv: list[str] | None = None) -> int:
                       "compute_s": round(time.perf_counter() - t0, 2)}), flush=True)
     if args.save_npz:
         run.save_npz(args.save_npz)
+    if args.calibration_out:
+        from fullperc_eval.dataset import sim_calibration
+        from fullperc_eval.ground_truth import save_calibration
+
+        save_calibration(args.calibration_out, sim_calibration(run))
     if args.no_serve:
         return 0
 

@@ -110,7 +110,8 @@ def load_graph(path: str | Path, values: dict[str, str]) -> Graph:
             if a not in names:
                 raise GraphError(f"{path}: {where}.after: {a!r} is not an earlier process")
         procs.append(ProcSpec(
-            name=p["name"], cmd=[fill(c, f"{where}.cmd") for c in p["cmd"]], ready=dict(p.get("ready") or {}),
+            name=p["name"], cmd=[fill(c, f"{where}.cmd") for c in p["cmd"]],
+            ready={k: fill(v, f"{where}.ready.{k}") for k, v in (p.get("ready") or {}).items()},
             after=after, output=str(p.get("output", "show")), ends_graph=bool(p.get("ends_graph", False)),
             required=bool(p.get("required", True)),
             env={k: fill(v, f"{where}.env.{k}") for k, v in (p.get("env") or {}).items()}))
@@ -283,6 +284,7 @@ def main(argv: list[str] | None = None) -> int:
     d.add_argument("--task", default="P-B-G-P")
     d.add_argument("--seed", default="0")
     d.add_argument("--out", default="demo_out")
+    d.add_argument("--speed", default="1.0", help="simulation speed (1.0 = real time)")
     args = ap.parse_args(argv)
     root = Path(os.environ.get("FULLPERC_ROOT", os.getcwd()))
     try:
@@ -291,7 +293,7 @@ def main(argv: list[str] | None = None) -> int:
             return run_graph(args.graph, values, Path(args.logs), root, args.timeout)
         from .demo import run_demo
 
-        return run_demo(task=args.task, seed=args.seed, out=Path(args.out), root=root)
+        return run_demo(task=args.task, seed=args.seed, out=Path(args.out), root=root, speed=args.speed)
     except GraphError as e:
         print(f"supervisor: {e}", file=sys.stderr)
         return 2

@@ -125,6 +125,7 @@ class MarginNode(Node):
         self.threshold_override = declare(
             self, "threshold_deg", -1.0, lambda v: math.isfinite(v), "must be finite",
             "GVV threshold [deg] overriding the layout's; < 0 = use the layout's")
+        self._last_label: dict[str, int] = {}
         self.targets = declare(self, "targets", ["tool"], lambda v: len(v) > 0 and all(v), "need at least one name",
                                "target names; one region topic each")
         self.pose_topic = declare(self, "pose_topic", "/fullperc/{target}/pose",
@@ -286,6 +287,14 @@ class MarginNode(Node):
             out.cameras_seeing = int(lab.cameras_seeing)
             out.in_local_volume = bool(lab.in_local_volume)
             self.counts[target] += 1
+            prev = self._last_label.get(target)
+            if lab.label != prev:
+                # one line per region change: the demo shows these live
+                self._last_label[target] = lab.label
+                self.get_logger().info(
+                    f"region {target}: {REGION_NAMES.get(prev, 'none')} -> "
+                    f"{REGION_NAMES[lab.label]} (margin {lab.margin_deg:.0f} deg, {lab.valid_pairs} pairs, "
+                    f"p_omc=({p_omc[0]:.3f}, {p_omc[1]:.3f}, {p_omc[2]:.3f}) m)")
             self.diag.set(f"target {target}", OK, f"{REGION_NAMES[lab.label]} (margin {lab.margin_deg:.0f} deg)",
                           {"labelled": self.counts[target], "valid_pairs": lab.valid_pairs,
                            "cameras_seeing": lab.cameras_seeing})
