@@ -39,7 +39,8 @@ def graph_path(root: Path) -> Path:
     raise FileNotFoundError("demo_graph.yaml not found (is the workspace built?)")
 
 
-def run_demo(task: str, seed: str, out: Path, root: Path, speed: str = "1.0") -> int:
+def run_demo(task: str, seed: str, out: Path, root: Path, speed: str = "1.0",
+             extra: dict[str, str] | None = None) -> int:
     from .evaluate import EvaluationError, evaluate_bag, format_table1, format_table2, write_json
     from .report import write_report
 
@@ -49,7 +50,7 @@ def run_demo(task: str, seed: str, out: Path, root: Path, speed: str = "1.0") ->
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     values = {"task": task, "seed": str(seed), "out": str(out.resolve()), "speed": str(speed),
               "omc_port": str(_free_port(socket.SOCK_DGRAM)), "diana_port": str(_free_port(socket.SOCK_DGRAM)),
-              "vega_port": str(_free_port(socket.SOCK_STREAM))}
+              "vega_port": str(_free_port(socket.SOCK_STREAM)), **(extra or {})}
     print(f"demo: task {task}, seed {seed}, output {out}, ROS_DOMAIN_ID={os.environ['ROS_DOMAIN_ID']}", flush=True)
     t0 = time.monotonic()
     rc = run_graph(graph_path(root), values, out / "logs", root)

@@ -17,6 +17,7 @@ import argparse
 import json
 import signal
 import sys
+import threading
 import time
 
 import numpy as np
@@ -72,9 +73,31 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--layout", help="camera layout (default: installed fullperc_fusion/config/or_layout.yaml)")
     ap.add_argument("--save-npz", help="also write the offline arrays (measurements + ground truth) here")
     ap.add_argument("--no-serve", action="store_true", help="only simulate (and --save-npz), do not serve")
+    ap.add_argument("--vega-outage", default="", metavar="A:B",
+                    help="switch the Vega emulator off from task second A to B (as if killed), then start a fresh "
+                         "one on the same port, as a power-cycled device would come back")
     ap.add_argument("--calibration-out", help="write the run's calibration.yaml (true T_base_diana_base, "
                     "T_flange_tool) here, for evaluating a recording of this run")
     return ap
+
+
+def _vega_outage(server, off_s: float, on_s: float) -> None:
+    """Kill the Vega emulator ``off_s`` host seconds into the task and start a fresh one at ``on_s``."""
+    started = time.time_ns()
+    # the task starts when serve() has started the emulator and set t0 (after this thread started)
+    while server.vega is None or not (getattr(server, "t0_host_ns", 0) or 0) > started:
+        if server._stop.wait(0.01):
+            return
+    t0 = server.t0_host_ns / 1e9
+    for at, what in ((off_s, "off"), (on_s, "on")):
+        delay = t0 + at - time.time()
+        if delay > 0 and server._stop.wait(delay):
+            return
+        if what == "off":
+            server.vega.stop()
+        else:
+            server._start_vega()
+        print(json.dumps({"event": "vega_" + what, "t_host_ns": time.time_ns()}), flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -127,6 +150,9 @@ def main(argv: list[str] | None = None) -> int:
         server._start_vega()
         with open(args.vega_port_file, "w") as f:
             f.write(str(server.vega.port))
+    if args.vega_outage and args.vega_port >= 0:
+        a, b = (float(x) for x in args.vega_outage.split(":"))
+        threading.Thread(target=_vega_outage, args=(server, a / args.speed, b / args.speed), daemon=True).start()
     server.serve(start_delay_s=args.start_delay, loops=0 if args.loop else 1)
     return 0
 

@@ -285,6 +285,8 @@ def main(argv: list[str] | None = None) -> int:
     d.add_argument("--seed", default="0")
     d.add_argument("--out", default="demo_out")
     d.add_argument("--speed", default="1.0", help="simulation speed (1.0 = real time)")
+    d.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                   help="graph variable, e.g. vega_outage=8:14 (switch the Vega off from task second 8 to 14)")
     args = ap.parse_args(argv)
     root = Path(os.environ.get("FULLPERC_ROOT", os.getcwd()))
     try:
@@ -293,7 +295,8 @@ def main(argv: list[str] | None = None) -> int:
             return run_graph(args.graph, values, Path(args.logs), root, args.timeout)
         from .demo import run_demo
 
-        return run_demo(task=args.task, seed=args.seed, out=Path(args.out), root=root, speed=args.speed)
+        return run_demo(task=args.task, seed=args.seed, out=Path(args.out), root=root, speed=args.speed,
+                        extra=dict(kv.split("=", 1) for kv in args.set))
     except GraphError as e:
         print(f"supervisor: {e}", file=sys.stderr)
         return 2
