@@ -17,6 +17,7 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -25,6 +26,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from benchlib import emit  # noqa: E402
+
+from fullperc_fusion.synchronizer import GLOBAL, LOCAL, ApproxSync  # noqa: E402
 
 DURATION = float(os.environ.get("FULLPERC_BENCH_E2E_S", "10"))
 
@@ -55,6 +58,16 @@ def run(label: str, params: list[str], domain: int) -> None:
         return m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
 
     qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    diag: dict[str, str] = {}
+
+    def on_diag(arr) -> None:
+        for st in arr.status:
+            if st.name.endswith("target tool"):
+                diag.update({kv.key: kv.value for kv in st.values})
+
+    node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
     for topic, sink in (("/fullperc/tool/pose", fused), ("/omc/tool/pose", raw)):
         node.create_subscription(PoseStamped, topic, lambda m, s=sink: s.append((time.time_ns(), stamp(m))), qos)
     ex = SingleThreadedExecutor(context=ctx)
@@ -63,10 +76,11 @@ def run(label: str, params: list[str], domain: int) -> None:
     th = threading.Thread(target=lambda: [ex.spin_once(timeout_sec=0.05) for _ in iter(stop.is_set, True)],
                           daemon=True)
     th.start()
+    stamps_file = Path(tempfile.mkdtemp()) / "stamps.json"
     pub = subprocess.run([sys.executable, str(Path(__file__).resolve().parent / "e2e_publisher.py"),
-                          "--duration", str(DURATION), "--wait-subscribers", "2"],
+                          "--duration", str(DURATION), "--wait-subscribers", "2", "--stamps", str(stamps_file)],
                          env=env, capture_output=True, text=True, timeout=DURATION + 120)
-    time.sleep(1.0)
+    time.sleep(2.5)   # one more diagnostics period after the last sample
     stop.set()
     th.join()
     node_p.send_signal(2)
@@ -84,12 +98,24 @@ def run(label: str, params: list[str], domain: int) -> None:
     lat_f = (f[:, 0] - f[:, 1]) / 1e6
     lat_r = (r[:, 0] - r[:, 1]) / 1e6
     inputs = counts["omc"] + counts["ots"]
-    # each fused output consumes one lone sample or one pair; with full pairing outputs >= max(omc, ots)
-    out_stamps = np.unique(f[:, 1]) if len(f) else np.array([])
+    # The outputs the node owes: the items the same synchronizer forms from the stamps that were sent
+    # (one output per lone sample or pair, stamped with the item's newer stamp). Dropped = owed - received.
+    sent = json.loads(stamps_file.read_text())
+    slop = 0.004 if "slop:=0.001" not in params else 0.001
+    sync = ApproxSync(slop_ns=int(slop * 1e9), delay_ns=0)
+    for t, stream in sorted([(t, GLOBAL) for t in sent["omc"]] + [(t, LOCAL) for t in sent["ots"]]):
+        sync.push(stream, t)
+    owed = np.array(sorted(it.t_ns for it in sync.flush()), dtype=np.int64)
+    owed = owed[owed > f[0, 1]] if len(f) else owed      # after the initialisation second, as for latency
+    got = set(f[:, 1].tolist())
+    dropped = int(sum(1 for t in owed if t not in got))
     emit(f"e2e_latency_p50[{label}]", np.median(lat_f), "ms", baseline=np.median(lat_r))
     emit(f"e2e_latency_p99[{label}]", np.percentile(lat_f, 99), "ms", baseline=np.percentile(lat_r, 99))
-    emit(f"e2e_fused_outputs[{label}]", len(f), "count", target_samples_published=inputs,
-         omc_published=counts["omc"], ots_published=counts["ots"], distinct_output_stamps=len(out_stamps))
+    node_drops = {k: int(diag.get(k, 0)) for k in ("late", "sync_late", "duplicate", "sync_duplicate",
+                                                    "rejected_stamp") if k in diag}
+    emit(f"e2e_dropped[{label}]", sum(node_drops.values()), "count", node_counters=node_drops,
+         outputs_owed_ideal=int(owed.size), owed_ideal_not_received=dropped, outputs_received=int(len(f)),
+         target_samples_published=inputs, omc_published=counts["omc"], ots_published=counts["ots"])
     emit(f"e2e_raw_dds_dropped[{label}]", counts["omc"] - len(r), "count", published=counts["omc"])
 
 

@@ -37,6 +37,7 @@ def main() -> int:
     ap.add_argument("--ots-hz", type=float, default=400.0)
     ap.add_argument("--duration", type=float, default=10.0)
     ap.add_argument("--wait-subscribers", type=int, default=1)
+    ap.add_argument("--stamps", help="write the target samples' stamps here (JSON: omc, ots lists)")
     a = ap.parse_args()
     rclpy.init()
     node = rclpy.create_node("e2e_publisher")
@@ -52,6 +53,7 @@ def main() -> int:
     t0 = time.monotonic()
     next_omc = next_ots = t0
     counts = {"omc": 0, "ots": 0}
+    stamps: dict[str, list[int]] = {"omc": [], "ots": []}
     while (now := time.monotonic()) - t0 < a.duration:
         t = now - t0
         if now >= next_omc:
@@ -59,6 +61,7 @@ def main() -> int:
             pubs["/omc/base/pose"].publish(pose_stamped(ns, "omc", p_base_omc, q_base_omc))
             pubs["/omc/tool/pose"].publish(pose_stamped(ns, "omc", tool_in_omc(t), Q_ID))
             counts["omc"] += 1
+            stamps["omc"].append(ns)
             next_omc += 1.0 / a.omc_hz
         if now >= next_ots:
             ns = time.time_ns()
@@ -66,9 +69,13 @@ def main() -> int:
             p_ots = apply_T(T_ots_omc, tool_in_omc(t))
             pubs["/ots/tool/pose"].publish(pose_stamped(ns, "ots", p_ots, T_to_pq(T_ots_omc)[1]))
             counts["ots"] += 1
+            stamps["ots"].append(ns)
             next_ots += 1.0 / a.ots_hz
         time.sleep(max(0.0, min(next_omc, next_ots) - time.monotonic()))
     time.sleep(1.0)
+    if a.stamps:
+        with open(a.stamps, "w") as f:
+            json.dump(stamps, f)
     print(json.dumps(counts), flush=True)
     node.destroy_node()
     rclpy.shutdown()
