@@ -43,6 +43,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_srvs.srv import Trigger
 
 from fullperc_common import diagnostics as diag
+from fullperc_common.drain import take_queued
 from fullperc_common.params import ParameterError, declare
 from fullperc_common.ros_conv import ns_to_stamp, pose_msg, pose_to_pq, stamp_to_ns, vector3
 from fullperc_msgs.msg import FusionStatus, Region
@@ -150,10 +151,12 @@ class FusionNode(Node):
             self._problem_seen[t] = {}
         self._targets_of_omc = {b: list(dict.fromkeys(ts)) for b, ts in routes_omc.items()}
         self._targets_of_ots = {b: list(dict.fromkeys(ts)) for b, ts in routes_ots.items()}
-        for b in self._targets_of_omc:
-            self.create_subscription(PoseStamped, f"/omc/{b}/pose", lambda m, b=b: self._on_pose("omc", b, m), qos)
-        for b in self._targets_of_ots:
-            self.create_subscription(PoseStamped, f"/ots/{b}/pose", lambda m, b=b: self._on_pose("ots", b, m), qos)
+        self._input_subs: list[tuple[str, str, object]] = []
+        for dev, routes in (("omc", self._targets_of_omc), ("ots", self._targets_of_ots)):
+            for b in routes:
+                sub = self.create_subscription(PoseStamped, f"/{dev}/{b}/pose",
+                                               lambda m, d=dev, b=b: self._on_input(d, b, m), qos)
+                self._input_subs.append((dev, b, sub))
         self.create_service(Trigger, "~/initialize", self._on_initialize)
         self.create_timer(0.01, self._on_timer)
         self.create_timer(0.5, self._update_diagnostics)
@@ -163,7 +166,20 @@ class FusionNode(Node):
             f"local chain '{local_chain}', clock '{self._clock_mode}'")
 
     # ---- input ------------------------------------------------------------------------------
-    def _on_pose(self, dev: str, body: str, msg: PoseStamped) -> None:
+    def _on_input(self, dev: str, body: str, msg: PoseStamped) -> None:
+        """One executor callback: this message plus everything queued on every input, in stamp order."""
+        batch = [(stamp_to_ns(msg.header.stamp), dev, body, msg)]
+        for d, b, sub in self._input_subs:
+            batch.extend((stamp_to_ns(m.header.stamp), d, b, m) for m in take_queued(sub))
+        batch.sort(key=lambda x: x[0])
+        touched: set[str] = set()
+        for _t, d, b, m in batch:
+            touched.update(self._on_pose(d, b, m))
+        for t in touched:
+            self._publish(t, self.pipes[t].poll(self._now_ns()))
+
+    def _on_pose(self, dev: str, body: str, msg: PoseStamped) -> list[str]:
+        """Push one pose into the pipelines of the targets it feeds; returns those targets."""
         t_ns = stamp_to_ns(msg.header.stamp)
         p, q = pose_to_pq(msg.pose)
         now = time.monotonic()
@@ -181,7 +197,7 @@ class FusionNode(Node):
                 if body == c.ots_target:
                     self._last_rx[t]["ots"] = now
                     self._last_target_rx = now
-            self._publish(t, pipe.poll(self._now_ns()))
+        return targets
 
     def _now_ns(self) -> int | None:
         return self.get_clock().now().nanoseconds if self._clock_mode == "host" else None
