@@ -1,18 +1,35 @@
 """The six tasks of the paper's Table 1 on the default scene: the true target path crosses the regions in order.
 
 The check recomputes the path independently of the generator: joint angles from the arc, flange poses from
-the shared :class:`DianaKinematics` (``fk_many``), labels from the margin model. Planning is cached on disk
-(``$FULLPERC_CACHE``), so only a cold run is slow.
+the shared :class:`DianaKinematics` (``fk_many``), labels from the margin model. The plans come from the shipped
+file ``config/task_plans.yaml`` (re-checked before use); one test plans the cheapest task cold and must reproduce
+the shipped plan exactly, so the generator itself stays tested and the file cannot drift from it.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+import yaml
 
+from fullperc_eval.sim import tasks as T
+from fullperc_eval.sim.run import simulate_ideal_visibility
 from fullperc_eval.sim.scene import build_scene, load_scene_config
-from fullperc_eval.sim.tasks import TASKS, TaskPlanningError, compress, parse_task, plan_task
-from fullperc_fusion.margin import label_points
+from fullperc_eval.sim.tasks import (
+    TASKS,
+    StalePlanWarning,
+    TaskPlanningError,
+    check_arc_order,
+    compress,
+    load_shipped_plans,
+    parse_task,
+    plan_from_dict,
+    plan_task,
+    plan_to_dict,
+)
+from fullperc_fusion.margin import BVV, label_points
+
+CHEAPEST = "P-B-G"  # the task whose cold search is shortest (a few seconds; see README "Evaluation")
 
 
 @pytest.fixture(scope="module")
@@ -53,3 +70,77 @@ def test_impossible_order_fails_loudly(scene):
     sc = build_scene(0, config=cfg)
     with pytest.raises(TaskPlanningError, match="B-P-B-P-B-P-B"):
         plan_task("B-P-B-P-B-P-B", sc, cache=False)
+
+
+def test_shipped_plans_cover_every_task_and_realise_it(scene):
+    """A stale committed file fails here, loudly, instead of silently costing minutes of re-planning."""
+    shipped = load_shipped_plans()
+    assert list(shipped) == list(TASKS)
+    for task in TASKS:
+        plan = plan_from_dict(shipped[task])
+        assert plan.task == task
+        sc = scene.with_diana_base(plan.T_omc_diana_base)
+        assert check_arc_order(sc, plan.arc, parse_task(task), rate_hz=120.0) == "", task
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("task", TASKS)
+def test_vega_sees_most_of_the_b_part(scene, task):
+    """Recomputed physics (noise-free, no staff): the Vega measures the tool in >= 80 % of the BVV frames."""
+    plan = plan_task(task, scene)
+    sc = scene.with_diana_base(plan.T_omc_diana_base)
+    f_ots, f_omc = simulate_ideal_visibility(sc, plan.arc, rate_hz=30.0)
+    assert BVV in parse_task(task)
+    assert f_ots >= 0.8 and f_omc >= 0.8, (f_ots, f_omc)
+
+
+def test_cold_planning_reproduces_the_shipped_plan_and_replaces_a_stale_one(scene, monkeypatch, tmp_path):
+    monkeypatch.setenv("FULLPERC_CACHE", str(tmp_path))  # no disk cache from earlier runs
+    monkeypatch.setattr(T, "_MEM_CACHE", {})
+    good = load_shipped_plans()[CHEAPEST]
+    stale = plan_to_dict(plan_from_dict(good))
+    a = stale["arc"]
+    a["end"] = a["start"] + 0.1 * (a["end"] - a["start"])  # a tenth of the arc cannot cross all three regions
+    monkeypatch.setattr(T, "_SHIPPED", {CHEAPEST: stale})
+    with pytest.warns(StalePlanWarning, match=f"{CHEAPEST}.*stale"):
+        plan = plan_task(CHEAPEST, scene)
+    # the deterministic search found exactly the committed plan again (arc, cart pose, attempts, fractions)
+    assert plan_to_dict(plan) == good
+    assert list((tmp_path / "task_plans").glob("*.json"))  # and it went to the disk cache
+
+
+def test_plans_file_errors(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("- just a list\n")
+    with pytest.raises(ValueError, match="bad.yaml"):
+        load_shipped_plans(bad)
+    old = tmp_path / "old.yaml"
+    old.write_text(yaml.safe_dump({"plan_version": T.PLAN_VERSION - 1, "plans": {"G-B-P": {}}}))
+    with pytest.warns(StalePlanWarning, match="plan_version"):
+        assert load_shipped_plans(old) == {}
+    entry = load_shipped_plans()["G-B-P"]
+    for mutate in (lambda d: d.pop("arc"), lambda d: d["arc"]["q0"].pop(),
+                   lambda d: d.update(T_omc_diana_base=[[1.0, 0.0]])):
+        d = yaml.safe_load(yaml.safe_dump(entry))
+        mutate(d)
+        with pytest.raises((KeyError, TypeError, ValueError)):
+            plan_from_dict(d)
+
+
+def test_write_plans_cli_round_trip_and_merge(tmp_path, monkeypatch):
+    shipped = load_shipped_plans()
+    calls = []
+
+    def fake_search(task, scene):
+        calls.append(task)
+        return plan_from_dict(shipped[task])
+
+    monkeypatch.setattr(T, "search_task", fake_search)
+    out = tmp_path / "plans.yaml"
+    assert T.main(["--write-plans", "--out", str(out), "--tasks", "B-G-P", "P-B-G"]) == 0
+    got = load_shipped_plans(out)
+    assert list(got) == ["P-B-G", "B-G-P"] and calls == ["B-G-P", "P-B-G"]  # written in TASKS order
+    assert got["B-G-P"] == shipped["B-G-P"]  # exact round trip of every number
+    assert T.main(["--write-plans", "--out", str(out), "--tasks", "G-B-P"]) == 0  # keeps the other entries
+    assert list(load_shipped_plans(out)) == ["G-B-P", "P-B-G", "B-G-P"]
+    assert T.main([]) == 2  # nothing to do without --write-plans

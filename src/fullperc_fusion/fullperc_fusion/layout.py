@@ -34,7 +34,8 @@ File format (every field is checked; an error names the file and the field)::
     scene: {...}                                               # optional, free-form (simulator props)
 
 Occluders are our extension of Algorithm 1 (the paper's model is occlusion-free): a camera only counts for a point
-when the segment camera -> point does not pass through a static box (the OR table, a patient, an anaesthesia cart).
+when the segment camera -> point does not pass through a static box (the OR table, a patient, an anaesthesia cart),
+and a point is BVV only when the segment from the OTS origin to it is clear as well (see :mod:`.margin`).
 Without ``occluders`` the model is exactly the paper's.
 """
 
@@ -150,6 +151,11 @@ class Frustum:
 
     planes: np.ndarray
     depth_axis: str = "-z"
+    _rows: tuple = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        # plain-Python copy of the planes for contains_one (tolist() per call costs more than the test itself)
+        object.__setattr__(self, "_rows", tuple(tuple(r) for r in np.asarray(self.planes, float).tolist()))
 
     @property
     def near_m(self) -> float:
@@ -170,13 +176,15 @@ class Frustum:
     def contains_one(self, x: float, y: float, z: float) -> bool:
         """:meth:`contains` for one point, in plain Python (a few µs instead of ~15 µs of small numpy calls)."""
         d = -z if self.depth_axis == "-z" else z
-        rows = self.planes.tolist()
+        rows = self._rows
         if not (rows[0][0] <= d <= rows[-1][0]):
             return False
-        for (d0, w0, h0), (d1, w1, h1) in zip(rows, rows[1:], strict=False):
+        d0, w0, h0 = rows[0]
+        for d1, w1, h1 in rows[1:]:
             if d <= d1:
                 f = (d - d0) / (d1 - d0)
                 return abs(x) <= w0 + f * (w1 - w0) and abs(y) <= h0 + f * (h1 - h0)
+            d0, w0, h0 = d1, w1, h1
         return False
 
     def corners(self) -> np.ndarray:
@@ -196,9 +204,28 @@ class Ots:
     T_omc_ots: np.ndarray
     frustum: Frustum
     volume: str
+    _pose: tuple = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        # (tx, ty, tz, R00, R10, R20, R01, R11, R21, R02, R12, R22): origin and the columns of R as Python floats,
+        # for contains_one_omc
+        T = np.asarray(self.T_omc_ots, dtype=float)
+        object.__setattr__(self, "_pose", tuple(T[:3, 3].tolist() + T[:3, :3].T.ravel().tolist()))
+
+    @property
+    def position(self) -> np.ndarray:
+        """The OTS origin in ``omc`` (the device's reference point; lines of sight start here)."""
+        return self.T_omc_ots[:3, 3]
 
     def contains(self, points_ots) -> np.ndarray:
         return self.frustum.contains(points_ots)
+
+    def contains_one_omc(self, x: float, y: float, z: float) -> bool:
+        """:meth:`contains_omc` for one point in plain Python: R^T (p - t), then the frustum test."""
+        tx, ty, tz, a0, a1, a2, b0, b1, b2, c0, c1, c2 = self._pose
+        dx, dy, dz = x - tx, y - ty, z - tz
+        return self.frustum.contains_one(a0 * dx + a1 * dy + a2 * dz, b0 * dx + b1 * dy + b2 * dz,
+                                         c0 * dx + c1 * dy + c2 * dz)
 
     def contains_omc(self, points_omc) -> np.ndarray:
         """Bool (N,) for points (N, 3) in ``omc``: inside the measurement volume (the BVV)."""
@@ -266,14 +293,18 @@ class Layout:
     range_m: np.ndarray = field(init=False, repr=False)
     pair_i: np.ndarray = field(init=False, repr=False)
     pair_j: np.ndarray = field(init=False, repr=False)
-    # Single-point path (margin.margin_at), arranged so that one point costs ~30 small numpy calls:
+    # Single-point path (margin.margin_at), arranged so that one point costs ~25 small numpy calls:
     # camera-frame coordinates of p for all cameras as one mat-vec, pc = (fast_A @ p - fast_b).reshape(3, N);
-    # tan of the half FOVs (2, N); camera positions (3, N); occluder slab offsets (lo - c, hi - c) as (2, 3, N, B).
+    # tan of the half FOVs (2, N); squared ranges (N,); line-of-sight origins (3, N + 1): the N cameras, then the
+    # OTS origin when there is an OTS (its column gives the BVV line of sight in the same slab test); occluder slab
+    # offsets (lo - c, hi - c) for every origin c as (2, 3, N + 1, B).
     fast_A: np.ndarray = field(init=False, repr=False)
     fast_b: np.ndarray = field(init=False, repr=False)
     fast_tan: np.ndarray = field(init=False, repr=False)
+    fast_r2: np.ndarray = field(init=False, repr=False)
     fast_camT: np.ndarray = field(init=False, repr=False)
     fast_K: np.ndarray = field(init=False, repr=False)
+    fast_pairs: np.ndarray = field(init=False, repr=False)
     cos_lo: float = field(init=False, repr=False)
     cos_hi: float = field(init=False, repr=False)
 
@@ -292,11 +323,14 @@ class Layout:
         set_(self, "fast_A", np.ascontiguousarray(A))
         set_(self, "fast_b", np.einsum("rk,rk->r", A, np.tile(self.cam_pos, (3, 1))))
         set_(self, "fast_tan", np.stack([self.tan_h, self.tan_v]))
-        set_(self, "fast_camT", np.ascontiguousarray(self.cam_pos.T))
+        set_(self, "fast_r2", self.range_m ** 2)
+        origins = self.cam_pos if self.ots is None else np.vstack([self.cam_pos, self.ots.position[None, :]])
+        set_(self, "fast_camT", np.ascontiguousarray(origins.T))
         lo = np.array([b.lo for b in self.occluders], dtype=float).reshape(-1, 3)
         hi = np.array([b.hi for b in self.occluders], dtype=float).reshape(-1, 3)
-        rel = np.stack([lo[None, :, :] - self.cam_pos[:, None, :], hi[None, :, :] - self.cam_pos[:, None, :]])
-        set_(self, "fast_K", np.ascontiguousarray(np.transpose(rel, (0, 3, 1, 2))))  # (2, 3, N, B)
+        rel = np.stack([lo[None, :, :] - origins[:, None, :], hi[None, :, :] - origins[:, None, :]])
+        set_(self, "fast_K", np.ascontiguousarray(np.transpose(rel, (0, 3, 1, 2))))  # (2, 3, N (+1), B)
+        set_(self, "fast_pairs", i * len(cams) + j)  # camera pairs as flat indices into an N x N matrix
         # Convergence band in cosine space: lo <= beta <= hi  <=>  cos(hi) <= cos(beta) <= cos(lo).
         set_(self, "cos_lo", math.cos(math.radians(self.convergence_deg[0])))
         lo_deg, hi_deg = self.convergence_deg

@@ -8,7 +8,9 @@ same Algorithm 1 with a dedicated kernel:
   * per camera and block: range / field-of-view / line-of-sight test and unit view vectors, in float32;
   * per camera pair: one dot product, then ``180° − β`` is read from a 65 537-entry table indexed by cos β that already
     holds 0 outside the convergence band, so there is no ``arccos`` and no band comparison per element;
-  * camera pairs (and cameras, occluders, the OTS test) that cannot matter for a block are skipped.
+  * camera pairs (and cameras, occluders, the OTS test) that cannot matter for a block are skipped;
+  * the BVV test (OTS frustum and the OTS's line of sight, :func:`fullperc_fusion.margin.in_bvv`) runs in float64
+    on the blocks that overlap the frustum's bounding box, so the map's BVV is exactly that of ``label_points``.
 
 Accuracy against the float64 path: a table bin is 2/65536 wide in cos β, i.e. at most ~0.0014° of β per pair inside
 the 40°–140° band (|dβ/dcos β| <= 1/sin 40°), ~0.1° for a point with all 66 pairs valid; a pair whose β lies within
@@ -26,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from .layout import Layout
-from .margin import BVV, GVV, PVV, REGION_NAMES, labels_from
+from .margin import BVV, GVV, PVV, REGION_NAMES, in_bvv, labels_from
 
 TABLE_BINS = 1 << 16
 _SEGMENT_END32 = np.float32(1.0 - 1e-6)  # float32 cannot hold layout.SEGMENT_END (1 - 1e-9)
@@ -192,7 +194,7 @@ def compute_margin_map(layout: Layout, resolution: float = 0.1, lo=None, hi=None
         if ots_box is not None and not (np.any([bx[-1], by[-1], zs[-1]] < ots_box[0])
                                         or np.any([bx[0], by[0], zs[0]] > ots_box[1])):
             pts = np.stack(np.meshgrid(bx, by, zs, indexing="ij"), axis=-1).reshape(-1, 3)
-            inside[sub] = layout.ots.contains_omc(pts).reshape(len(bx), len(by), len(zs))
+            inside[sub] = in_bvv(layout, pts).reshape(len(bx), len(by), len(zs))  # frustum + line of sight
 
     jobs = [(i0, j0) for i0 in range(0, shape[0], block) for j0 in range(0, shape[1], block)]
     nthreads = threads or min(os.cpu_count() or 1, 8)

@@ -59,8 +59,17 @@ def test_default_layout_is_the_designed_room():
     assert L.ots is not None and L.ots.volume == "pyramid"
     assert L.threshold.mode == "eq17"
     assert L.threshold.deg == pytest.approx(L.threshold.k * eq17_theta_prime_deg(30.0, 36.5))
-    # the Vega aims at the workspace beside the table: its look point lies inside its own volume
-    assert L.ots.contains_omc(np.array([[-0.3, -0.1, 1.0]]))[0]
+    # the Vega on a stand at the foot end, robot side (y < 0), head 1.6-2.0 m high, tilted down onto the space
+    # beside the table where the arm works: the point 1.73 m along its axis is beside the robot-side table edge
+    v = L.ots.position
+    axis = -L.ots.T_omc_ots[:3, 2]  # NDI: the volume lies along -z
+    assert 1.6 <= v[2] <= 2.0 and v[1] < -0.3 and v[0] > 1.0  # beyond the table's foot end (x = 1.0)
+    assert 20.0 <= math.degrees(math.asin(-axis[2])) <= 40.0  # looking down
+    look = v + 1.73 * axis
+    assert L.ots.contains_omc(look[None])[0]
+    assert -0.45 <= look[1] <= -0.25 and 0.85 <= look[2] <= 1.05 and abs(look[0]) <= 0.3
+    for d in (1.2, 2.2):  # 1.2-2.2 m from the field: the whole range lies in the measurement volume
+        assert L.ots.contains_omc((v + d * axis)[None])[0]
 
 
 # ------------------------------------------------------------------------------------------ geometry helpers
@@ -119,6 +128,16 @@ def test_single_point_frustum_test_agrees(ots):
     vec = f.contains(pts)
     assert 0.02 < vec.mean() < 0.5
     assert vec.tolist() == [f.contains_one(*p) for p in pts.tolist()]
+
+
+def test_single_point_omc_frustum_test_agrees():
+    R = look_at_R_ndi([1.25, -0.75, 1.8], [-0.2, -0.35, 0.95])
+    q = __import__("scipy.spatial.transform", fromlist=["Rotation"]).Rotation.from_matrix(R).as_quat()
+    L = parse_layout(minimal(ots={"position": [1.25, -0.75, 1.8], "orientation": q.tolist()}))
+    pts = np.random.default_rng(9).uniform([-1.5, -2.0, 0.0], [1.5, 1.0, 2.5], size=(20000, 3))
+    vec = L.ots.contains_omc(pts)
+    assert 0.02 < vec.mean() < 0.5
+    assert vec.tolist() == [L.ots.contains_one_omc(*p) for p in pts.tolist()]
 
 
 def test_ots_pose_moves_the_volume():

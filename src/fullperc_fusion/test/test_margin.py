@@ -136,6 +136,57 @@ def test_labels_bvv_gvv_pvv():
     assert M.labels_from(np.array([150.0, 149.999]), np.array([False, False]), 150.0).tolist() == [M.GVV, M.PVV]
 
 
+def _ots_layout(occluders=(), threshold=150.0):
+    """Three cameras around P (margin 180 there) and an OTS 2 m from P along -y, looking at P."""
+    ots_pos = np.array([0.0, -2.0, 1.0])
+    q = Rotation.from_matrix(look_at_R_ndi(ots_pos, P)).as_quat().tolist()
+    return layout(cam("a", 0.0), cam("b", 90.0), cam("c", 180.0),
+                  ots={"position": ots_pos.tolist(), "orientation": q},
+                  threshold={"mode": "explicit", "deg": threshold}, occluders=list(occluders))
+
+
+# A box across the segment OTS (0, -2, 1) -> P (0, 0, 1), 1 m in front of the OTS: it touches none of the three
+# cameras' segments to P (they come from +x, +y, -x) and lies before the frustum's near plane (0.95 m).
+SCREEN = {"name": "screen", "min": [-0.1, -1.1, 0.9], "max": [0.1, -1.0, 1.1]}
+
+
+def test_box_between_ots_and_point_is_not_bvv():
+    L = _ots_layout([SCREEN])
+    assert L.ots.contains_omc(P[None])[0]  # P is inside the frustum ...
+    assert not M.ots_line_of_sight(L, P[None])[0] and not M.in_bvv(L, P[None])[0]  # ... but hidden from the OTS
+    labels, res = M.label_points(L, P[None])
+    assert labels.tolist() == [M.GVV] and res.margin_deg[0] == pytest.approx(180.0)  # the cameras still see it
+    pl = M.label_point(L, P)
+    assert (pl.label, pl.in_local_volume, pl.ots_line_of_sight) == (M.GVV, True, False)
+    assert pl.margin_deg == pytest.approx(180.0)
+    # with a threshold above the margin the hidden point is PVV, not BVV
+    L2 = _ots_layout([SCREEN], threshold=200.0)
+    assert M.label_points(L2, P[None])[0].tolist() == [M.PVV] and M.label_point(L2, P).label == M.PVV
+    # without the box, or with the box moved off the segment, P is BVV again
+    for occ in ([], [{**SCREEN, "min": [0.3, -1.1, 0.9], "max": [0.5, -1.0, 1.1]}]):
+        L3 = _ots_layout(occ)
+        assert M.label_points(L3, P[None])[0].tolist() == [M.BVV]
+        pl = M.label_point(L3, P)
+        assert (pl.label, pl.in_local_volume, pl.ots_line_of_sight) == (M.BVV, True, True)
+
+
+def test_shadow_of_a_box_in_the_frustum_is_cut_out_of_bvv():
+    """Points inside the frustum behind the box (seen from the OTS) are not BVV; beside the shadow they are."""
+    L = _ots_layout([SCREEN])
+    # the shadow cone of the 0.2 x 0.2 m screen at 1 m, seen from (0, -2, 1): half width 0.1 * d / 1.0 at depth d
+    behind = np.array([[0.0, 0.0, 1.0], [0.15, 0.0, 1.1], [-0.15, 0.3, 0.9], [0.1, -0.5, 1.0]])
+    beside = np.array([[0.3, 0.0, 1.0], [0.0, 0.0, 1.35], [-0.3, 0.3, 0.9], [0.2, -0.5, 1.0]])
+    pts = np.vstack([behind, beside])
+    assert L.ots.contains_omc(pts).all()
+    want = [False] * 4 + [True] * 4
+    assert M.in_bvv(L, pts).tolist() == want
+    assert [M.label_point(L, p).ots_line_of_sight for p in pts] == want
+    assert [M.label_point(L, p).label == M.BVV for p in pts] == want
+    # a point on the screen's face that looks at the OTS is visible to it (surface points are not hidden)
+    face = np.array([0.0, -1.1, 1.0])
+    assert M.ots_line_of_sight(L, face[None])[0] and M.label_point(L, face).ots_line_of_sight
+
+
 def test_no_ots_means_no_bvv():
     L = layout(cam("a", 0.0), cam("b", 90.0))
     labels, _ = M.label_points(L, P[None])
@@ -154,6 +205,29 @@ def test_vectorized_and_single_point_agree_on_random_points(seed):
     assert (res.valid_pairs > 0).mean() > 0.1  # the sample is not trivially all zero
     labels, _ = M.label_points(L, pts)
     assert [M.label_point(L, p).label for p in pts[:500]] == labels[:500].tolist()
+
+
+def test_default_layout_bvv_paths_agree_where_the_vega_is_blocked():
+    """In the default room the table, patient and light hide parts of the Vega's frustum: both paths agree there."""
+    L = load_layout(default_layout_path())
+    rng = np.random.default_rng(3)
+    # points spread over the frustum's bounding box (the Vega looks at the robot side of the table)
+    c = L.ots.frustum.corners().reshape(-1, 3) @ L.ots.T_omc_ots[:3, :3].T + L.ots.T_omc_ots[:3, 3]
+    pts = rng.uniform(np.maximum(c.min(0), L.room_min), np.minimum(c.max(0), L.room_max), size=(4000, 3))
+    inside = M.in_local_volume(L, pts)
+    bvv = M.in_bvv(L, pts)
+    hidden = inside & ~bvv
+    assert hidden.sum() > 20 and bvv.sum() > 200  # the sample has both kinds
+    single = [M.label_point(L, p) for p in pts]
+    assert [s.in_local_volume for s in single] == inside.tolist()
+    assert [s.in_local_volume and s.ots_line_of_sight for s in single] == bvv.tolist()
+    labels, _ = M.label_points(L, pts)
+    assert [s.label for s in single] == labels.tolist()
+    # independent check of the hidden ones: some box meets the segment Vega -> point (sampled densely along it)
+    ots = L.ots.position
+    for p in pts[hidden][:50]:
+        seg = ots + np.linspace(0.0, 1.0, 4001)[:-1, None] * (p - ots)
+        assert any(np.any(np.all((seg >= b.lo) & (seg <= b.hi), axis=1)) for b in L.occluders), p
 
 
 def test_random_layouts_without_occluders_agree():
@@ -188,6 +262,9 @@ def test_default_layout_has_all_regions_within_robot_reach():
     labels, _ = M.label_points(L, g)
     frac = {name: float(np.mean(labels == v)) for name, v in (("BVV", M.BVV), ("GVV", M.GVV), ("PVV", M.PVV))}
     assert all(f > 0.03 for f in frac.values()), frac
+    # the Vega looks at the arm's side of the table: most of the reach inside its frustum is really in its view
+    inside = M.in_local_volume(L, g)
+    assert inside.sum() > 100 and (labels[inside] == M.BVV).mean() > 0.8
 
 
 def test_bad_points_are_rejected():

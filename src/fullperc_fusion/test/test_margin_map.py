@@ -74,9 +74,11 @@ def test_map_matches_reference_path(layout, coarse):
 
 def test_map_labels(layout, coarse):
     pts = coarse.points()
-    inside = layout.ots.contains_omc(pts)
+    inside = M.in_bvv(layout, pts)  # frustum and the Vega's line of sight
     lab = coarse.labels.ravel()
     assert np.array_equal(lab == M.BVV, inside)
+    hidden = layout.ots.contains_omc(pts) & ~inside  # in the frustum, behind the table/patient as seen from the Vega
+    assert hidden.any() and not np.any(lab[hidden] == M.BVV)
     thr = layout.threshold_deg
     m = coarse.margin_deg.ravel()
     assert np.all(lab[~inside & (m >= thr)] == M.GVV) and np.all(lab[~inside & (m < thr)] == M.PVV)
@@ -111,3 +113,31 @@ def test_heatmap_png(layout, coarse, tmp_path, axis, value):
     out = save_heatmap_png(coarse, tmp_path / f"slice_{axis}.png", axis=axis, value=value, layout=layout)
     data = out.read_bytes()
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
+
+
+def test_map_cuts_the_ots_shadow_out_of_bvv():
+    """Hand-made geometry: a box 1 m in front of the OTS; the map's BVV is the frustum minus the box's shadow."""
+    from scipy.spatial.transform import Rotation
+
+    from fullperc_fusion.layout import look_at_R_ndi, parse_layout
+
+    ots_pos, aim = np.array([0.0, -2.0, 1.0]), np.array([0.0, 0.0, 1.0])
+    q = Rotation.from_matrix(look_at_R_ndi(ots_pos, aim)).as_quat().tolist()
+    cams = [{"name": n, "position": p, "orientation": [0.0, 0.0, 0.0, 1.0]} for n, p in (("a", [3, 0, 3]),
+                                                                                        ("b", [-3, 0, 3]))]
+    # box sides not commensurate with the 5 cm grid, so no grid point's ray grazes an edge exactly
+    lo_b, hi_b = np.array([-0.0975, -1.1, 0.9025]), np.array([0.1025, -1.0, 1.0975])
+    box = {"name": "screen", "min": lo_b.tolist(), "max": hi_b.tolist()}
+    with_box = parse_layout({"cameras": cams, "ots": {"position": ots_pos.tolist(), "orientation": q},
+                             "occluders": [box]})
+    lo, hi = [-0.5, -0.9, 0.5], [0.5, 0.5, 1.5]
+    m = compute_margin_map(with_box, 0.05, lo, hi)
+    pts = m.points()
+    frustum = with_box.ots.contains_omc(pts)
+    # shadow, independently of the slab test: sample each segment OTS -> p densely where it crosses the box's y slab
+    s = (np.linspace(lo_b[1], hi_b[1], 201)[None, :] - ots_pos[1]) / (pts[:, 1] - ots_pos[1])[:, None]  # (N, 201)
+    hit = ots_pos[None, None, :] + s[:, :, None] * (pts - ots_pos)[:, None, :]
+    in_shadow = np.any(np.all((hit >= lo_b) & (hit <= hi_b), axis=2), axis=1)
+    bvv = m.labels.ravel() == M.BVV
+    assert (frustum & in_shadow).sum() > 10
+    assert np.array_equal(bvv, frustum & ~in_shadow)

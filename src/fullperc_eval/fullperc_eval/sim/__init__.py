@@ -6,7 +6,8 @@
 * :mod:`.ots_model` — NDI Vega: stereo pair with frustum, line of sight, ~0.1 mm noise, MISSING outside;
 * :mod:`.occluders` — capsules (staff, arm links) and boxes, seeded staff walks;
 * :mod:`.trajectories` — Diana 7 single-joint arcs (minimum jerk) on the shared kinematic model;
-* :mod:`.tasks` — the six region orders of the paper's Table 1 and the arc generator;
+* :mod:`.tasks` — the six region orders of the paper's Table 1 and the arc generator (shipped plans in
+  ``config/task_plans.yaml``; regenerate with ``python -m fullperc_eval.sim --write-plans``);
 * :mod:`.run` — offline: :func:`run_task` returns a :class:`SimRun` of arrays (see its docstring);
 * :mod:`.live` — plays a run out on the UDP streams and the Vega emulator (``sim`` executable).
 """

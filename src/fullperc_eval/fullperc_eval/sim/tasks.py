@@ -17,8 +17,9 @@ simulated cameras use:
    at least ``min_ots_fraction`` of its frames, and over the whole arc the OMC must track it in at least
    ``min_omc_fraction`` of its frames (a task no tracker can see would test nothing). An arc whose B part the
    Vega sees in >= ``good_ots_fraction`` is taken at once, else the best of the first ``max_candidates``
-   valid arcs. (The margin model's BVV is "inside the frustum" without the Vega's line of sight; in the
-   default layout the B|P boundary lies below the table edge, hidden from the Vega by the table top.)
+   valid arcs. (The margin model's BVV already requires the Vega's line of sight to the target origin past the
+   static occluders; what it cannot know is the tool's own extent and facing, the two lenses' offsets and the
+   arm's links, so near a frustum face the Vega may still miss the tool.)
 5. sample the final :class:`~fullperc_eval.sim.trajectories.JointArc` at the OMC frame times and assert that
    the compressed label sequence is exactly the order.
 
@@ -26,17 +27,31 @@ The search is deterministic (its own seed, ``tasks.search_seed`` in scene.yaml, 
 so a task is the same arc for every run seed. If no arc is found within ``max_attempts`` start
 configurations, :class:`TaskPlanningError` is raised naming the task and what was tried — never a silent
 fallback to a different order.
+
+Shipped plans. A cold search takes seconds to a minute per task, so the plans of the default scene are committed
+in ``fullperc_eval/config/task_plans.yaml`` (installed by ``make build``), the first level of :func:`plan_task`'s
+cache. Every shipped plan is re-checked before use (:func:`check_arc_order`: the margin model labels its path
+with exactly the task's order and no pose collides); a plan that fails the check is reported with a
+``StalePlanWarning`` and the task is planned again. Regenerate the file after changing the layout, the scene
+geometry or the search::
+
+    python -m fullperc_eval.sim --write-plans            # all six tasks, cold, into the source tree
 """
 
 from __future__ import annotations
 
+import argparse
 import hashlib
 import json
 import os
+import sys
+import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from fullperc_fusion.margin import BVV, GVV, PVV, label_points
 
@@ -254,7 +269,12 @@ def _face_tool_to_vega(scene, q: np.ndarray) -> np.ndarray:
     return out
 
 
-PLAN_VERSION = 1  # bump when the search changes: invalidates cached plans
+PLAN_VERSION = 2  # bump when the search changes: invalidates cached plans (2: BVV needs the Vega's line of sight)
+PLANS_FILE = "task_plans.yaml"
+
+
+class StalePlanWarning(UserWarning):
+    """A shipped or cached plan no longer realises its task in the current scene; the task is planned again."""
 
 
 def _cache_key(task: str, scene) -> str:
@@ -271,46 +291,134 @@ def _cache_dir() -> Path:
     return Path(os.environ.get("FULLPERC_CACHE", Path.home() / ".cache" / "fullperc")) / "task_plans"
 
 
+def source_plans_path() -> Path:
+    """``config/task_plans.yaml`` in the source tree (what ``--write-plans`` writes)."""
+    return Path(__file__).resolve().parents[2] / "config" / PLANS_FILE
+
+
+def default_plans_path() -> Path | None:
+    """The installed ``share/fullperc_eval/config/task_plans.yaml``, else the source copy, else None."""
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        p = Path(get_package_share_directory("fullperc_eval")) / "config" / PLANS_FILE
+        if p.exists():
+            return p
+    except Exception:  # noqa: BLE001 - not installed: fall back to the source tree
+        pass
+    p = source_plans_path()
+    return p if p.exists() else None
+
+
+def plan_to_dict(plan: TaskPlan) -> dict:
+    a = plan.arc
+    return {"task": plan.task,
+            "arc": {"q0": [float(v) for v in a.q0], "joint": int(a.joint), "start": float(a.start),
+                    "end": float(a.end), "move": float(a.move), "hold_start": float(a.hold_start),
+                    "hold_end": float(a.hold_end)},
+            "T_omc_diana_base": np.asarray(plan.T_omc_diana_base, float).tolist(), "attempts": int(plan.attempts),
+            "region_path_m": [float(v) for v in plan.region_path_m], "ots_fraction_b": float(plan.ots_fraction_b),
+            "omc_fraction": float(plan.omc_fraction)}
+
+
+def plan_from_dict(d: dict) -> TaskPlan:
+    """Inverse of :func:`plan_to_dict`; raises KeyError/TypeError/ValueError on a malformed entry."""
+    a = d["arc"]
+    if "rest" in a:  # disk cache format of PLAN_VERSION 1
+        arc = JointArc(tuple(float(v) for v in a["q0"]), *a["rest"])
+    else:
+        arc = JointArc(tuple(float(v) for v in a["q0"]), int(a["joint"]), float(a["start"]), float(a["end"]),
+                       float(a["move"]), float(a["hold_start"]), float(a["hold_end"]))
+    if len(arc.q0) != 7:
+        raise ValueError(f"q0 has {len(arc.q0)} joints, expected 7")
+    T = np.asarray(d["T_omc_diana_base"], dtype=float)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError("T_omc_diana_base must be a finite 4x4 matrix")
+    return TaskPlan(str(d["task"]), arc, T, int(d["attempts"]), tuple(float(v) for v in d["region_path_m"]),
+                    float(d["ots_fraction_b"]), float(d["omc_fraction"]))
+
+
+def load_shipped_plans(path: str | os.PathLike | None = None) -> dict[str, dict]:
+    """Task -> plan entry (dict) of a plans file; {} when there is none. A malformed file raises ValueError."""
+    p = Path(path) if path is not None else default_plans_path()
+    if p is None:
+        return {}
+    try:
+        data = yaml.safe_load(Path(p).read_text())
+    except (OSError, yaml.YAMLError) as e:
+        raise ValueError(f"task plans file {p}: {e}") from e
+    if not isinstance(data, dict) or not isinstance(data.get("plans"), dict):
+        raise ValueError(f"task plans file {p}: expected a mapping with 'plans: {{task: plan}}'")
+    if data.get("plan_version") != PLAN_VERSION:
+        warnings.warn(f"task plans file {p} was written by plan_version {data.get('plan_version')!r}, this search is "
+                      f"{PLAN_VERSION}: ignored (regenerate: python -m fullperc_eval.sim --write-plans)",
+                      StalePlanWarning, stacklevel=2)
+        return {}
+    return data["plans"]
+
+
 _MEM_CACHE: dict[str, TaskPlan] = {}
+_SHIPPED: dict[str, dict] | None = None
+
+
+def _shipped(task: str) -> TaskPlan | None:
+    global _SHIPPED
+    if _SHIPPED is None:
+        _SHIPPED = load_shipped_plans()
+    d = _SHIPPED.get(task)
+    if d is None:
+        return None
+    try:
+        return plan_from_dict(d)
+    except (KeyError, TypeError, ValueError) as e:
+        warnings.warn(f"shipped plan for {task} is malformed ({e}); planning it again", StalePlanWarning,
+                      stacklevel=3)
+        return None
 
 
 def plan_task(task: str, scene, cache: bool = True) -> TaskPlan:
-    """:func:`search_task` with a cache (memory, then ``$FULLPERC_CACHE``/~/.cache/fullperc/task_plans).
+    """:func:`search_task` with a cache: memory, the shipped plans file, ``$FULLPERC_CACHE``/~/.cache/fullperc.
 
-    The search is deterministic, so the cache only saves time (a minute or two for the hardest orders); a
-    cached plan is re-checked against the region order on the current scene before it is used, and the key
-    covers the task, scene.yaml and the layout file's text.
+    The search is deterministic, so the cache only saves time (seconds to a minute per order). Every plan taken
+    from the shipped file or the disk cache is re-checked on the current scene (:func:`check_arc_order`) before it
+    is used; a shipped plan that fails is reported (:class:`StalePlanWarning`) and the task is planned again. The
+    disk cache key covers the task, scene.yaml and the layout file's text.
     """
     order = parse_task(task)
     key = _cache_key(task, scene)
+    rate = float(scene.config["omc"]["rate_hz"])
+
+    def problem(plan: TaskPlan) -> str:
+        return check_arc_order(scene.with_diana_base(plan.T_omc_diana_base), plan.arc, order, rate_hz=rate)
+
     if cache:
         plan = _MEM_CACHE.get(key)
-        if plan is None:
-            f = _cache_dir() / f"{key}.json"
-            try:
-                d = json.loads(f.read_text())
-                plan = TaskPlan(d["task"], JointArc(tuple(d["arc"]["q0"]), *d["arc"]["rest"]),
-                                np.asarray(d["T_omc_diana_base"]), d["attempts"], tuple(d["region_path_m"]),
-                                d["ots_fraction_b"], d["omc_fraction"])
-            except (OSError, ValueError, KeyError, TypeError):
-                plan = None
-        if plan is not None and not check_arc_order(scene.with_diana_base(plan.T_omc_diana_base), plan.arc, order,
-                                                    rate_hz=float(scene.config["omc"]["rate_hz"])):
+        if plan is not None:
+            return plan
+        plan = _shipped(task)
+        if plan is not None:
+            err = problem(plan)
+            if not err:
+                _MEM_CACHE[key] = plan
+                return plan
+            warnings.warn(f"shipped plan for {task} ({default_plans_path()}) is stale in this scene: {err}; planning "
+                          "it again (regenerate the file: python -m fullperc_eval.sim --write-plans)",
+                          StalePlanWarning, stacklevel=2)
+        f = _cache_dir() / f"{key}.json"
+        try:
+            plan = plan_from_dict(json.loads(f.read_text()))
+        except (OSError, ValueError, KeyError, TypeError):
+            plan = None
+        if plan is not None and not problem(plan):
             _MEM_CACHE[key] = plan
             return plan
     plan = search_task(task, scene)
     _MEM_CACHE[key] = plan
     if cache:
-        a = plan.arc
-        d = {"task": plan.task, "arc": {"q0": list(a.q0), "rest": [a.joint, a.start, a.end, a.move, a.hold_start,
-                                                                  a.hold_end]},
-             "T_omc_diana_base": plan.T_omc_diana_base.tolist(), "attempts": plan.attempts,
-             "region_path_m": list(plan.region_path_m), "ots_fraction_b": plan.ots_fraction_b,
-             "omc_fraction": plan.omc_fraction}
         try:
             _cache_dir().mkdir(parents=True, exist_ok=True)
             tmp = _cache_dir() / f"{key}.json.tmp{os.getpid()}"
-            tmp.write_text(json.dumps(d))
+            tmp.write_text(json.dumps(plan_to_dict(plan)))
             tmp.replace(_cache_dir() / f"{key}.json")
         except OSError:
             pass  # a read-only home only costs time
@@ -434,3 +542,58 @@ def check_arc_order(scene, arc: JointArc, order: tuple[int, ...], rate_hz: float
     if got != tuple(order):
         return f"visits {order_name(got)}"
     return ""
+
+
+def write_plans(path: str | os.PathLike | None = None, tasks=TASKS, log=print) -> Path:
+    """Plan ``tasks`` cold on the default scene (seed 0) and write them as the shipped plans file."""
+    from .scene import build_scene
+
+    out = Path(path) if path is not None else source_plans_path()
+    scene = build_scene(0)
+    plans = {}
+    if out.exists():  # keep the entries of tasks not planned now (in TASKS order)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", StalePlanWarning)
+            old = load_shipped_plans(out)
+        plans = {t: old[t] for t in TASKS if t in old and t not in tasks}
+    for task in tasks:
+        t0 = time.monotonic()
+        plan = search_task(task, scene)
+        plans[task] = plan_to_dict(plan)
+        log(f"{task}: {time.monotonic() - t0:.1f} s, {plan.attempts} start configurations, joint {plan.arc.joint}, "
+            f"Vega sees {100 * plan.ots_fraction_b:.0f} % of the B part, OMC {100 * plan.omc_fraction:.0f} %")
+    header = ("# Precomputed task plans of the default scene (seed-independent: the search has its own seed).\n"
+              "# Generated by `python -m fullperc_eval.sim --write-plans`; do not edit by hand.\n"
+              "# plan_task() uses these first and re-checks each against the margin model before use\n"
+              "# (a stale plan is reported and re-planned).\n"
+              f"# layout: {Path(scene.layout.source).name}, scene: {Path(scene.config.get('_source', '')).name}\n")
+    plans = {t: plans[t] for t in TASKS if t in plans}
+    body = yaml.safe_dump({"plan_version": PLAN_VERSION, "plans": plans}, sort_keys=False, default_flow_style=None,
+                          width=120)
+    tmp = out.with_suffix(out.suffix + f".tmp{os.getpid()}")
+    tmp.write_text(header + body)
+    tmp.replace(out)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m fullperc_eval.sim",
+                                 description="Plan the evaluation tasks; --write-plans regenerates the shipped file.")
+    ap.add_argument("--write-plans", action="store_true", help="plan cold and write the shipped plans file")
+    ap.add_argument("--out", default=None, help=f"plans file (default: {source_plans_path()})")
+    ap.add_argument("--tasks", nargs="+", default=list(TASKS), choices=TASKS, metavar="TASK")
+    args = ap.parse_args(argv)
+    if not args.write_plans:
+        ap.print_help()
+        return 2
+    try:
+        out = write_plans(args.out, args.tasks)
+    except (TaskPlanningError, OSError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
