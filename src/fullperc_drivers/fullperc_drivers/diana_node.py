@@ -14,14 +14,13 @@ import sys
 import time
 
 import numpy as np
-import rclpy
 from geometry_msgs.msg import PoseStamped
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import JointState
 
 from fullperc_common.diagnostics import Diagnostics
+from fullperc_common.node_main import run_node
 from fullperc_common.params import ParameterError, declare
 from fullperc_common.ros_conv import ns_to_stamp, pose_stamped
 from fullperc_common.transforms import T_to_pq
@@ -198,22 +197,7 @@ class DianaStateNode(Node):
 
 
 def main(args=None) -> int:
-    rclpy.init(args=args)
-    try:
-        node = DianaStateNode()
-    except (ParameterError, DianaApiError, OSError) as e:
-        print(f"[diana_state] fatal: {e}", file=sys.stderr, flush=True)
-        rclpy.try_shutdown()
-        return 2
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.close()
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(DianaStateNode, "diana_state", (ParameterError, DianaApiError, OSError), args)
 
 
 if __name__ == "__main__":

@@ -14,9 +14,7 @@ import re
 import sys
 import time
 
-import rclpy
 from geometry_msgs.msg import PoseStamped
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 
@@ -24,6 +22,7 @@ from fullperc_common.diagnostics import ERROR as _ERROR
 from fullperc_common.diagnostics import OK as _OK
 from fullperc_common.diagnostics import WARN as _WARN
 from fullperc_common.diagnostics import Diagnostics
+from fullperc_common.node_main import run_node
 from fullperc_common.params import ParameterError, declare
 from fullperc_common.ros_conv import ns_to_stamp, pose_stamped
 from fullperc_msgs.msg import TrackingQuality
@@ -209,22 +208,7 @@ class OmcDriverNode(Node):
 
 
 def main(args=None) -> int:
-    rclpy.init(args=args)
-    try:
-        node = OmcDriverNode()
-    except (ParameterError, NokovSdkError, OSError) as e:
-        print(f"[omc_driver] fatal: {e}", file=sys.stderr, flush=True)
-        rclpy.try_shutdown()
-        return 2
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.close()
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(OmcDriverNode, "omc_driver", (ParameterError, NokovSdkError, OSError), args)
 
 
 if __name__ == "__main__":

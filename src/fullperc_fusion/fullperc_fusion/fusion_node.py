@@ -35,7 +35,6 @@ import sys
 import time
 
 import numpy as np
-import rclpy
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -44,6 +43,7 @@ from std_srvs.srv import Trigger
 
 from fullperc_common import diagnostics as diag
 from fullperc_common.drain import take_queued
+from fullperc_common.node_main import run_node
 from fullperc_common.params import ParameterError, declare
 from fullperc_common.ros_conv import ns_to_stamp, pose_msg, pose_to_pq, stamp_to_ns, vector3
 from fullperc_msgs.msg import FusionStatus, Region
@@ -299,21 +299,7 @@ class FusionNode(Node):
 
 
 def main(args=None) -> int:
-    rclpy.init(args=args)
-    try:
-        node = FusionNode()
-    except (ParameterError, ValueError) as e:
-        print(f"fusion_node: {e}", file=sys.stderr)
-        rclpy.try_shutdown()
-        return 2
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(FusionNode, "fusion_node", (ParameterError, ValueError), args)
 
 
 if __name__ == "__main__":

@@ -24,10 +24,8 @@ import sys
 import threading
 
 import numpy as np
-import rclpy
 from geometry_msgs.msg import Point, PoseStamped
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import ColorRGBA
@@ -35,6 +33,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from fullperc_common import diagnostics as _diag
 from fullperc_common.diagnostics import Diagnostics
+from fullperc_common.node_main import run_node
 from fullperc_common.params import ParameterError, declare
 from fullperc_common.ros_conv import pose_to_T
 from fullperc_common.transforms import is_finite_pose, make_T
@@ -302,21 +301,7 @@ class MarginNode(Node):
 
 
 def main(args=None) -> int:
-    rclpy.init(args=args)
-    try:
-        node = MarginNode()
-    except (LayoutError, ParameterError, FileNotFoundError) as e:
-        print(f"[margin_node] fatal: {e}", file=sys.stderr, flush=True)
-        rclpy.try_shutdown()
-        return 2
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(MarginNode, "margin_node", (LayoutError, ParameterError, FileNotFoundError), args)
 
 
 if __name__ == "__main__":
