@@ -121,8 +121,19 @@ def test_recorded_bag_evaluates_like_the_live_outputs(demo):
     live = json.loads((run_dir / "report" / "eval_live.json").read_text())["mae_mm"]
     for method in ("omc", "kf", "bkf", "ckf", "cbkf"):
         assert live[method] is not None, method
-        # same core, same config; the live node saw its inputs in DDS order and a little earlier than record
-        assert abs(off[method] - live[method]) <= max(0.25, 0.15 * off[method]), (method, off, live)
+        # same core, same config, same first samples (test below); the live node saw its inputs in DDS order
+        assert abs(off[method] - live[method]) <= max(0.1, 0.05 * off[method]), (method, off, live)
+
+
+def test_bag_holds_the_task_from_its_first_sample(demo):
+    """The static links are averaged over the first samples, so a bag that misses them evaluates differently
+    from the live run (CI saw 0.5 mm on the OMC column when the recorder subscribed late)."""
+    _, run_dir = demo
+    t0 = next(e for e in _events(run_dir) if e.get("event") == "start")["t0_host_ns"]
+    got = _read(run_dir / "bag", ["/omc/base/quality", "/omc/base/pose", "/ots/base/pose"])
+    assert min(m.frame_number for m in got["/omc/base/quality"]) == 1
+    assert min(_ns(m.header) for m in got["/omc/base/pose"]) - t0 < 10_000_000       # first OMC frame (120 Hz)
+    assert min(_ns(m.header) for m in got["/ots/base/pose"]) - t0 < 100_000_000      # first Vega frames (60 Hz)
 
 
 def test_fusion_continues_on_omc_alone_and_recovers(demo):

@@ -68,6 +68,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--device-clock-offset-ns", type=int, default=0,
                     help="device clocks run this far ahead of the host clock (tests the drivers' clock mapping)")
     ap.add_argument("--start-delay", type=float, default=0.5, help="seconds between start-up and the task start")
+    ap.add_argument("--start-when-tracking", type=float, default=0.0, metavar="TIMEOUT_S",
+                    help="before --start-delay, wait up to this long until a driver has started tracking on the "
+                         "Vega emulator (0 = do not wait)")
     ap.add_argument("--loop", action="store_true", help="repeat the task until stopped")
     ap.add_argument("--scene", help="scene.yaml (default: installed fullperc_eval/config/scene.yaml)")
     ap.add_argument("--layout", help="camera layout (default: installed fullperc_fusion/config/or_layout.yaml)")
@@ -153,7 +156,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.vega_outage and args.vega_port >= 0:
         a, b = (float(x) for x in args.vega_outage.split(":"))
         threading.Thread(target=_vega_outage, args=(server, a / args.speed, b / args.speed), daemon=True).start()
-    server.serve(start_delay_s=args.start_delay, loops=0 if args.loop else 1)
+    server.serve(start_delay_s=args.start_delay, loops=0 if args.loop else 1,
+                 wait_for_tracking_s=args.start_when_tracking)
     return 0
 
 

@@ -36,13 +36,14 @@ def generate_launch_description():
     margin = Node(package="fullperc_fusion", executable="margin_node", name="margin_node",
                   parameters=[{"targets": ["tool"]}])
     omc = Node(package="fullperc_drivers", executable="omc_driver", name="omc_driver",
-               parameters=[{"backend": "stream", "stream_port": C("omc_port")}])
+               parameters=[{"backend": "stream", "stream_port": C("omc_port"),
+                            "bodies": ["base", "ots_rig", "tool"]}])
     diana = Node(package="fullperc_drivers", executable="diana_state", name="diana_state",
                  parameters=[{"backend": "stream", "stream_port": C("diana_port")}])
     sim = ExecuteProcess(
         cmd=["ros2", "run", "fullperc_eval", "sim", "--task", C("task"), "--seed", C("seed"), "--speed", C("speed"),
              "--omc-addr", ["127.0.0.1:", C("omc_port")], "--diana-addr", ["127.0.0.1:", C("diana_port")],
-             "--vega-port", C("vega_port"), "--start-delay", "3.0",
+             "--vega-port", C("vega_port"), "--start-when-tracking", "120", "--start-delay", "2.0",
              "--calibration-out", PathJoinSubstitution([out, "calibration.yaml"])],
         name="sim", output="screen")
     ndi = Node(package="fullperc_drivers", executable="ndi_driver", name="ndi_driver",

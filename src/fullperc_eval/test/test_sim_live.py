@@ -5,13 +5,16 @@ from __future__ import annotations
 
 import json
 import socket
+import threading
 import time
 
 import numpy as np
 import pytest
 
 from fullperc_common.testing import installed_exe, wait_for
+from fullperc_drivers.ndi.protocol import encode_command
 from fullperc_drivers.streams import decode_diana, decode_omc
+from fullperc_eval.sim.live import LiveServer
 from fullperc_eval.sim.run import run_task
 
 TASK, SEED = "P-G-B", 2
@@ -84,3 +87,49 @@ def test_sim_serves_the_offline_measurements(procs, tmp_path):
     assert events[0] == "plan" and "start" in events and events[-1] == "end"
     regions = [r["region"] for r in log if r["event"] == "region"]
     assert regions == ["PVV", "GVV", "BVV"]
+
+
+
+def test_task_waits_until_a_driver_tracks():
+    """``serve(wait_for_tracking_s=…)``: no device data and no task clock before a driver sent TSTART to the
+    Vega emulator, so a recorder that starts with the drivers sees the task from its first sample."""
+    run = run_task(TASK, seed=SEED)
+    so = _udp()
+    events: list[dict] = []
+    server = LiveServer(run, speed=8.0, omc_addr=("127.0.0.1", so.getsockname()[1]),
+                        diana_addr=("127.0.0.1", so.getsockname()[1]), vega_port=0, log=events.append)
+    th = threading.Thread(target=server.serve, kwargs={"start_delay_s": 0.0, "wait_for_tracking_s": 60.0},
+                          daemon=True)
+    th.start()
+    try:
+        wait_for(lambda: server.vega is not None, 10, what="Vega emulator")
+        time.sleep(1.0)
+        assert [e["event"] for e in events] == [] and server.t0_host_ns == 0
+        with pytest.raises(TimeoutError):
+            so.recv(65536)  # nothing streamed while waiting
+        with socket.create_connection(("127.0.0.1", server.vega.port), timeout=5) as c:
+            for cmd in ("INIT", "TSTART"):
+                c.sendall(encode_command(cmd))
+                assert c.recv(64).startswith(b"OKAY"), cmd
+            t_tstart = time.time_ns()
+            wait_for(lambda: any(e["event"] == "start" for e in events), 10, what="task start")
+        assert [e["event"] for e in events][:2] == ["tracking", "start"]
+        assert server.t0_host_ns >= t_tstart - 50_000_000
+        assert len(so.recv(65536)) > 0  # and now the streams play
+    finally:
+        server.stop()
+        th.join(10)
+    assert not th.is_alive()
+
+
+def test_task_starts_anyway_when_nobody_tracks():
+    """A demo without a Vega driver is not stuck: after the timeout the task starts and says why."""
+    run = run_task(TASK, seed=SEED)
+    events: list[dict] = []
+    server = LiveServer(run, speed=50.0, vega_port=0, log=events.append,
+                        omc_addr=("127.0.0.1", 9), diana_addr=("127.0.0.1", 9))
+    t = time.monotonic()
+    server.serve(start_delay_s=0.0, wait_for_tracking_s=0.5)
+    assert time.monotonic() - t >= 0.5
+    names = [e["event"] for e in events]
+    assert names[0] == "tracking_timeout" and "start" in names and names[-1] == "end"

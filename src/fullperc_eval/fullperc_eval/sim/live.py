@@ -98,6 +98,8 @@ class LiveServer:
     def _vega_source(self, t_host_ns: int) -> dict:
         from fullperc_eval.vega_emulator import ToolPose
 
+        if not self.t0_host_ns:  # the task clock has not started: nothing in view yet
+            return {}
         ots = self.run.ots
         k = int(np.searchsorted(ots.t_ns, self.sim_ns(t_host_ns), side="right")) - 1
         if k < 0:
@@ -155,9 +157,23 @@ class LiveServer:
         return ev
 
     # ------------------------------------------------------------------------------------------- run
-    def serve(self, start_delay_s: float = 0.5, loops: int = 1) -> None:
-        """Play the run ``loops`` times (0 = until :meth:`stop`); blocks."""
-        self._start_vega()
+    def serve(self, start_delay_s: float = 0.5, loops: int = 1, wait_for_tracking_s: float = 0.0) -> None:
+        """Play the run ``loops`` times (0 = until :meth:`stop`); blocks.
+
+        With ``wait_for_tracking_s`` > 0 the first task waits (at most that long) until a client has put the
+        Vega emulator into tracking mode before ``start_delay_s`` begins: a recording or a fusion node that
+        starts with the devices then sees the task from its first sample, however long the driver took to
+        come up on a loaded machine.
+        """
+        if self.vega is None:
+            self._start_vega()
+        if wait_for_tracking_s > 0 and self.vega is not None:
+            end = time.monotonic() + wait_for_tracking_s
+            while not self.vega.device.tracking and time.monotonic() < end:
+                if self._stop.wait(0.02):
+                    break
+            self.log({"event": "tracking" if self.vega.device.tracking else "tracking_timeout",
+                      "waited_s": round(wait_for_tracking_s - max(0.0, end - time.monotonic()), 3)})
         try:
             n = 0
             while not self._stop.is_set() and (loops == 0 or n < loops):
