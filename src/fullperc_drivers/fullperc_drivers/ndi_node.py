@@ -33,6 +33,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from fullperc_common import ros_conv
 from fullperc_common.diagnostics import ERROR, OK, WARN, Diagnostics
 from fullperc_common.params import ParameterError, declare
+from fullperc_common.subscribers import SubscriberLog
 from fullperc_msgs.msg import TrackingQuality
 
 from .ndi.driver import DriverConfig, FrameResult, NdiDriver, ToolConfig
@@ -112,6 +113,7 @@ class NdiNode(Node):
         self._not_tracking_since = time.monotonic()
         self.driver = NdiDriver(self.cfg, on_frame=self._on_frame)
         self.create_timer(0.5, self._update_diag)
+        self.subscribers = SubscriberLog(self, lambda: self.pose_pubs)
         self._update_diag()
         self.driver.start()
         self.get_logger().info(f"NDI driver: {transport} {where}, tools {names}, {mode} {option:04X}")

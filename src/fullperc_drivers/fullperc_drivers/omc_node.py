@@ -25,6 +25,7 @@ from fullperc_common.diagnostics import Diagnostics
 from fullperc_common.node_main import run_node
 from fullperc_common.params import ParameterError, declare
 from fullperc_common.ros_conv import ns_to_stamp, pose_stamped
+from fullperc_common.subscribers import SubscriberLog
 from fullperc_msgs.msg import TrackingQuality
 
 from .clock_sync import ClockSync
@@ -110,6 +111,7 @@ class OmcDriverNode(Node):
         for name in sorted(self.bodies or ()):
             self._pubs_for(name)  # explicit bodies: topics exist before the first frame
         self._diag_timer = self.create_timer(diag_period, self._update_diagnostics)
+        self.subscribers = SubscriberLog(self, lambda: self._pose_pubs)
         self._update_diagnostics()
 
     # ---- executor side ----------------------------------------------------------------------------

@@ -10,7 +10,8 @@ that nothing outlives the supervisor. The graph format (see config/demo_graph.ya
     processes:
       - name: sim
         cmd: [fullperc_eval/sim, --task, "{task}"]   # "pkg/exe" -> install/pkg/lib/pkg/exe
-        ready: {log: "serving"}          # regex on an output line | {port: 8765} | {delay: 0.5}
+        ready: {log: "serving"}          # regex on an output line (a list: every regex has matched a line)
+                                         # | {port: 8765} | {delay: 0.5}
         after: [other]                   # start only once these are ready
         output: show | quiet | "filter:<regex>"      # what reaches the console (all goes to the log file)
         ends_graph: true                 # when it exits, the whole graph is shut down (task done)
@@ -109,15 +110,27 @@ def load_graph(path: str | Path, values: dict[str, str]) -> Graph:
         for a in after:
             if a not in names:
                 raise GraphError(f"{path}: {where}.after: {a!r} is not an earlier process")
+        ready = {k: [fill(x, f"{where}.ready.{k}") for x in v] if isinstance(v, list) else fill(v, f"{where}.ready.{k}")
+                 for k, v in (p.get("ready") or {}).items()}
+        for rx in _log_patterns(ready):
+            try:
+                re.compile(rx)
+            except re.error as e:
+                raise GraphError(f"{path}: {where}.ready.log: bad regex {rx!r}: {e}") from e
         procs.append(ProcSpec(
-            name=p["name"], cmd=[fill(c, f"{where}.cmd") for c in p["cmd"]],
-            ready={k: fill(v, f"{where}.ready.{k}") for k, v in (p.get("ready") or {}).items()},
+            name=p["name"], cmd=[fill(c, f"{where}.cmd") for c in p["cmd"]], ready=ready,
             after=after, output=str(p.get("output", "show")), ends_graph=bool(p.get("ends_graph", False)),
             required=bool(p.get("required", True)),
             env={k: fill(v, f"{where}.env.{k}") for k, v in (p.get("env") or {}).items()}))
     return Graph(name=str(doc.get("name", path.stem)), processes=procs,
                  env={k: fill(v, f"env.{k}") for k, v in (doc.get("env") or {}).items()},
                  grace=float(doc.get("grace", 5.0)), ready_timeout=float(doc.get("ready_timeout", 60.0)))
+
+
+def _log_patterns(ready: dict) -> list[str]:
+    """The ``ready.log`` regexes of a process (one string or a list), [] when readiness is not by log."""
+    log = ready.get("log")
+    return [] if log is None else [str(x) for x in log] if isinstance(log, list) else [str(log)]
 
 
 class _Running:
@@ -148,7 +161,7 @@ class Supervisor:
 
     def _pump(self, r: _Running) -> None:
         spec = r.spec
-        pattern = re.compile(spec.ready["log"]) if "log" in spec.ready else None
+        pending = [re.compile(rx) for rx in _log_patterns(spec.ready)]
         show_re = re.compile(spec.output[len("filter:"):]) if spec.output.startswith("filter:") else None
         with open(r.log_path, "w") as log:
             for raw in iter(r.popen.stdout.readline, b""):
@@ -156,8 +169,10 @@ class Supervisor:
                 log.write(line + "\n")
                 log.flush()
                 r.lines += 1
-                if pattern is not None and not r.ready.is_set() and pattern.search(line):
-                    r.ready.set()
+                if pending:
+                    pending = [rx for rx in pending if not rx.search(line)]
+                    if not pending:
+                        r.ready.set()
                 if spec.output == "show" or (show_re is not None and show_re.search(line)):
                     self.say(spec.name, line)
 

@@ -40,6 +40,8 @@ def generate_launch_description():
                             "bodies": ["base", "ots_rig", "tool"]}])
     diana = Node(package="fullperc_drivers", executable="diana_state", name="diana_state",
                  parameters=[{"backend": "stream", "stream_port": C("diana_port")}])
+    # launch has no readiness gates: the task starts once ndi_driver tracks plus 2 s, which usually covers DDS
+    # discovery; the supervisor graph (demo_graph.yaml) waits for the drivers' matched subscribers instead.
     sim = ExecuteProcess(
         cmd=["ros2", "run", "fullperc_eval", "sim", "--task", C("task"), "--seed", C("seed"), "--speed", C("speed"),
              "--omc-addr", ["127.0.0.1:", C("omc_port")], "--diana-addr", ["127.0.0.1:", C("diana_port")],

@@ -96,7 +96,30 @@ def test_never_ready_fails_and_names_log(tmp_path, capsys):
     assert "silent did not become ready" in capsys.readouterr().out
 
 
+def test_ready_when_every_listed_regex_matched(tmp_path):
+    """``ready: {log: [a, b]}``: ready only once both lines appeared (in any order), not at the first."""
+    marker = tmp_path / "b_printed"
+    g = _graph(tmp_path, f"""
+        processes:
+          - name: two
+            cmd: [PY, -c, "import time; print('b: 2', flush=True); time.sleep(1.0);
+                   open('{marker}', 'w').close(); print('a: 2', flush=True); time.sleep(600)"]
+            ready: {{log: ["a: [2-9]", "b: [2-9]"]}}
+          - name: probe
+            cmd: [PY, -c, "import os; print('marker' if os.path.exists('{marker}') else 'early', flush=True)"]
+            ends_graph: true
+        grace: 0.5
+        """)
+    out = io.StringIO()
+    sup = Supervisor(load_graph(g, {}), tmp_path / "logs", tmp_path, out=out)
+    assert sup.start()
+    sup.wait(timeout=60)
+    sup.shutdown()
+    assert "[probe] marker" in out.getvalue()
+
+
 @pytest.mark.parametrize("body,msg", [
+    ("processes:\n  - {name: a, cmd: [x], ready: {log: ['ok', '(']}}\n", "bad regex"),
     ("processes: 3", "'processes'"),
     ("processes:\n  - name: a\n", "'name' and 'cmd'"),
     ("processes:\n  - {name: a, cmd: [x], after: [b]}\n", "not an earlier process"),
