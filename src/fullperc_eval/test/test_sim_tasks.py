@@ -37,8 +37,8 @@ def assert_same_plan(got, want, path: str = "plan") -> None:
     """Equal structure and discrete choices; floats to 1e-7.
 
     The search's IK stops at a convergence tolerance, so the last bits of a joint angle depend on the CPU's
-    floating-point paths (a CI machine differed from ours by 3e-10 rad). A different arc, cart pose or attempt
-    count differs by far more than 1e-7.
+    floating-point paths (a fresh clone on another machine differed from the shipped plan by 3e-10 rad).
+    A different arc, cart pose or attempt count differs by far more than 1e-7.
     """
     if isinstance(want, dict):
         assert isinstance(got, dict) and got.keys() == want.keys(), path
