@@ -17,6 +17,11 @@ ERROR = DiagnosticStatus.ERROR
 STALE = DiagnosticStatus.STALE
 
 
+def as_level(v: bytes | int) -> int:
+    """A diagnostic level as an int: Jazzy's message constants (OK, WARN, ...) are one-byte ``bytes``."""
+    return v[0] if isinstance(v, bytes) else int(v)
+
+
 class Diagnostics:
     def __init__(self, node, hardware_id: str = "", period_s: float = 1.0) -> None:
         self._node = node
@@ -28,7 +33,7 @@ class Diagnostics:
 
     def set(self, name: str, level: int, message: str, values: dict | None = None) -> None:
         # DiagnosticStatus.level is a byte; accept the message constants (bytes) and plain ints alike
-        lvl = level if isinstance(level, bytes) else bytes([int(level)])
+        lvl = bytes([as_level(level)])
         st = DiagnosticStatus(
             level=lvl,
             name=f"{self._node.get_name()}: {name}",

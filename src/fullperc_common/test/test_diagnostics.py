@@ -40,3 +40,10 @@ def test_levels_bytes_and_int():
     levels = {s.name: s.level for s in arr.status}
     assert levels == {"n: a": bytes([1]), "n: b": bytes([2])}
     assert arr.status[0].values[0].key == "count" and arr.status[0].values[0].value == "3"
+
+
+def test_as_level_accepts_message_bytes_and_ints():
+    from fullperc_common.diagnostics import ERROR, OK, WARN, as_level
+
+    assert [as_level(v) for v in (OK, WARN, ERROR)] == [0, 1, 2]
+    assert as_level(2) == 2
