@@ -1,0 +1,331 @@
+"""fusion_node's parameters in ONE table, and the one mapping from their values to a :class:`TargetConfig`.
+
+Two users, one mapping, so live and offline cannot drift apart:
+
+* ``fusion_node`` declares every parameter of :data:`PARAMS` (and :data:`TARGET_PARAMS` per target) through
+  ``fullperc_common.params.declare`` and maps them with :func:`read_values` / :func:`target_config`;
+* the offline evaluator calls :func:`load_fusion_config`: the same mapping over the node's params YAML
+  (``config/fusion.yaml`` by default; ``fusion_node: ros__parameters:`` with nested keys for dotted names).
+
+Each :class:`Param` row holds the name (nested names use dots: ``noise.accel``), the default, the kind of
+value, the check and its explanation, the unit and a description. The mapping is pure: it gets raw values from a
+``get(name, default)`` callable, converts them by kind (an int is accepted for a float; nothing else is
+converted: ``"1"`` is not a number, ``1`` is not a bool), checks them and raises
+:class:`~fullperc_common.params.ParameterError` naming the parameter. A value ``None`` (an empty YAML key, an
+undeclared optional ROS parameter) means "not given": the default.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from fullperc_common.params import ParameterError
+
+from .filters import FilterParams
+from .frame_chain import LOCAL_CHAINS, BadSample, ChainConfig, pose_to_T
+from .fusion_health import HealthParams
+from .pipeline import FILTER_NAMES, TargetConfig
+
+PAPER_ORDER = ("omc", "kf", "bkf", "ckf", "cbkf")   # every method, in the column order of the paper's Table 1
+KINDS = ("str", "int", "float", "bool", "str_list", "pose7")
+
+Get = Callable[[str, Any], Any]
+
+
+@dataclass(frozen=True)
+class Param:
+    """One parameter: ``default`` None = optional without a value (``kind`` still says its type)."""
+
+    name: str
+    default: Any
+    kind: str
+    check: Callable[[Any], bool] | None = None
+    why: str = ""
+    unit: str = ""
+    doc: str = ""
+
+    @property
+    def description(self) -> str:
+        return f"{self.doc} [{self.unit}]" if self.unit else self.doc
+
+
+def _fin(v) -> bool:
+    return math.isfinite(v)
+
+
+def _pos(v) -> bool:
+    return math.isfinite(v) and v > 0
+
+
+def _nonneg(v) -> bool:
+    return math.isfinite(v) and v >= 0
+
+
+_F = FilterParams()
+_C = ChainConfig()
+_T = TargetConfig()
+_H = HealthParams()
+
+PARAMS: tuple[Param, ...] = (
+    Param("targets", ["tool"], "str_list", lambda v: len(v) > 0 and all(v), "at least one non-empty name", "",
+          "fused targets; one output namespace /fullperc/<target>/ each"),
+    Param("omc_base_body", _C.omc_base, "str", bool, "must not be empty", "",
+          "OMC rigid body of the reference marker: the frame 'base' of every output"),
+    Param("omc_rig_body", _C.omc_rig, "str", bool, "must not be empty", "",
+          "OMC rigid body attached to the OTS (paper eq. 1 {Robot})"),
+    Param("ots_base_tool", _C.ots_base, "str", bool, "must not be empty", "",
+          "OTS tool on the reference marker (eq. 2)"),
+    Param("local_chain", _C.local_chain, "str", lambda v: v in LOCAL_CHAINS, f"one of {LOCAL_CHAINS}", "",
+          "static (OTS on a stand) | tracked (OTS moves, eq. 1 live) | direct (eq. 2 live)"),
+    Param("init_samples", _C.init_samples, "int", lambda v: v > 0, "must be > 0", "samples",
+          "samples per body averaged into the static links"),
+    Param("T_rig_ots", None, "pose7", None, "", "m, quaternion x y z w",
+          "optional hand-eye calibration rig -> ots [x y z qx qy qz qw]"),
+    Param("T_base_ots", None, "pose7", None, "", "m, quaternion x y z w",
+          "optional fixed calibration of a stationary OTS [x y z qx qy qz qw]"),
+    Param("filter", "cbkf", "str", lambda v: v in FILTER_NAMES, f"one of {FILTER_NAMES}", "",
+          "primary filter (omc = raw OMC pass-through)"),
+    Param("filters", None, "str_list", lambda v: all(f in FILTER_NAMES for f in v),
+          f"every entry one of {FILTER_NAMES}", "", "side-by-side filters under /fullperc/<target>/<filter>/"),
+    Param("noise.accel", _F.accel_noise, "float", _nonneg, "must be finite and >= 0", "m^2/s^3",
+          "white-acceleration density q_a"),
+    Param("noise.bias_walk", _F.bias_walk, "float", _nonneg, "must be finite and >= 0", "m^2/s",
+          "bias random walk q_b"),
+    Param("noise.global_std", _F.global_std, "float", _pos, "must be finite and > 0", "m", "OMC white noise per axis"),
+    Param("noise.local_std", _F.local_std, "float", _pos, "must be finite and > 0", "m", "OTS chain noise per axis"),
+    Param("init.pos_std", _F.init_pos_std, "float", _nonneg, "must be finite and >= 0", "m", "prior std of p"),
+    Param("init.vel_std", _F.init_vel_std, "float", _nonneg, "must be finite and >= 0", "m/s", "prior std of v"),
+    Param("init.bias_std", _F.init_bias_std, "float", _nonneg, "must be finite and >= 0", "m", "prior std of b"),
+    Param("hop_gate", _F.hop_gate, "float", _pos, "must be finite and > 0", "chi^2, 3 dof",
+          "gate on the global NIS; above it the update is flagged as a hop"),
+    Param("hop_to_bias", _F.hop_to_bias, "bool", None, "", "",
+          "a flagged hop goes into the bias (compensated filters)"),
+    Param("max_gap", _F.max_gap_s, "float", _pos, "must be finite and > 0", "s",
+          "longer silence of both sources re-initialises p and v"),
+    Param("slop", _T.slop_ns * 1e-9, "float", _nonneg, "must be finite and >= 0", "s",
+          "pair OMC and OTS samples closer than this"),
+    Param("reorder_delay", _T.delay_ns * 1e-9, "float", _nonneg, "must be finite and >= 0", "s",
+          "wait for late / reordered samples before processing"),
+    Param("clock", "stamps", "str", lambda v: v in ("stamps", "host"), "stamps or host", "",
+          "what 'now' is for the synchronizer: the newest stamp, or the node clock"),
+    Param("idle_flush", 0.5, "float", _pos, "must be finite and > 0", "s",
+          "without target samples for this long: process everything pending"),
+    Param("stale_timeout", 1.0, "float", _pos, "must be finite and > 0", "s",
+          "silence after which /diagnostics reports a source as silent"),
+    Param("problem_hold", _H.hold_s, "float", _pos, "must be finite and > 0", "s",
+          "a problem or alarm stays on /diagnostics this long after it was last seen"),
+    Param("qos_reliability", "reliable", "str", lambda v: v in ("reliable", "best_effort"),
+          "reliable or best_effort", "", "QoS reliability of inputs and outputs"),
+    Param("qos_depth", 100, "int", lambda v: v > 0, "must be > 0", "messages", "QoS history depth"),
+    Param("alarm.hop_window", _H.hop_window_s, "float", _pos, "must be finite and > 0", "s",
+          "window of the hop-rate alarm"),
+    Param("alarm.hop_max", _H.hop_max, "int", lambda v: v >= 1, "must be >= 1", "hops",
+          "more hops than this within alarm.hop_window -> WARN"),
+    Param("alarm.bias_max", _H.bias_max_m, "float", _pos, "must be finite and > 0", "m",
+          "|bias| of the global source above this -> WARN"),
+    Param("alarm.reject_timeout", _H.reject_timeout_s, "float", _pos, "must be finite and > 0", "s",
+          "every sample of a source rejected for this long -> ERROR"),
+)
+"""Every node-wide parameter of fusion_node."""
+
+# Per target; the name is "<target>.<suffix>", the default (None) is the target's name.
+TARGET_PARAMS: tuple[Param, ...] = (
+    Param("omc_body", None, "str", bool, "must not be empty", "", "OMC rigid body of the target (global measurement)"),
+    Param("ots_tool", None, "str", bool, "must not be empty", "", "NDI tool of the target (local measurement)"),
+)
+
+BY_NAME = {p.name: p for p in PARAMS}
+
+
+# ------------------------------------------------------------------------------------------------ mapping
+def _bad(p: Param, value: Any, why: str) -> ParameterError:
+    return ParameterError(f"parameter '{p.name}' = {value!r} is invalid: {why}")
+
+
+def convert(p: Param, value: Any) -> Any:
+    """``value`` as the Python value of ``p`` (default when None), checked; ParameterError naming ``p``."""
+    if value is None:
+        value = p.default
+        if value is None:
+            return [] if p.kind == "str_list" else None
+    k = p.kind
+    if k == "float":
+        if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
+            raise _bad(p, value, "must be a number")
+        out: Any = float(value)
+    elif k == "int":
+        if isinstance(value, float | np.floating) and float(value).is_integer():
+            value = int(value)
+        if isinstance(value, bool) or not isinstance(value, int | np.integer):
+            raise _bad(p, value, "must be an integer")
+        out = int(value)
+    elif k == "bool":
+        if not isinstance(value, bool | np.bool_):
+            raise _bad(p, value, "must be true or false")
+        out = bool(value)
+    elif k == "str":
+        if not isinstance(value, str):
+            raise _bad(p, value, "must be a string")
+        out = value
+    elif k == "str_list":
+        if isinstance(value, str) or not isinstance(value, list | tuple) or not all(isinstance(v, str) for v in value):
+            raise _bad(p, value, "must be a list of strings")
+        out = list(value)
+    elif k == "pose7":
+        if isinstance(value, str) or not isinstance(value, list | tuple | np.ndarray):
+            raise _bad(p, value, "must be [x y z qx qy qz qw]")
+        if len(value) == 0:
+            return None
+        if len(value) != 7:
+            raise _bad(p, list(value), "must be [x y z qx qy qz qw]")
+        try:
+            v = [float(x) for x in value]
+            pose_to_T((np.asarray(v[:3]), np.asarray(v[3:])))
+        except (TypeError, ValueError, BadSample) as e:
+            raise _bad(p, list(value), f"must be [x y z qx qy qz qw] with a unit quaternion ({e})") from None
+        out = v
+    else:  # pragma: no cover - the table is static
+        raise AssertionError(f"unknown kind {k!r} of parameter {p.name}")
+    if p.check is not None and not p.check(out):
+        raise _bad(p, out, p.why)
+    return out
+
+
+def read_values(get: Get, targets: list[str] | None = None) -> dict[str, Any]:
+    """Every parameter of :data:`PARAMS` (and :data:`TARGET_PARAMS` of each target, by default those of the
+    ``targets`` parameter) read through ``get(name, default)``, converted and checked."""
+    vals = {p.name: convert(p, get(p.name, p.default)) for p in PARAMS}
+    for t in (vals["targets"] if targets is None else targets):
+        for tp in TARGET_PARAMS:
+            p = Param(f"{t}.{tp.name}", t, tp.kind, tp.check, tp.why, tp.unit, tp.doc)
+            vals[p.name] = convert(p, get(p.name, p.default))
+    return vals
+
+
+def filter_params(vals: dict[str, Any]) -> FilterParams:
+    return FilterParams(
+        accel_noise=vals["noise.accel"], bias_walk=vals["noise.bias_walk"], global_std=vals["noise.global_std"],
+        local_std=vals["noise.local_std"], init_pos_std=vals["init.pos_std"], init_vel_std=vals["init.vel_std"],
+        init_bias_std=vals["init.bias_std"], hop_gate=vals["hop_gate"], hop_to_bias=vals["hop_to_bias"],
+        max_gap_s=vals["max_gap"]).validate()
+
+
+def health_params(vals: dict[str, Any]) -> HealthParams:
+    return HealthParams(hop_window_s=vals["alarm.hop_window"], hop_max=vals["alarm.hop_max"],
+                        bias_max_m=vals["alarm.bias_max"], reject_timeout_s=vals["alarm.reject_timeout"],
+                        hold_s=vals["problem_hold"]).validate()
+
+
+def primary_and_extra(vals: dict[str, Any]) -> tuple[str, list[str]]:
+    """The primary filter and the side-by-side ones (without duplicates, the primary may be among them)."""
+    return vals["filter"], list(dict.fromkeys(vals["filters"]))
+
+
+def _pose(v: list[float] | None):
+    return None if v is None else (np.asarray(v[:3], float), np.asarray(v[3:], float))
+
+
+def target_config(get: Get | dict[str, Any], target: str, filters: tuple[str, ...] | None = None) -> TargetConfig:
+    """The :class:`TargetConfig` of ``target``: ``get(name, default)`` or values from :func:`read_values`.
+
+    ``filters`` None: the node's, ``filter`` first then ``filters``; else exactly these.
+    """
+    vals = get if isinstance(get, dict) else read_values(get, [target])
+    if f"{target}.omc_body" not in vals:
+        raise ParameterError(f"target '{target}' is not in the values read (targets {vals['targets']})")
+    if filters is None:
+        primary, extra = primary_and_extra(vals)
+        filters = tuple(dict.fromkeys([primary, *extra]))
+    try:
+        chain = ChainConfig(omc_target=vals[f"{target}.omc_body"], ots_target=vals[f"{target}.ots_tool"],
+                            omc_base=vals["omc_base_body"], omc_rig=vals["omc_rig_body"],
+                            ots_base=vals["ots_base_tool"], local_chain=vals["local_chain"],
+                            init_samples=vals["init_samples"], T_rig_ots=_pose(vals["T_rig_ots"]),
+                            T_base_ots=_pose(vals["T_base_ots"]))
+        return TargetConfig(name=target, chain=chain, filters=tuple(filters), params=filter_params(vals),
+                            slop_ns=int(vals["slop"] * 1e9), delay_ns=int(vals["reorder_delay"] * 1e9))
+    except ParameterError:
+        raise
+    except ValueError as e:   # checks of the dataclasses beyond the table's
+        raise ParameterError(str(e)) from e
+
+
+# ---------------------------------------------------------------------------------------------- the file
+class FusionConfigError(ParameterError):
+    """A fusion params file cannot be read or has a wrong value; the message names the file and the field."""
+
+
+class LoadedConfig(NamedTuple):
+    """``config, values = load_fusion_config(...)``."""
+
+    config: TargetConfig
+    values: dict[str, Any]
+
+
+def default_fusion_config_path() -> Path:
+    """The installed ``share/fullperc_fusion/config/fusion.yaml`` (the node's params file), else the source copy."""
+    from fullperc_common.share import share_path
+
+    try:
+        return share_path("fullperc_fusion", "config", "fusion.yaml")
+    except FileNotFoundError as e:
+        raise FusionConfigError(f"{e}; pass the file explicitly") from None
+
+
+def flatten(d: dict, prefix: str = "") -> dict[str, Any]:
+    """Nested YAML keys -> dotted parameter names, as ROS does for a params file."""
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(flatten(v, key + "."))
+        else:
+            out[key] = v
+    return out
+
+
+def read_params_file(path: str | Path) -> dict[str, Any]:
+    """The flat ``ros__parameters`` of fusion_node in a params file (``fusion_node:`` or ``/**:``)."""
+    import yaml
+
+    p = Path(path)
+    try:
+        data = yaml.safe_load(p.read_text()) or {}
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as e:
+        raise FusionConfigError(f"fusion config {p}: cannot read ({type(e).__name__}: {e})") from None
+    node = None
+    if isinstance(data, dict):
+        node = data.get("fusion_node", data.get("/**", data))
+    params = node.get("ros__parameters", node) if isinstance(node, dict) else None
+    if not isinstance(params, dict):
+        raise FusionConfigError(f"fusion config {p}: expected 'fusion_node: ros__parameters: {{...}}'")
+    return flatten(params)
+
+
+def load_fusion_config(path: str | Path | None = None, target: str = "tool",
+                       filters: tuple[str, ...] | None = PAPER_ORDER) -> LoadedConfig:
+    """TargetConfig of ``target`` from a fusion_node params file, mapped exactly as ``fusion_node`` maps its
+    parameters; keys the file does not set take the node's defaults (an empty file = the node's defaults).
+
+    ``filters``: the methods to run (default: all five, :data:`PAPER_ORDER`); None = the file's ``filter`` and
+    ``filters`` as the node runs them. Returns ``(config, values)``: ``values`` = the file's flat keys updated
+    with every parameter of the table as used (defaults filled in) and ``_source`` = the file.
+    Raises :class:`FusionConfigError` (a ParameterError / ValueError) naming the file and the parameter.
+    """
+    p = Path(path) if path is not None else default_fusion_config_path()
+    flat = read_params_file(p)
+    try:
+        vals = read_values(lambda name, default: flat.get(name), [target])
+        cfg = target_config(vals, target, filters)
+    except ParameterError as e:
+        raise FusionConfigError(f"fusion config {p}: {e}") from None
+    values = dict(flat)
+    values.update(vals)
+    values["_source"] = str(p)
+    return LoadedConfig(cfg, values)

@@ -1,0 +1,169 @@
+"""fusion_config: the one parameter table of fusion_node and its mapping, used live and offline."""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import re
+
+import numpy as np
+import pytest
+import yaml
+
+from fullperc_common.params import ParameterError
+from fullperc_fusion import fusion_config as fc
+from fullperc_fusion.filters import FilterParams
+from fullperc_fusion.frame_chain import ChainConfig
+from fullperc_fusion.fusion_health import HealthParams
+from fullperc_fusion.pipeline import TargetConfig
+
+
+def _same_config(a: TargetConfig, b: TargetConfig) -> None:
+    assert (a.name, a.filters, a.params, a.slop_ns, a.delay_ns) == (b.name, b.filters, b.params, b.slop_ns, b.delay_ns)
+    assert (a.orientation_std_local, a.orientation_std_global) == (b.orientation_std_local, b.orientation_std_global)
+    for f in dataclasses.fields(ChainConfig):
+        x, y = getattr(a.chain, f.name), getattr(b.chain, f.name)
+        assert (x is None and y is None) or np.array_equal(x, y), f.name
+
+
+def _write(tmp_path, params: dict, top: str = "fusion_node"):
+    p = tmp_path / "f.yaml"
+    p.write_text(yaml.safe_dump({top: {"ros__parameters": params}}))
+    return p
+
+
+def test_shipped_file_gives_the_built_in_defaults():
+    """fusion.yaml says every value equals the node's built-in default."""
+    cfg, values = fc.load_fusion_config()
+    _same_config(cfg, TargetConfig(name="tool", chain=ChainConfig(), filters=fc.PAPER_ORDER, params=FilterParams()))
+    assert values["_source"].endswith("fusion.yaml")
+    for p in fc.PARAMS:
+        assert values[p.name] == fc.convert(p, None), p.name
+    assert fc.health_params(values) == HealthParams()
+
+
+def test_empty_file_and_defaults_agree(tmp_path):
+    a, _ = fc.load_fusion_config(_write(tmp_path, {}))
+    b, _ = fc.load_fusion_config()
+    _same_config(a, b)
+    # a ROS wildcard params file works too
+    c, _ = fc.load_fusion_config(_write(tmp_path, {"noise": {"accel": 0.2}}, top="/**"))
+    assert c.params.accel_noise == 0.2
+
+
+def test_fusion_yaml_documents_every_parameter_with_its_default():
+    """Every row of the table is in the shipped file (optional ones as a comment), with the table's default and,
+    for a physical quantity, its unit in the comment."""
+    path = fc.default_fusion_config_path()
+    text = path.read_text()
+    flat = fc.read_params_file(path)
+    for p in fc.PARAMS:
+        leaf = p.name.rsplit(".", 1)[-1]
+        assert re.search(rf"^\s*#?\s*{re.escape(leaf)}:", text, re.M), f"{p.name} is not in {path}"
+        if p.default is not None:
+            assert p.name in flat, p.name
+            assert fc.convert(p, flat[p.name]) == fc.convert(p, None), p.name
+    for name in ("alarm.hop_window", "alarm.bias_max", "alarm.reject_timeout", "problem_hold"):
+        leaf = name.rsplit(".", 1)[-1]
+        line = next(line for line in text.splitlines() if re.match(rf"\s*{leaf}:", line))
+        assert re.search(r"\[(s|m)\]", line), line
+    assert set(flat) <= {p.name for p in fc.PARAMS} | {"tool.omc_body", "tool.ots_tool"}
+
+
+def test_values_are_mapped(tmp_path):
+    p = _write(tmp_path, {
+        "noise": {"accel": 0.2, "global_std": 0.001}, "hop_to_bias": False, "slop": 0.002, "reorder_delay": 0.1,
+        "local_chain": "direct", "init_samples": 5, "tool": {"omc_body": "t1"}, "T_base_ots": [1, 2, 3, 0, 0, 0, 1],
+        "filter": "ckf", "filters": ["kf", "ckf"], "alarm": {"bias_max": 0.05, "hop_max": 3}})
+    cfg, values = fc.load_fusion_config(p)
+    assert cfg.params.accel_noise == 0.2 and cfg.params.global_std == 0.001 and cfg.params.hop_to_bias is False
+    assert (cfg.slop_ns, cfg.delay_ns) == (2_000_000, 100_000_000)
+    assert cfg.chain.local_chain == "direct" and cfg.chain.init_samples == 5 and cfg.chain.omc_target == "t1"
+    assert cfg.chain.ots_target == "tool"          # per-target default: the target's name
+    np.testing.assert_allclose(cfg.chain.T_base_ots[:3, 3], [1, 2, 3])
+    assert cfg.filters == fc.PAPER_ORDER            # the evaluator's default: every method
+    assert fc.load_fusion_config(p, filters=None).config.filters == ("ckf", "kf")   # as the node runs them
+    assert fc.health_params(values) == HealthParams(bias_max_m=0.05, hop_max=3)
+    other = fc.load_fusion_config(p, target="probe").config
+    assert other.name == "probe" and other.chain.omc_target == "probe"
+
+
+@pytest.mark.parametrize(("params", "name"), [
+    ({"T_rig_ots": [1, 2, 3]}, "T_rig_ots"),
+    ({"T_rig_ots": [0, 0, 0, 0, 0, 0, 2]}, "T_rig_ots"),          # not a unit quaternion
+    ({"noise": {"global_std": -1.0}}, "noise.global_std"),
+    ({"noise": {"accel": float("nan")}}, "noise.accel"),
+    ({"noise": {"accel": "0.1"}}, "noise.accel"),                  # a string is not a number
+    ({"hop_to_bias": 1}, "hop_to_bias"),                           # 1 is not a bool
+    ({"init_samples": 0}, "init_samples"),
+    ({"init_samples": 2.5}, "init_samples"),
+    ({"local_chain": "moving"}, "local_chain"),
+    ({"filter": "ukf"}, "filter"),
+    ({"filters": ["kf", "ukf"]}, "filters"),
+    ({"targets": []}, "targets"),
+    ({"tool": {"omc_body": ""}}, "tool.omc_body"),
+    ({"clock": "wall"}, "clock"),
+    ({"alarm": {"hop_window": 0.0}}, "alarm.hop_window"),
+    ({"alarm": {"hop_max": 0}}, "alarm.hop_max"),
+    ({"alarm": {"bias_max": -0.02}}, "alarm.bias_max"),
+    ({"alarm": {"reject_timeout": float("inf")}}, "alarm.reject_timeout"),
+    ({"problem_hold": 0}, "problem_hold"),
+])
+def test_bad_values_name_the_parameter_and_the_file(tmp_path, params, name):
+    p = _write(tmp_path, params)
+    with pytest.raises(fc.FusionConfigError, match=re.escape(f"'{name}'")) as e:
+        fc.load_fusion_config(p)
+    assert str(p) in str(e.value)
+    assert isinstance(e.value, ParameterError) and isinstance(e.value, ValueError)
+
+
+def test_unreadable_files(tmp_path):
+    with pytest.raises(fc.FusionConfigError, match="cannot read"):
+        fc.load_fusion_config(tmp_path / "missing.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("fusion_node: [1, 2]\n")
+    with pytest.raises(fc.FusionConfigError, match="ros__parameters"):
+        fc.load_fusion_config(bad)
+
+
+def test_the_mapping_is_the_same_for_a_getter_and_for_values():
+    """The node passes a getter that declares each parameter; the file path passes values: same config."""
+    seen = []
+
+    def get(name, default):
+        seen.append(name)
+        return {"noise.accel": 0.3, "probe.ots_tool": "p2"}.get(name)
+
+    cfg = fc.target_config(get, "probe")
+    assert cfg.params.accel_noise == 0.3 and cfg.chain.ots_target == "p2" and cfg.filters == ("cbkf",)
+    assert set(seen) == {p.name for p in fc.PARAMS} | {"probe.omc_body", "probe.ots_tool"}
+    vals = fc.read_values(get, ["probe"])
+    _same_config(fc.target_config(vals, "probe"), cfg)
+    with pytest.raises(ParameterError, match="'probe.omc_body'"):
+        fc.target_config(lambda n, d: "" if n == "probe.omc_body" else None, "probe")
+
+
+def _eval_loader():
+    """The evaluator's own copy of the mapping, as long as it has one (helper A moves and then drops it)."""
+    for mod in ("fullperc_eval.evaluate", "fullperc_eval.evaluation.config", "fullperc_eval.evaluation.replay",
+                "fullperc_eval.evaluation"):
+        try:
+            m = importlib.import_module(mod)
+        except ImportError:
+            continue
+        f = getattr(m, "load_fusion_config", None)
+        if f is not None and getattr(f, "__module__", "") != fc.__name__:
+            return f
+    return None
+
+
+def test_same_result_as_the_evaluators_former_loader(tmp_path):
+    old = _eval_loader()
+    if old is None:
+        pytest.skip("the evaluator has no loader of its own any more (it uses fusion_config)")
+    for path in (None, _write(tmp_path, {"noise": {"accel": 0.2}, "local_chain": "direct", "slop": 0.002,
+                                         "tool": {"omc_body": "t1"}, "T_base_ots": [1, 2, 3, 0, 0, 0, 1]})):
+        a, va = fc.load_fusion_config(path)
+        b, vb = old(path)
+        _same_config(a, b)
+        assert {k: v for k, v in vb.items() if k in va} == {k: va[k] for k in vb}   # old values, same keys

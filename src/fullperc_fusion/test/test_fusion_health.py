@@ -1,0 +1,156 @@
+"""fusion_health: the alarm rules on made-up times (no clock, no ROS)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from fullperc_fusion.fusion_health import ERROR, GLOBAL, LOCAL, WARN, HealthParams, TargetHealth
+
+SOURCES = {GLOBAL: "OMC body 'tool'", LOCAL: "OTS tool 'tool'"}
+Z = np.zeros(3)
+G_BIT, L_BIT, BOTH = 1, 2, 3     # FusionStatus.sources bits
+
+
+def _h(**kw) -> TargetHealth:
+    return TargetHealth("tool", SOURCES, HealthParams(**kw))
+
+
+def _stream(h, t0, t1, rate=120.0, hop_at=(), bias=Z, sources=BOTH):
+    """Primary outputs at ``rate`` Hz from t0 to t1 (both sources accepted and used), hops at the given times."""
+    hops = sorted(hop_at)
+    for k in range(int(round((t1 - t0) * rate))):
+        t = t0 + k / rate
+        for s in (GLOBAL, LOCAL):
+            h.accepted(s, t)
+        hop = bool(hops) and t >= hops[0]
+        if hop:
+            hops.pop(0)
+        h.output(t, sources, hop, bias)
+
+
+def test_defaults_are_the_documented_ones():
+    assert HealthParams() == HealthParams(hop_window_s=2.0, hop_max=5, bias_max_m=0.02, reject_timeout_s=1.0,
+                                          hold_s=10.0)
+
+
+@pytest.mark.parametrize("kw", [dict(hop_window_s=0.0), dict(hop_max=0), dict(hop_max=2.5), dict(bias_max_m=-1.0),
+                                dict(reject_timeout_s=math.nan), dict(hold_s=math.inf), dict(hop_max=True)])
+def test_bad_parameters_are_refused(kw):
+    with pytest.raises(ValueError, match=next(iter(kw))):
+        HealthParams(**kw).validate()
+
+
+def test_a_single_hop_is_no_alarm():
+    """A hop when the set of seeing cameras changes is normal: FusionStatus only (and a count on diagnostics)."""
+    h = _h()
+    _stream(h, 0.0, 10.0, hop_at=[3.0, 7.5])
+    assert h.alarms(10.0) == []
+    assert h.values(10.0)["hops_total"] == 2
+
+
+def test_hop_max_hops_in_the_window_is_still_no_alarm_one_more_is():
+    h = _h(hop_window_s=2.0, hop_max=5)
+    _stream(h, 0.0, 1.9, hop_at=[0.1, 0.5, 0.9, 1.3, 1.7])      # 5 within 2 s: allowed
+    assert h.alarms(1.9) == []
+    _stream(h, 1.9, 2.2, hop_at=[2.15])                         # 0.1 is out of the window at 2.15: still 5
+    assert h.alarms(2.2) == []
+    _stream(h, 2.2, 2.6, hop_at=[2.3])                          # 0.5 .. 2.3: 6 within 2 s
+    [a] = h.alarms(2.6)
+    assert a.level == WARN and a.rule == "hop_rate" and a.source == GLOBAL
+    assert "'tool'" in a.message and "OMC body 'tool'" in a.message and "6 hops within 2 s" in a.message
+
+
+def test_a_sustained_hop_rate_warns_and_the_warning_is_held_then_clears():
+    h = _h(hold_s=10.0)
+    _stream(h, 0.0, 3.0, hop_at=[0.2 * k for k in range(1, 15)])   # 5 hops/s
+    assert [a.rule for a in h.alarms(3.0)] == ["hop_rate"]
+    _stream(h, 3.0, 12.0)                                           # calm again (the last hop was at ~2.8 s)
+    [a] = h.alarms(12.0)
+    assert "cleared" in a.message                                   # held, and says so
+    assert h.alarms(12.9) == []
+
+
+def test_an_implausible_compensation_warns_naming_target_and_source():
+    h = _h(bias_max_m=0.02)
+    _stream(h, 0.0, 1.0, bias=np.array([0.0, 0.0, 0.0199]))
+    assert h.alarms(1.0) == []
+    h.output(1.0, BOTH, False, np.array([0.012, 0.0, 0.016]))      # |b| = 20.0 mm: not above
+    assert h.alarms(1.0) == []
+    h.output(1.01, BOTH, False, np.array([0.0, -1.0, 0.0]))
+    [a] = h.alarms(1.01)
+    assert a.level == WARN and a.rule == "bias" and a.source == GLOBAL
+    assert "'tool'" in a.message and "OMC body 'tool'" in a.message and "1000.0 mm > 20.0 mm" in a.message
+    h.output(1.02, BOTH, False, np.array([np.nan, 0, 0]))          # a non-finite bias is implausible too
+    assert h.values(1.02)["bias_norm_mm"] == math.inf
+
+
+def test_a_one_metre_jump_warns_on_the_first_output_with_the_learned_bias():
+    """What issue 14 saw: one hop, then b = 1 m. The bias rule fires without waiting for a hop rate."""
+    h = _h()
+    _stream(h, 0.0, 5.0, bias=np.array([1e-3, 0, 0]))
+    h.output(5.0, BOTH, True, np.array([0.3, 0, 0]))               # the gain moved part of the step into b
+    assert [a.rule for a in h.alarms(5.0)] == ["bias"]
+
+
+def test_every_sample_rejected_for_longer_than_the_timeout_is_an_error():
+    h = _h(reject_timeout_s=1.0)
+    _stream(h, 0.0, 2.0)
+    t = 2.0
+    while t < 2.99:                     # 120 Hz of NaN poses; outputs of earlier samples still come out meanwhile
+        h.rejected(GLOBAL, t, "OMC body 'tool': non-finite pose")
+        h.output(t + 0.05, L_BIT | (G_BIT if t < 2.1 else 0), False, Z)
+        h.accepted(LOCAL, t)
+        t += 1 / 120
+    assert h.alarms(2.99) == []         # 0.99 s of rejections
+    h.rejected(GLOBAL, 3.0, "OMC body 'tool': non-finite pose")
+    [a] = h.alarms(3.0)
+    assert a.level == ERROR and a.rule == "rejected" and a.source == GLOBAL
+    assert "'tool'" in a.message and "OMC body 'tool'" in a.message and "non-finite pose" in a.message
+    assert h.values(3.0)["global_rejected_run_s"] == pytest.approx(1.0)
+    # the local source is fine and is not named
+    assert all(a.source == GLOBAL for a in h.alarms(3.0))
+
+
+def test_a_few_rejected_samples_between_good_ones_are_no_error():
+    h = _h(reject_timeout_s=1.0)
+    for k in range(600):               # 5 s at 120 Hz, every 10th sample rejected
+        t = k / 120
+        if k % 10 == 0:
+            h.rejected(GLOBAL, t, "late")
+        else:
+            h.accepted(GLOBAL, t)
+            h.output(t, G_BIT, False, Z)
+    assert h.alarms(5.0) == []
+
+
+def test_one_rejection_then_silence_is_no_error():
+    """A source that sent one bad sample and then nothing is silent (the node says so), not 'all rejected'."""
+    h = _h(reject_timeout_s=1.0)
+    h.rejected(LOCAL, 1.0, "non-unit quaternion")
+    assert h.alarms(1.5) == [] and h.alarms(2.5) == [] and h.alarms(30.0) == []
+
+
+def test_the_error_ends_with_a_used_sample_and_is_held():
+    h = _h(reject_timeout_s=1.0, hold_s=10.0)
+    for k in range(240):
+        h.rejected(LOCAL, k / 120, "local sample skipped: no rig pose near this stamp")
+    assert [a.level for a in h.alarms(2.0)] == [ERROR]
+    h.output(2.01, BOTH, False, Z)      # a local sample accepted before the run is no recovery
+    assert h.values(2.01)["local_rejected_run_s"] > 0
+    h.accepted(LOCAL, 2.02)
+    h.output(2.05, BOTH, False, Z)      # used after the run started: the run ends
+    assert h.values(2.05)["local_rejected_run_s"] == 0.0
+    [a] = h.alarms(3.0)
+    assert a.level == ERROR and "cleared" in a.message
+    assert h.alarms(2.0 + 10.0 + 1e-6) == []
+
+
+def test_alarms_are_sorted_most_severe_first():
+    h = _h(reject_timeout_s=0.5)
+    h.output(0.0, BOTH, False, np.array([0.5, 0, 0]))
+    for k in range(100):
+        h.rejected(LOCAL, 0.01 * k, "x")
+    assert [a.level for a in h.alarms(1.0)] == [ERROR, WARN]
