@@ -17,6 +17,7 @@ undeclared optional ROS parameter) means "not given": the default.
 
 from __future__ import annotations
 
+import array
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -143,6 +144,17 @@ TARGET_PARAMS: tuple[Param, ...] = (
 BY_NAME = {p.name: p for p in PARAMS}
 
 
+def spec(name: str) -> Param:
+    """The row of parameter ``name``: one of :data:`PARAMS`, or ``<target>.<suffix>`` of :data:`TARGET_PARAMS`."""
+    if name in BY_NAME:
+        return BY_NAME[name]
+    target, _, suffix = name.rpartition(".")
+    for tp in TARGET_PARAMS:
+        if suffix == tp.name and target:
+            return Param(name, target, tp.kind, tp.check, tp.why, tp.unit, tp.doc)
+    raise KeyError(f"fusion_node has no parameter '{name}'")
+
+
 # ------------------------------------------------------------------------------------------------ mapping
 def _bad(p: Param, value: Any, why: str) -> ParameterError:
     return ParameterError(f"parameter '{p.name}' = {value!r} is invalid: {why}")
@@ -178,7 +190,7 @@ def convert(p: Param, value: Any) -> Any:
             raise _bad(p, value, "must be a list of strings")
         out = list(value)
     elif k == "pose7":
-        if isinstance(value, str) or not isinstance(value, list | tuple | np.ndarray):
+        if isinstance(value, str) or not isinstance(value, list | tuple | np.ndarray | array.array):
             raise _bad(p, value, "must be [x y z qx qy qz qw]")
         if len(value) == 0:
             return None
@@ -203,7 +215,7 @@ def read_values(get: Get, targets: list[str] | None = None) -> dict[str, Any]:
     vals = {p.name: convert(p, get(p.name, p.default)) for p in PARAMS}
     for t in (vals["targets"] if targets is None else targets):
         for tp in TARGET_PARAMS:
-            p = Param(f"{t}.{tp.name}", t, tp.kind, tp.check, tp.why, tp.unit, tp.doc)
+            p = spec(f"{t}.{tp.name}")
             vals[p.name] = convert(p, get(p.name, p.default))
     return vals
 

@@ -27,7 +27,10 @@ The rules (thresholds are :class:`HealthParams`, node parameters ``alarm.*`` in 
   pipeline at the input. Outputs of samples accepted before the run (they come out up to ``reorder_delay`` or
   ``idle_flush`` later) do not end it; samples waiting for the static links neither start nor end one.
 * every alarm stays raised ``hold_s`` seconds after its condition last held (a burst between two /diagnostics
-  publications is not lost; as the node's other problems, ``problem_hold``), with "(cleared N s ago)".
+  publications is not lost; as the node's other problems, ``problem_hold``), with "(cleared N s ago)". The
+  conditions are evaluated at every input and again at every :meth:`TargetHealth.alarms` call; the bias rule
+  holds as long as the newest output's bias does (the filter keeps b when the data stop; nothing but the data
+  resets it).
 
 Levels are the diagnostic_msgs values (OK 0, WARN 1, ERROR 2); messages name the target and the source.
 """
@@ -103,6 +106,7 @@ class TargetHealth:
         self._hops: deque[float] = deque()
         self.hops_total = 0
         self.bias_norm_m = 0.0
+        self._bias = np.zeros(3)
         self._run_first: dict[str, float | None] = {GLOBAL: None, LOCAL: None}
         self._run_last: dict[str, float | None] = {GLOBAL: None, LOCAL: None}
         self._run_count = {GLOBAL: 0, LOCAL: 0}
@@ -137,28 +141,17 @@ class TargetHealth:
                 self._run_first[s] = self._run_last[s] = None
                 self._run_count[s] = 0
         b = np.asarray(bias, dtype=float).reshape(3)
+        self._bias = b
         self.bias_norm_m = float(np.linalg.norm(b)) if np.all(np.isfinite(b)) else math.inf
-        p = self.params
-        if self.bias_norm_m > p.bias_max_m:
-            self._held[("bias", GLOBAL)].mark(now, (
-                f"target '{self.target}': compensation of the {self.names[GLOBAL]} is implausible: "
-                f"|bias| = {1e3 * self.bias_norm_m:.1f} mm > {1e3 * p.bias_max_m:.1f} mm (bias [mm] "
-                f"{np.round(1e3 * b, 1).tolist()}; the global source jumped, the base marker moved or a static "
-                "link is wrong; call ~/initialize once the cause is fixed)"))
         if hop:
             self.hops_total += 1
             self._hops.append(now)
-            self._prune(now)
-            if len(self._hops) > p.hop_max:
-                self._held[("hop_rate", GLOBAL)].mark(now, (
-                    f"target '{self.target}': the {self.names[GLOBAL]} hops too often: {len(self._hops)} hops "
-                    f"within {p.hop_window_s:g} s (more than {p.hop_max}; single hops when cameras change are "
-                    "normal)"))
+        self._check_bias_and_hops(now)
 
     # ---- output -------------------------------------------------------------------------------------------
     def alarms(self, now: float) -> list[Alarm]:
         """The raised alarms at ``now``, most severe first."""
-        self._prune(now)
+        self._check_bias_and_hops(now)
         for s in (GLOBAL, LOCAL):
             self._check_rejected(s, now)
         out = []
@@ -183,6 +176,21 @@ class TargetHealth:
         w = self.params.hop_window_s
         while self._hops and self._hops[0] <= now - w:
             self._hops.popleft()
+
+    def _check_bias_and_hops(self, now: float) -> None:
+        """The two WARN rules on the newest output (bias) and on the hops within the window ending at ``now``."""
+        p = self.params
+        self._prune(now)
+        if self.bias_norm_m > p.bias_max_m:
+            self._held[("bias", GLOBAL)].mark(now, (
+                f"target '{self.target}': compensation of the {self.names[GLOBAL]} is implausible: "
+                f"|bias| = {1e3 * self.bias_norm_m:.1f} mm > {1e3 * p.bias_max_m:.1f} mm (bias [mm] "
+                f"{np.round(1e3 * self._bias, 1).tolist()}; the global source jumped, the base marker moved or a "
+                "static link is wrong)"))
+        if len(self._hops) > p.hop_max:
+            self._held[("hop_rate", GLOBAL)].mark(now, (
+                f"target '{self.target}': the {self.names[GLOBAL]} hops too often: {len(self._hops)} hops "
+                f"within {p.hop_window_s:g} s (more than {p.hop_max}; single hops when cameras change are normal)"))
 
     def _check_rejected(self, source: str, now: float) -> None:
         first, last = self._run_first[source], self._run_last[source]

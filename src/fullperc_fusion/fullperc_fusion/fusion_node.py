@@ -9,19 +9,23 @@ Publishes:
   /fullperc/<target>/pose_cov  PoseWithCovarianceStamped (same stamp/frame)
   /fullperc/<target>/status    fullperc_msgs/FusionStatus
   /fullperc/<target>/<filter>/pose and .../status  for every filter listed in ``filters`` (side by side)
-  /diagnostics                 one status per target: initialization, rejected input and why, silent sources
+  /diagnostics                 one status per target: initialization, rejected input and why, silent sources,
+                               and the alarms of fusion_health (WARN: hop rate, implausible bias of the global
+                               source; ERROR: every sample of a source rejected), naming target and source
 Service:
   ~/initialize (std_srvs/Trigger) re-estimates the static links of every target from the next samples.
 
-Parameters (defaults in config/fusion.yaml; names of nested ones use dots):
+Parameters: the table of :mod:`fullperc_fusion.fusion_config` (names, defaults, checks, units; the same
+mapping the offline evaluator uses), documented in config/fusion.yaml; names of nested ones use dots:
   targets [tool]; <target>.omc_body, <target>.ots_tool (default: the target name)
   omc_base_body base, omc_rig_body ots_rig, ots_base_tool base
   local_chain static|tracked|direct, init_samples 30, T_rig_ots / T_base_ots [x y z qx qy qz qw] (optional)
   filter cbkf|ckf|bkf|kf|omc (primary), filters [..] (side-by-side extras, optional)
   noise.accel, noise.bias_walk, noise.global_std, noise.local_std, init.pos_std, init.vel_std,
   init.bias_std, hop_gate, hop_to_bias, max_gap (see filters.FilterParams)
-  slop [s], reorder_delay [s], clock stamps|host, idle_flush [s], stale_timeout [s]
+  slop [s], reorder_delay [s], clock stamps|host, idle_flush [s], stale_timeout [s], problem_hold [s]
   qos_reliability reliable|best_effort, qos_depth
+  alarm.hop_window [s] 2.0, alarm.hop_max 5, alarm.bias_max [m] 0.02, alarm.reject_timeout [s] 1.0
 
 ``clock``: with ``stamps`` (default) the synchronizer's notion of "now" is the newest stamp received,
 so output depends only on the data (live, replayed bags, simulated time alike); after ``idle_flush``
@@ -48,72 +52,35 @@ from fullperc_common.params import ParameterError, declare
 from fullperc_common.ros_conv import ns_to_stamp, pose_msg, pose_to_pq, stamp_to_ns, vector3
 from fullperc_msgs.msg import FusionStatus, Region
 
-from .filters import FilterParams
-from .frame_chain import LOCAL_CHAINS, ChainConfig
-from .pipeline import FILTER_NAMES, FusedOutput, TargetConfig, TargetPipeline
+from .fusion_config import health_params, primary_and_extra, read_values, spec, target_config
+from .fusion_health import GLOBAL, LOCAL, TargetHealth
+from .pipeline import FusedOutput, TargetPipeline
 
 # Diagnostics.set takes an int level (the diagnostic_msgs constants are bytes in rclpy).
-OK, WARN = 0, 1
+OK, WARN, ERROR = (diag.as_level(v) for v in (diag.OK, diag.WARN, diag.ERROR))
 _PROBLEM_KEYS = ("rejected_nonfinite", "rejected_nonunit", "rejected_pose", "rejected_stamp", "late", "duplicate",
                  "local_skipped", "filter_error", "nonfinite_output", "publish_error")
-
-
-def _pose7(value, name: str):
-    if value is None or len(value) == 0:
-        return None
-    if len(value) != 7:
-        raise ParameterError(f"parameter '{name}' must be [x y z qx qy qz qw], got {list(value)}")
-    return (np.asarray(value[:3], float), np.asarray(value[3:], float))
+# ROS type of a parameter declared without a default value (optional ones, empty lists)
+_ROS_TYPES = {"str_list": Parameter.Type.STRING_ARRAY, "pose7": Parameter.Type.DOUBLE_ARRAY}
 
 
 class FusionNode(Node):
     def __init__(self, **kw) -> None:
         super().__init__("fusion_node", **kw)
-        pos = lambda v: v > 0  # noqa: E731
-        nonneg = lambda v: v >= 0  # noqa: E731
-        targets = list(declare(self, "targets", ["tool"], lambda v: len(v) > 0 and all(v), "at least one name"))
-        omc_base = declare(self, "omc_base_body", "base")
-        omc_rig = declare(self, "omc_rig_body", "ots_rig")
-        ots_base = declare(self, "ots_base_tool", "base")
-        local_chain = declare(self, "local_chain", "static", lambda v: v in LOCAL_CHAINS, f"one of {LOCAL_CHAINS}")
-        init_samples = declare(self, "init_samples", 30, pos, "must be > 0")
-        T_rig_ots = _pose7(self.declare_parameter("T_rig_ots", Parameter.Type.DOUBLE_ARRAY).value, "T_rig_ots")
-        T_base_ots = _pose7(self.declare_parameter("T_base_ots", Parameter.Type.DOUBLE_ARRAY).value, "T_base_ots")
-        primary = declare(self, "filter", "cbkf", lambda v: v in FILTER_NAMES, f"one of {FILTER_NAMES}")
-        extra = self.declare_parameter("filters", Parameter.Type.STRING_ARRAY).value or []
-        for f in extra:
-            if f not in FILTER_NAMES:
-                raise ParameterError(f"parameter 'filters' contains '{f}', not one of {FILTER_NAMES}")
-        d = FilterParams()
-        try:
-            params = FilterParams(
-                accel_noise=declare(self, "noise.accel", d.accel_noise, nonneg, "must be >= 0"),
-                bias_walk=declare(self, "noise.bias_walk", d.bias_walk, nonneg, "must be >= 0"),
-                global_std=declare(self, "noise.global_std", d.global_std, pos, "must be > 0"),
-                local_std=declare(self, "noise.local_std", d.local_std, pos, "must be > 0"),
-                init_pos_std=declare(self, "init.pos_std", d.init_pos_std, nonneg, "must be >= 0"),
-                init_vel_std=declare(self, "init.vel_std", d.init_vel_std, nonneg, "must be >= 0"),
-                init_bias_std=declare(self, "init.bias_std", d.init_bias_std, nonneg, "must be >= 0"),
-                hop_gate=declare(self, "hop_gate", d.hop_gate, pos, "must be > 0"),
-                hop_to_bias=declare(self, "hop_to_bias", d.hop_to_bias),
-                max_gap_s=declare(self, "max_gap", d.max_gap_s, pos, "must be > 0"),
-            ).validate()
-        except ValueError as e:
-            raise ParameterError(str(e)) from e
-        slop = declare(self, "slop", 0.004, nonneg, "must be >= 0 [s]")
-        delay = declare(self, "reorder_delay", 0.05, nonneg, "must be >= 0 [s]")
-        self._clock_mode = declare(self, "clock", "stamps", lambda v: v in ("stamps", "host"), "stamps or host")
-        self._idle_flush = declare(self, "idle_flush", 0.5, pos, "must be > 0 [s]")
-        self._stale = declare(self, "stale_timeout", 1.0, pos, "must be > 0 [s]")
-        self._problem_hold = declare(self, "problem_hold", 10.0, pos, "must be > 0 [s]")
-        rel = declare(self, "qos_reliability", "reliable", lambda v: v in ("reliable", "best_effort"),
-                      "reliable or best_effort")
-        depth = declare(self, "qos_depth", 100, pos, "must be > 0")
-        qos = QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE if rel == "reliable"
-                         else ReliabilityPolicy.BEST_EFFORT)
+        vals = read_values(self._declare)   # every parameter of fusion_config.PARAMS, declared, converted, checked
+        targets = vals["targets"]
+        primary, extra = primary_and_extra(vals)
+        local_chain = vals["local_chain"]
+        self._clock_mode = vals["clock"]
+        self._idle_flush = vals["idle_flush"]
+        self._stale = vals["stale_timeout"]
+        self._problem_hold = vals["problem_hold"]
+        health = health_params(vals)
+        qos = QoSProfile(depth=vals["qos_depth"], reliability=ReliabilityPolicy.RELIABLE
+                         if vals["qos_reliability"] == "reliable" else ReliabilityPolicy.BEST_EFFORT)
 
         self._primary = primary
-        self._extra = list(dict.fromkeys(extra))
+        self._extra = extra
         filters = tuple(dict.fromkeys([primary, *self._extra]))
         self._diag = diag.Diagnostics(self, hardware_id="fullperc_fusion")
         self.pipes: dict[str, TargetPipeline] = {}
@@ -121,21 +88,20 @@ class FusionNode(Node):
         self._region: dict[str, int] = {}
         self._last_rx: dict[str, dict[str, float]] = {}
         self._problem_seen: dict[str, dict[str, tuple[int, float]]] = {}
+        self.health: dict[str, TargetHealth] = {}
+        self._skipped_seen: dict[str, int] = {}
         self._last_target_rx = time.monotonic()
         routes_omc: dict[str, list[str]] = {}
         routes_ots: dict[str, list[str]] = {}
         for t in targets:
-            omc_body = declare(self, f"{t}.omc_body", t)
-            ots_tool = declare(self, f"{t}.ots_tool", t)
-            chain = ChainConfig(omc_target=omc_body, ots_target=ots_tool, omc_base=omc_base, omc_rig=omc_rig,
-                                ots_base=ots_base, local_chain=local_chain, init_samples=init_samples,
-                                T_rig_ots=T_rig_ots, T_base_ots=T_base_ots)
-            self.pipes[t] = TargetPipeline(TargetConfig(
-                name=t, chain=chain, filters=filters, params=params,
-                slop_ns=int(slop * 1e9), delay_ns=int(delay * 1e9)))
-            for b in (omc_body, omc_base, omc_rig):
+            self.pipes[t] = TargetPipeline(target_config(vals, t, filters))
+            c = self.pipes[t].config.chain
+            self.health[t] = TargetHealth(t, {GLOBAL: f"OMC body '{c.omc_target}'",
+                                              LOCAL: f"OTS tool '{c.ots_target}'"}, health)
+            self._skipped_seen[t] = 0
+            for b in (c.omc_target, c.omc_base, c.omc_rig):
                 routes_omc.setdefault(b, []).append(t)
-            for b in (ots_tool, ots_base):
+            for b in (c.ots_target, c.ots_base):
                 routes_ots.setdefault(b, []).append(t)
             self._pubs[(t, "")] = (
                 self.create_publisher(PoseStamped, f"/fullperc/{t}/pose", qos),
@@ -165,6 +131,15 @@ class FusionNode(Node):
             f"fusing targets {targets} with {filters[0]} (side by side: {self._extra or 'none'}), "
             f"local chain '{local_chain}', clock '{self._clock_mode}'")
 
+    def _declare(self, name: str, default):
+        """fusion_config's getter: declare ``name`` (once, via params.declare) and return its value."""
+        if self.has_parameter(name):
+            return self.get_parameter(name).value
+        p = spec(name)
+        if default is None or (isinstance(default, list) and not default):
+            default = _ROS_TYPES[p.kind]
+        return declare(self, name, default, description=p.description)
+
     # ---- input ------------------------------------------------------------------------------
     def _on_input(self, dev: str, body: str, msg: PoseStamped) -> None:
         """One executor callback: this message plus everything queued on every input, in stamp order."""
@@ -188,16 +163,25 @@ class FusionNode(Node):
             pipe = self.pipes[t]
             c = pipe.config.chain
             if dev == "omc":
-                pipe.push_omc(body, t_ns, (p, q))
+                ok = pipe.push_omc(body, t_ns, (p, q))
                 if body == c.omc_target:
                     self._last_rx[t]["omc"] = now
                     self._last_target_rx = now
+                    self._source_sample(t, GLOBAL, ok, now)
             else:
-                pipe.push_ots(body, t_ns, (p, q))
+                ok = pipe.push_ots(body, t_ns, (p, q))
                 if body == c.ots_target:
                     self._last_rx[t]["ots"] = now
                     self._last_target_rx = now
+                    self._source_sample(t, LOCAL, ok, now)
         return targets
+
+    def _source_sample(self, target: str, source: str, accepted: bool, now: float) -> None:
+        h = self.health[target]
+        if accepted:
+            h.accepted(source, now)
+        else:
+            h.rejected(source, now, self.pipes[target].last_problem)
 
     def _now_ns(self) -> int | None:
         return self.get_clock().now().nanoseconds if self._clock_mode == "host" else None
@@ -222,7 +206,15 @@ class FusionNode(Node):
 
     # ---- output -----------------------------------------------------------------------------
     def _publish(self, target: str, outs: list[FusedOutput]) -> None:
+        now = time.monotonic()
+        pipe, h = self.pipes[target], self.health[target]
+        skipped = pipe.counts["local_skipped"]
+        if skipped > self._skipped_seen[target]:     # local samples the chain could not map: rejected too
+            h.rejected(LOCAL, now, pipe.problems.get("local_skipped", ""), skipped - self._skipped_seen[target])
+            self._skipped_seen[target] = skipped
         for o in outs:
+            if o.filter == self._primary:
+                h.output(now, o.sources, o.hop, o.bias)
             keys = ([""] if o.filter == self._primary else []) + ([o.filter] if o.filter in self._extra else [])
             for key in keys:
                 pose_pub, cov_pub, status_pub = self._pubs[(target, key)]
@@ -263,6 +255,10 @@ class FusionNode(Node):
             values = {k: v for k, v in s.items() if k != "init_progress"}
             values.update({f"init_{k}": v for k, v in s["init_progress"].items()})
             level, msgs = OK, []
+            for a in self.health[t].alarms(now):
+                level = max(level, a.level)
+                msgs.append(a.message)
+            values.update(self.health[t].values(now))
             if s["global_link"] != "ready":
                 level = WARN
                 msgs.append(f"initializing: waiting for {pipe.config.chain.init_samples} samples of the base "

@@ -7,7 +7,13 @@ OMC pose, an OTS pose with a non-unit quaternion and an OMC pose stamped 0.5 s i
 Everything published is written as JSON lines to ``--log`` (kind, body, stamp, position, flags) so the
 test can check the node's output against exactly what went in.
 
-Run: python synthetic_driver_pub.py --log out.jsonl [--duration 4] [--bad]
+Faults for the /diagnostics alarms (each option repeatable; BODY is ``tool`` or one of ``--extra-bodies``,
+further OMC bodies that follow the same path, seen by the OMC only):
+  --omc-jump BODY:AT:DX   from AT seconds on, the OMC pose of BODY is DX metres off along omc x (a hop or jump)
+  --omc-nan BODY:FROM     from FROM seconds on, every OMC pose of BODY has a NaN position
+
+Run: python synthetic_driver_pub.py --log out.jsonl [--duration 4] [--bad] [--extra-bodies probe,broken]
+     [--omc-jump tool:2.0:1.0] [--omc-nan broken:1.0]
 """
 
 from __future__ import annotations
@@ -55,13 +61,20 @@ def main() -> int:
     ap.add_argument("--ots-to", type=float, default=2.5)
     ap.add_argument("--bad", action="store_true")
     ap.add_argument("--wait", type=float, default=30.0, help="max seconds to wait for the fusion_node")
+    ap.add_argument("--extra-bodies", default="", help="comma-separated further OMC bodies (OMC only)")
+    ap.add_argument("--omc-jump", action="append", default=[], metavar="BODY:AT:DX")
+    ap.add_argument("--omc-nan", action="append", default=[], metavar="BODY:FROM")
     a = ap.parse_args()
+    extra = [b for b in a.extra_bodies.split(",") if b]
+    jumps = {b: (float(at), float(dx)) for b, at, dx in (j.split(":") for j in a.omc_jump)}
+    nans = {b: float(at) for b, at in (j.split(":") for j in a.omc_nan)}
 
     rclpy.init()
     node = rclpy.create_node("synthetic_driver_pub")
     qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
     pubs = {k: node.create_publisher(PoseStamped, k, qos) for k in
-            ("/omc/base/pose", "/omc/ots_rig/pose", "/omc/tool/pose", "/ots/base/pose", "/ots/tool/pose")}
+            ("/omc/base/pose", "/omc/ots_rig/pose", "/omc/tool/pose", "/ots/base/pose", "/ots/tool/pose",
+             *(f"/omc/{b}/pose" for b in extra))}
     end = time.monotonic() + a.wait
     while time.monotonic() < end and any(p.get_subscription_count() == 0 for p in pubs.values()):
         rclpy.spin_once(node, timeout_sec=0.05)
@@ -90,8 +103,22 @@ def main() -> int:
             time.sleep(0.0005)
         ns = t0_ns + round(t * 1e9)
         Tt = T_OMC_BASE @ truth(t)
-        p, q = T_to_pq(Tt)
-        p = p + OMC_OFFSET + rng.normal(0, 2e-4, 3)
+        p0, q = T_to_pq(Tt)
+        p = p0 + OMC_OFFSET + rng.normal(0, 2e-4, 3)
+        for b in ("tool", *extra):
+            flags = {}
+            pb = p if b == "tool" else p0 + OMC_OFFSET + rng.normal(0, 2e-4, 3)
+            if b in jumps and t >= jumps[b][0]:
+                pb = pb + np.array([jumps[b][1], 0.0, 0.0])
+                flags["jump"] = jumps[b][1]
+            if b in nans and t >= nans[b]:
+                pb = np.array([math.nan, pb[1], pb[2]])
+                flags["bad"] = "nan"
+            if b == "tool":
+                p = pb
+                tool_flags = flags
+            else:
+                pub(f"/omc/{b}/pose", "omc", b, ns, "omc", pb, q, **flags)
         pub("/omc/base/pose", "omc", "base", ns, "omc", *T_to_pq(T_OMC_BASE))
         pub("/omc/ots_rig/pose", "omc", "ots_rig", ns, "omc", *T_to_pq(T_OMC_OTS))
         if a.bad and t >= 1.5 and "nan" not in bad_done:
@@ -102,7 +129,7 @@ def main() -> int:
             pub("/omc/tool/pose", "omc", "tool", ns, "omc", p, q)
             pub("/omc/tool/pose", "omc", "tool", ns - 500_000_000, "omc", p, q, bad="backwards")
         else:
-            pub("/omc/tool/pose", "omc", "tool", ns, "omc", p, q)
+            pub("/omc/tool/pose", "omc", "tool", ns, "omc", p, q, **tool_flags)
         if k % 2 == 0:
             ns_l = ns + 3_000_000
             pub("/ots/base/pose", "ots", "base", ns_l, "ots", *T_to_pq(T_ots_base))

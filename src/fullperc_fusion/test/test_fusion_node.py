@@ -6,6 +6,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
+import re
 import threading
 from pathlib import Path
 
@@ -164,11 +165,71 @@ def test_fusion_node_end_to_end(procs, rclpy_context, python_exe, tmp_path):
     assert "non-unit quaternion" in texts
     assert "older than the processed horizon" in texts
     assert "no OTS (local) sample for" in texts      # the OTS went silent at 2.5 s
+    # single bad samples and the usual hops are no alarm (fusion_health)
+    from fullperc_common.diagnostics import as_level
+    assert not any(as_level(st.level) == 2 for arr in lis.diag for st in arr.status), texts
+    assert "hops too often" not in texts and "compensation" not in texts
 
 
-def test_fusion_node_rejects_bad_parameters(procs):
-    p = procs.start([installed_exe("fullperc_fusion", "fusion_node"), "--ros-args", "-p", "noise.global_std:=-1.0"],
-                    name="bad_params")
+@pytest.mark.parametrize("arg", ["noise.global_std:=-1.0", "alarm.bias_max:=-0.02", "alarm.hop_max:=0",
+                                 "T_rig_ots:=[1.0, 2.0, 3.0]"])
+def test_fusion_node_rejects_bad_parameters(procs, arg):
+    p = procs.start([installed_exe("fullperc_fusion", "fusion_node"), "--ros-args", "-p", arg], name="bad_params")
     wait_for(lambda: p.poll() is not None, 30, what="fusion_node to exit")
     assert p.returncode != 0
-    assert "noise.global_std" in procs.log(p)
+    assert f"'{arg.split(':=')[0]}'" in procs.log(p)
+
+
+def _statuses(lis, target):
+    return [st for arr in list(lis.diag) for st in arr.status if st.name == f"fusion_node: target {target}"]
+
+
+def test_fusion_node_alarms_on_diagnostics(procs, rclpy_context, python_exe, tmp_path):
+    """Issue 14: three OMC targets in one node. ``tool`` jumps by 1 m (while the OTS sees it): WARN naming the
+    target and its OMC body; ``probe`` hops once by 3 mm (cameras changing): a hop in FusionStatus, no WARN;
+    every OMC sample of ``broken`` is NaN from 1.5 s on: ERROR naming it once that lasted 1 s."""
+    from fullperc_common.diagnostics import as_level
+
+    targets = ["tool", "probe", "broken"]
+    topics = [f"/fullperc/{t}/status" for t in targets]
+    lis = Listener(rclpy_context, topics)
+    try:
+        node = procs.start([installed_exe("fullperc_fusion", "fusion_node"), "--ros-args",
+                            "-p", "targets:=[tool, probe, broken]", "-p", "init_samples:=20",
+                            "-p", "alarm.reject_timeout:=1.0"], name="fusion_node")
+        wait_for(lambda: all(lis.node.count_publishers(t) > 0 for t in topics), 30, what="node's publishers")
+        wait_for(lambda: all(p.get_publisher_count() > 0 for p in lis.node.subscriptions if p.topic_name in topics),
+                 30, what="subscriptions matched")
+        pub = procs.start([python_exe, str(PUB), "--log", str(tmp_path / "pub.jsonl"), "--duration", "4.0",
+                           "--extra-bodies", "probe,broken", "--omc-jump", "tool:2.0:1.0",
+                           "--omc-jump", "probe:2.0:0.003", "--omc-nan", "broken:1.5"], name="pub")
+        wait_for(lambda: pub.poll() is not None, 60, what="publisher to finish")
+        assert pub.returncode == 0, procs.log(pub)
+
+        def raised(target, level, *words):
+            return [st for st in _statuses(lis, target)
+                    if as_level(st.level) == level and all(w in st.message for w in words)]
+        # liveness bounds only: the alarms are held 10 s (problem_hold) after their condition last held
+        warn = wait_for(lambda: raised("tool", 1, "target 'tool'", "OMC body 'tool'", "compensation"), 30,
+                        what="WARN on the 1 m jump of tool")
+        err = wait_for(lambda: raised("broken", 2, "target 'broken'", "OMC body 'broken'", "rejected"), 30,
+                       what="ERROR on every sample of broken rejected")
+        wait_for(lambda: len(_statuses(lis, "probe")) >= 3, 30, what="diagnostics of probe")
+        assert node.poll() is None, procs.log(node)
+    finally:
+        lis.close()
+    bias_mm = float(re.search(r"\|bias\| = ([0-9.]+) mm", warn[0].message).group(1))
+    assert abs(bias_mm - 1000) < 10, warn[0].message
+    assert "non-finite" in err[0].message
+    # the single hop of probe: in FusionStatus, not on /diagnostics
+    probe = lis.got["/fullperc/probe/status"]
+    assert any(s.hop for s in probe), "the 3 mm step of probe raised no hop flag"
+    assert sum(s.hop for s in probe) <= 5
+    for st in _statuses(lis, "probe"):
+        assert "hops too often" not in st.message and "compensation" not in st.message, st.message
+        assert as_level(st.level) < 2, st.message
+    assert as_level(_statuses(lis, "probe")[-1].level) == 0, _statuses(lis, "probe")[-1].message
+    # the jump went into the bias of tool (the issue: 1.0 m), and tool's own samples were never all rejected
+    b = lis.got["/fullperc/tool/status"][-1].bias
+    assert abs(np.linalg.norm([b.x, b.y, b.z]) - 1.0) < 0.01
+    assert not any(as_level(st.level) == 2 for st in _statuses(lis, "tool"))
