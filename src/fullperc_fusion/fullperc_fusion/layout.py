@@ -4,7 +4,7 @@ The layout is the static geometry that the view-margin model (paper §4, Algorit
 It is one YAML file (metres and degrees) shared by ``margin_node`` and the simulator, so the region
 labels the node publishes and the camera geometry the simulated OMC triangulates with agree.
 
-Frames (see ``names.md``):
+Frames (the README's "Frames" paragraph; ARCHITECTURE.md "Frames and units"):
   * ``omc``: the mocap world, z up; every position and orientation in the file is expressed in it.
     "Ground" in eq. (17) is the omc x-y plane.
   * OMC camera frames follow OpenCV: z = optical axis (forward), x right, y down. ``orientation`` is the
@@ -52,6 +52,7 @@ import numpy as np
 import yaml
 from scipy.spatial.transform import Rotation
 
+from fullperc_common.share import share_path
 from fullperc_common.transforms import apply_T, inv_T, make_T
 
 #: NDI Polaris Vega pyramid volume as used by third-party code (reference/ndi.md §3.5, marked UNCERTAIN there):
@@ -572,17 +573,6 @@ def load_layout(path: str | os.PathLike) -> Layout:
 
 
 def default_layout_path() -> Path:
-    """The installed ``share/fullperc_fusion/config/or_layout.yaml``, else the source copy next to this package."""
-    try:
-        from ament_index_python.packages import get_package_share_directory
-
-        p = Path(get_package_share_directory("fullperc_fusion")) / "config" / "or_layout.yaml"
-        if p.exists():
-            return p
-    except Exception:  # noqa: BLE001 - not installed / no ament index: fall back to the source tree
-        pass
-    here = Path(__file__).resolve()
-    for cand in (here.parent.parent / "config" / "or_layout.yaml",):
-        if cand.exists():
-            return cand
-    raise FileNotFoundError("or_layout.yaml not found in the fullperc_fusion share directory or the source tree")
+    """The installed ``share/fullperc_fusion/config/or_layout.yaml``, else the source copy
+    (:func:`fullperc_common.share.share_path`); FileNotFoundError naming every place tried."""
+    return share_path("fullperc_fusion", "config", "or_layout.yaml")

@@ -13,6 +13,15 @@ enough for a region label) or, if ``T_omc_base`` is given as a parameter [x y z 
 topic is not subscribed). Until T_omc_base is known, poses in ``base`` are answered with label UNKNOWN and the
 diagnostics say why. Any other frame_id gives UNKNOWN and an ERROR diagnostic.
 
+Hysteresis (:mod:`fullperc_fusion.region_filter`): ``hysteresis.margin_band_deg`` [deg] (default 1.0; a GVV
+label is kept while margin >= threshold - band, a PVV label becomes GVV at margin >= threshold + band) and
+``hysteresis.min_dwell`` [s] (default 0.2; after a change the label is held for at least this much of pose
+stamps), both 0 = off, changeable at run time. The published label changes once per real crossing (delayed by at
+most min_dwell) instead of flickering with the estimate's noise. Every Region stays consistent: ``threshold_deg``
+is the threshold in force (threshold -/+ band), and while a change is held back by the dwell ``margin_deg``,
+``valid_pairs``, ``cameras_seeing`` and ``in_local_volume`` are those of the newest pose that had the held label
+(header and position are the current pose's). A layout change starts every target afresh.
+
 Bad input: an invalid layout file stops the node at start with the file and field named (exit code 2); a later
 parameter change to an invalid file is rejected with the same message and the old layout stays in force.
 """
@@ -32,24 +41,19 @@ from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
 from fullperc_common import diagnostics as _diag
-from fullperc_common.diagnostics import Diagnostics
+from fullperc_common.diagnostics import Diagnostics, as_level
 from fullperc_common.node_main import run_node
 from fullperc_common.params import ParameterError, declare
-from fullperc_common.ros_conv import pose_to_T
+from fullperc_common.ros_conv import pose_to_T, stamp_to_ns
 from fullperc_common.transforms import is_finite_pose, make_T
 from fullperc_msgs.msg import Region
 
 from .layout import Layout, LayoutError, default_layout_path, load_layout
 from .margin import BVV, GVV, PVV, REGION_NAMES, UNKNOWN, label_point
 from .margin_map import REGION_COLORS, MarginMap, compute_margin_map
+from .region_filter import HysteresisParams, RegionFilter
 
-
-def _level(v) -> int:
-    """DiagnosticStatus level constants are bytes in the Jazzy wheels; ``Diagnostics.set`` takes an int."""
-    return v[0] if isinstance(v, bytes) else int(v)
-
-
-OK, WARN, ERROR = _level(_diag.OK), _level(_diag.WARN), _level(_diag.ERROR)
+OK, WARN, ERROR = as_level(_diag.OK), as_level(_diag.WARN), as_level(_diag.ERROR)
 MAP_TOPIC = "/fullperc/margin_map"
 _ALPHA = {BVV: 0.35, GVV: 0.12, PVV: 0.25}
 
@@ -139,6 +143,15 @@ class MarginNode(Node):
         self.map_resolution = declare(self, "map_resolution", 0.1, lambda v: 0.01 <= v <= 1.0,
                                       "must be within [0.01, 1.0] m", "margin map grid step [m]")
         self.publish_map = declare(self, "publish_map", True)
+        nonneg = lambda v: math.isfinite(v) and v >= 0  # noqa: E731
+        self.hysteresis = HysteresisParams(
+            margin_band_deg=declare(self, "hysteresis.margin_band_deg", HysteresisParams.margin_band_deg, nonneg,
+                                    "must be finite and >= 0 [deg]",
+                                    "band around the GVV threshold against label flicker [deg]; 0 = none"),
+            min_dwell_s=declare(self, "hysteresis.min_dwell", HysteresisParams.min_dwell_s, nonneg,
+                                "must be finite and >= 0 [s]",
+                                "a label is held at least this long after a change [s of pose stamps]; 0 = none"),
+        ).validate()
         self.qos_depth = declare(self, "qos_depth", 50, lambda v: v > 0, "must be > 0")
 
         self.layout = load_configured_layout(self.layout_file, self.threshold_override)
@@ -155,7 +168,9 @@ class MarginNode(Node):
         self.map_pub = self.create_publisher(MarkerArray, MAP_TOPIC, map_qos)
         self.region_pubs = {}
         self.counts: dict[str, int] = {}
+        self.region_filters: dict[str, RegionFilter] = {}
         for target in self.targets:
+            self.region_filters[target] = RegionFilter(self.hysteresis)
             self.region_pubs[target] = self.create_publisher(
                 Region, self.region_topic.format(target=target), self.qos_depth)
             self.counts[target] = 0
@@ -198,8 +213,14 @@ class MarginNode(Node):
         """Validate changes (an invalid layout is rejected, naming file and field); the map is rebuilt afterwards."""
         path, thr = self.layout_file, self.threshold_override
         res, publish = self.map_resolution, self.publish_map
+        hyst = {"margin_band_deg": self.hysteresis.margin_band_deg, "min_dwell_s": self.hysteresis.min_dwell_s}
         for p in params:
-            if p.name == "layout_file":
+            if p.name in ("hysteresis.margin_band_deg", "hysteresis.min_dwell"):
+                v = p.value
+                if isinstance(v, bool) or not isinstance(v, float) or not math.isfinite(v) or v < 0:
+                    return SetParametersResult(successful=False, reason=f"'{p.name}' must be a finite float >= 0")
+                hyst["margin_band_deg" if p.name.endswith("band_deg") else "min_dwell_s"] = v
+            elif p.name == "layout_file":
                 path = p.value
             elif p.name == "threshold_deg":
                 thr = p.value
@@ -220,6 +241,9 @@ class MarginNode(Node):
             return SetParametersResult(successful=False, reason=str(e))
         self.layout_file, self.threshold_override = path, thr
         self.map_resolution, self.publish_map = res, publish
+        self.hysteresis = HysteresisParams(**hyst)
+        for f in self.region_filters.values():
+            f.params = self.hysteresis
         with self._lock:
             self._pending = layout
         self._guard.trigger()
@@ -231,6 +255,8 @@ class MarginNode(Node):
             if layout is not None:
                 self.layout = layout
         if layout is not None:
+            for f in self.region_filters.values():
+                f.reset()
             self.publish_margin_map()
 
     # ------------------------------------------------------------------------------------------------- poses
@@ -279,24 +305,29 @@ class MarginNode(Node):
             self.diag.set(f"target {target}", ERROR,
                           f"pose frame '{frame}' is neither the layout frame '{layout.frame_id}' nor 'base'")
         if p_omc is not None:
-            lab = label_point(layout, p_omc)
-            out.label = lab.label
+            rf = self.region_filters[target]
+            r = rf.update(stamp_to_ns(msg.header.stamp), label_point(layout, p_omc), float(layout.threshold_deg))
+            lab = r.evidence
+            out.label = r.label
+            out.threshold_deg = float(r.threshold_deg)
             out.margin_deg = float(lab.margin_deg)
             out.valid_pairs = int(lab.valid_pairs)
             out.cameras_seeing = int(lab.cameras_seeing)
             out.in_local_volume = bool(lab.in_local_volume)
             self.counts[target] += 1
             prev = self._last_label.get(target)
-            if lab.label != prev:
+            if r.label != prev:
                 # one line per region change: the demo shows these live
-                self._last_label[target] = lab.label
+                self._last_label[target] = r.label
                 self.get_logger().info(
                     f"region {target}: {REGION_NAMES.get(prev, 'none')} -> "
-                    f"{REGION_NAMES[lab.label]} (margin {lab.margin_deg:.0f} deg, {lab.valid_pairs} pairs, "
+                    f"{REGION_NAMES[r.label]} (margin {lab.margin_deg:.0f} deg, {lab.valid_pairs} pairs, "
                     f"p_omc=({p_omc[0]:.3f}, {p_omc[1]:.3f}, {p_omc[2]:.3f}) m)")
-            self.diag.set(f"target {target}", OK, f"{REGION_NAMES[lab.label]} (margin {lab.margin_deg:.0f} deg)",
+            self.diag.set(f"target {target}", OK, f"{REGION_NAMES[r.label]} (margin {lab.margin_deg:.0f} deg)"
+                          + (f"; model says {REGION_NAMES[r.raw_label]}, held by the hysteresis" if r.held else ""),
                           {"labelled": self.counts[target], "valid_pairs": lab.valid_pairs,
-                           "cameras_seeing": lab.cameras_seeing})
+                           "cameras_seeing": lab.cameras_seeing, "label_changes": rf.changes,
+                           "model_label_changes": rf.raw_changes})
         self.region_pubs[target].publish(out)
 
 

@@ -41,6 +41,12 @@ def write(tmp_path: Path, data: dict, name: str = "layout.yaml") -> Path:
 
 
 # ------------------------------------------------------------------------------------------ default layout
+def test_default_layout_path_is_the_shared_share_lookup():
+    from fullperc_common.share import share_path
+
+    assert default_layout_path() == share_path("fullperc_fusion", "config", "or_layout.yaml")
+
+
 def test_default_layout_is_the_designed_room():
     L = load_layout(default_layout_path())
     assert L.frame_id == "omc" and L.n_cameras == 12

@@ -23,6 +23,8 @@ POINTS_OMC = {"G": (0.0, 0.0, 1.0), "B": (5.0, 6.5, 1.0), "P": (0.0, 0.0, -5.0)}
 POINTS_BASE = {"G": (-2.0, 1.0, 1.0), "B": (4.5, -4.0, 1.0), "P": (-2.0, 1.0, -5.0)}
 ORDER = ("G", "B", "P")  # header.stamp.sec = 100 + index identifies the point
 BASE_POSE = ((1.0, 2.0, 0.0), (0.0, 0.0, math.sin(math.pi / 4), math.cos(math.pi / 4)))
+FLICKER_T0_NS, FLICKER_DT_NS = 1_000 * 10**9, 10_000_000   # target 'flicker': G, P, G, P, ... every 10 ms of stamps
+BAND, DWELL = 1.0, 0.2   # margin_node's default hysteresis [deg], [s]
 
 
 def _quat_from_matrix(cols):
@@ -61,13 +63,14 @@ def run_publisher(rate: float) -> None:
     node = rclpy.create_node("margin_test_publisher")
     pubs = {name: node.create_publisher(PoseStamped, topic, 10) for name, topic in (
         ("base", "/omc/base/pose"), ("tool", "/fullperc/tool/pose"), ("probe", "/fullperc/probe/pose"),
-        ("stray", "/fullperc/stray/pose"))}
+        ("stray", "/fullperc/stray/pose"), ("flicker", "/fullperc/flicker/pose"))}
     k = 0
 
-    def pose(frame, sec, p, q=(0.0, 0.0, 0.0, 1.0)):
+    def pose(frame, sec, p, q=(0.0, 0.0, 0.0, 1.0), nanosec=0):
         m = PoseStamped()
         m.header.frame_id = frame
         m.header.stamp.sec = sec
+        m.header.stamp.nanosec = nanosec
         m.pose.position.x, m.pose.position.y, m.pose.position.z = p
         m.pose.orientation.x, m.pose.orientation.y, m.pose.orientation.z, m.pose.orientation.w = q
         return m
@@ -80,6 +83,9 @@ def run_publisher(rate: float) -> None:
             pubs["tool"].publish(pose("base", 100 + i, POINTS_BASE[name]))
             pubs["probe"].publish(pose("omc", 100 + i, POINTS_OMC[name]))
             pubs["stray"].publish(pose("ots", 100 + i, POINTS_OMC[name]))
+            # a boundary crossed back and forth at every sample, stamps 10 ms apart: the hysteresis case
+            ns = FLICKER_T0_NS + k * FLICKER_DT_NS
+            pubs["flicker"].publish(pose("omc", ns // 10**9, POINTS_OMC["GP"[k % 2]], nanosec=ns % 10**9))
             k += 1
             time.sleep(1.0 / rate)
     except KeyboardInterrupt:
@@ -114,7 +120,7 @@ def test_labels_latched_map_and_parameter_change(procs, rclpy_context, tmp_path,
 
     layout_path = write_layout(tmp_path / "layout.yaml")
     node_proc = procs.start([installed_exe("fullperc_fusion", "margin_node"), "--ros-args",
-                             "-p", f"layout_file:={layout_path}", "-p", "targets:=[tool, probe, stray]",
+                             "-p", f"layout_file:={layout_path}", "-p", "targets:=[tool, probe, stray, flicker]",
                              "-p", "map_resolution:=0.5"])
     # tool: fused pose in 'base'; probe: a pose already in the layout frame 'omc'; stray: in 'ots' (unplaceable)
     pub_proc = procs.start([python_exe, __file__, "--publish", "20"], name="publisher")
@@ -122,15 +128,16 @@ def test_labels_latched_map_and_parameter_change(procs, rclpy_context, tmp_path,
     node = rclpy.create_node("margin_test_listener", context=rclpy_context)
     ex = SingleThreadedExecutor(context=rclpy_context)
     ex.add_node(node)
-    got: dict[str, list] = {"tool": [], "probe": [], "stray": []}
+    got: dict[str, list] = {"tool": [], "probe": [], "stray": [], "flicker": []}
     for t in got:
         node.create_subscription(Region, f"/fullperc/{t}/region", lambda m, t=t: got[t].append(m), 50)
 
     def labels(target, threshold=None):
         out = {}
         for m in got[target]:
-            if m.header.stamp.sec >= 100 and m.label != Region.UNKNOWN and (
-                    threshold is None or m.threshold_deg == threshold):
+            # the threshold in force is the layout's -/+ the hysteresis band
+            if 100 <= m.header.stamp.sec < 103 and m.label != Region.UNKNOWN and (
+                    threshold is None or abs(m.threshold_deg - threshold) <= BAND):
                 out[ORDER[m.header.stamp.sec - 100]] = m
         return out
 
@@ -142,13 +149,26 @@ def test_labels_latched_map_and_parameter_change(procs, rclpy_context, tmp_path,
         assert lab["G"].label == Region.GVV and lab["B"].label == Region.BVV and lab["P"].label == Region.PVV
         g = lab["G"]
         assert g.margin_deg == pytest.approx(180.0, abs=1e-6) and g.valid_pairs == 2 and g.cameras_seeing == 3
-        assert g.threshold_deg == 150.0 and not g.in_local_volume and lab["B"].in_local_volume
+        assert abs(g.threshold_deg - 150.0) <= BAND and not g.in_local_volume and lab["B"].in_local_volume
         assert lab["P"].margin_deg == 0.0 and lab["P"].cameras_seeing == 0
         for name, m in lab.items():
             assert m.target == target and m.header.frame_id == frame
             assert (m.position.x, m.position.y, m.position.z) == pytest.approx(pts[name])
     # a pose in a frame the node cannot place is answered with UNKNOWN, never a guessed label
     assert all(m.label == Region.UNKNOWN for m in got["stray"])
+
+    # hysteresis: the model's label of 'flicker' changes at every sample (G/P every 10 ms); the published one at
+    # most once per min_dwell of stamps, and every message is consistent (label vs margin vs threshold in force)
+    _spin_until(ex, lambda: len(got["flicker"]) >= 60, 30, "60 region labels of the flickering target")
+    fl = sorted(got["flicker"], key=lambda m: (m.header.stamp.sec, m.header.stamp.nanosec))
+    stamps = [m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for m in fl]
+    change_t = [stamps[i] for i in range(1, len(fl)) if fl[i].label != fl[i - 1].label]
+    assert change_t, "the flickering target never changed label"
+    assert all(b - a >= DWELL - 1e-6 for a, b in zip(change_t, change_t[1:], strict=False)), change_t
+    assert len(change_t) <= (stamps[-1] - stamps[0]) / DWELL + 1
+    for m in fl:
+        assert m.label in (Region.GVV, Region.PVV)
+        assert (m.margin_deg >= m.threshold_deg) == (m.label == Region.GVV), (m.label, m.margin_deg, m.threshold_deg)
 
     # late subscriber: the map published at start must still arrive (transient local)
     maps: list = []
@@ -180,6 +200,10 @@ def test_labels_latched_map_and_parameter_change(procs, rclpy_context, tmp_path,
         _spin_until(ex, fut.done, 20, f"set_parameters {name}")
         return fut.result().results[0]
 
+    res = set_param("hysteresis.min_dwell", -1.0)
+    assert not res.successful and "hysteresis.min_dwell" in res.reason
+    assert set_param("hysteresis.min_dwell", 0.1).successful
+
     n_maps = len(maps)
     assert set_param("threshold_deg", 500.0).successful
     _spin_until(ex, lambda: len(maps) > n_maps, 20, "a new map after the parameter change")
@@ -195,7 +219,7 @@ def test_labels_latched_map_and_parameter_change(procs, rclpy_context, tmp_path,
     assert not res.successful and str(bad) in res.reason and "cameras[2].range_m" in res.reason
     got["tool"].clear()
     _spin_until(ex, lambda: len(labels("tool")) == 3, 20, "labels after the rejected change")
-    assert all(m.threshold_deg == 500.0 for m in labels("tool").values())
+    assert all(abs(m.threshold_deg - 500.0) <= BAND for m in labels("tool").values())
     assert node_proc.poll() is None
     node.destroy_node()
 
@@ -213,6 +237,18 @@ def test_bad_layout_fails_at_start_naming_file_and_field(procs, tmp_path):
     log = procs.log(p)
     assert p.returncode == 2
     assert str(path) in log and "cameras[1].orientation" in log and "missing" in log
+
+
+@pytest.mark.system
+@pytest.mark.parametrize("arg", ["hysteresis.margin_band_deg:=-1.0", "hysteresis.min_dwell:=-0.2"])
+def test_bad_hysteresis_parameter_fails_at_start_naming_it(procs, arg):
+    from fullperc_common.testing import installed_exe, wait_for
+
+    p = procs.start([installed_exe("fullperc_fusion", "margin_node"), "--ros-args", "-p", arg,
+                     "-p", "publish_map:=false"], name="bad_hysteresis")
+    wait_for(lambda: p.poll() is not None, 20, what="margin_node to exit")
+    assert p.returncode == 2
+    assert f"'{arg.split(':=')[0]}'" in procs.log(p)
 
 
 if __name__ == "__main__":
