@@ -1,36 +1,291 @@
-"""The one ``main()`` every fullperc node runs: init, construct, spin, clean shutdown.
+"""The one ``main()`` every fullperc node runs: help, init, construct, spin, clean shutdown.
 
-A node whose construction fails on bad configuration (a wrong parameter, a missing library or layout
-file) exits with status 2 and one line naming the problem, never a traceback; Ctrl-C and an external
-shutdown end it with status 0 after the node's own ``close()`` (when it has one) has released its device.
+Exit status, for every node:
+
+* ``--help`` / ``-h`` (before ``--ros-args``): a usage line and the node's commented parameter file (every
+  parameter with unit and default) on stdout, status 0. rclpy is not initialised and the node not constructed,
+  so nothing is bound or opened.
+* Bad configuration: status 2 and ONE line ``[<node>] fatal: ...`` on stderr naming the parameter or the file,
+  never a traceback. That covers a missing, unreadable or broken ``--params-file``, a malformed ``-p``, unknown
+  ROS arguments, a parameter of the wrong type (rclpy's ParameterException, also when a node calls
+  ``declare_parameter`` itself), :class:`~fullperc_common.params.ParameterError`, and the node's own ``fatal``
+  exception types (missing library, layout error, port in use ...).
+* SIGINT / SIGTERM: status 0 in every phase (during rclpy init and construction, while data flows, during
+  shutdown), after the node's own ``close()`` (when it has one) has stopped its device threads.
+
+Why our own signal handling: rclpy's default handlers shut the context down asynchronously, from the signal,
+while callbacks may be running; a callback (or a device thread) that then publishes raises ``RCLError: context
+not valid`` and the node dies with status 1 and a traceback. Here rclpy is initialised with
+``SignalHandlerOptions.NO``; our handler only sets a flag (and wakes the executor), the executor spins in short
+slices until the flag is set, and then, outside any callback, the node is closed, destroyed and rclpy shut
+down, in that order. Further signals during shutdown only set the flag again. Exceptions that threads raise
+after the stop was requested (a device thread publishing into the closing node) are reported in one line, not
+as a traceback. A signal that arrives while Python is still importing the node's module (before ``main()``
+runs) is outside this function.
 """
 
 from __future__ import annotations
 
+import contextlib
+import os
+import re
+import signal
 import sys
-from collections.abc import Callable
+import tempfile
+import threading
+import traceback
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+
+from .params import ParameterError, parameter_exception_message
+from .share import share_path
+
+# The Python-level signal handler runs in the main thread between byte codes, i.e. when a wait returns; this
+# bounds how long a stop request can wait (the handler also wakes the executor, so it is usually immediate).
+SPIN_SLICE_S = 0.1
+HELP_FLAGS = ("-h", "--help")
 
 
-def run_node(factory: Callable[[], object], name: str, fatal: tuple[type[BaseException], ...],
-             args: list[str] | None = None) -> int:
-    import rclpy
-    from rclpy.executors import ExternalShutdownException
+def wants_help(argv: Sequence[str]) -> bool:
+    """True when ``-h`` or ``--help`` comes before ``--ros-args`` (after it, the arguments are ROS's)."""
+    for a in argv:
+        if a == "--ros-args":
+            return False
+        if a in HELP_FLAGS:
+            return True
+    return False
 
-    rclpy.init(args=args)
+
+def help_text(name: str, package: str, params_file: tuple[str, str] | None) -> str:
+    """Usage line plus the node's parameter file (the commented YAML is the parameter reference)."""
+    usage = f"usage: ros2 run {package} {name} [--ros-args -p name:=value | --params-file FILE]\n"
+    if params_file is None:
+        return usage + "\nNo parameter file is registered for this node; see README 'Nodes, topics and parameters'.\n"
     try:
-        node = factory()
-    except fatal as e:
-        print(f"[{name}] fatal: {e}", file=sys.stderr, flush=True)
-        rclpy.try_shutdown()
-        return 2
+        path = share_path(params_file[0], "config", params_file[1])
+        text = path.read_text()
+    except OSError as e:
+        return usage + f"\nParameter reference not available: {e}\n"
+    return (usage + f"\nParameters with units and defaults, from {path}\n"
+            "(pass this file or an edited copy with --params-file, or single values with -p name:=value):\n\n"
+            + text + ("" if text.endswith("\n") else "\n"))
+
+
+def params_files(argv: Sequence[str]) -> list[str]:
+    """The ``--params-file`` arguments inside ``--ros-args`` sections."""
+    out, in_ros = [], False
+    it = iter(argv)
+    for a in it:
+        if a == "--ros-args":
+            in_ros = True
+        elif a == "--":
+            in_ros = False
+        elif in_ros and a == "--params-file":
+            out.append(next(it, ""))
+    return out
+
+
+def check_params_file(path: str) -> str | None:
+    """Why ``path`` cannot be used as a parameter file (one line), or None. rcl's own parser has the last word."""
+    if not path:
+        return "--params-file needs a file name"
+    p = Path(path)
+    if not p.exists():
+        return f"parameter file '{path}' does not exist"
+    if not p.is_file():
+        return f"parameter file '{path}' is not a file"
     try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
+        text = p.read_text()
+    except (OSError, UnicodeDecodeError) as e:
+        return f"parameter file '{path}' cannot be read: {e}"
+    try:
+        import yaml
+    except ImportError:  # pragma: no cover - PyYAML comes with ROS; rcl still checks the file
+        return None
+    try:
+        yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+        problem = getattr(e, "problem", None) or str(e)
+        return f"parameter file '{path}' is not valid YAML: {where}{' '.join(str(problem).split())}"
+    return None
+
+
+def init_error_message(e: BaseException) -> str:
+    """One line for an exception of ``rclpy.init`` (RCLError with rcl's message, UnknownROSArgsError)."""
+    if type(e).__name__ == "UnknownROSArgsError":
+        return f"unknown ROS arguments {e} (usage: --ros-args -p name:=value | --params-file FILE | -r from:=to)"
+    text = " ".join(str(e).split())
+    text = re.sub(r", at [^,]*?:\d+", "", text)  # rcl's source locations
+    text = text.removeprefix("failed to initialize rcl: ")
+    m = re.search(r"Couldn't parse params file: '--params-file (.*?)'\. Error: (.*)", text)
+    if m:
+        return f"parameter file '{m[1]}' rejected by rcl: {m[2]}"
+    m = re.search(r"Couldn't parse parameter override rule: '(.*?)'\. Error: (.*)", text)
+    if m:
+        return f"cannot parse the parameter override '{m[1]}' (write -p name:=value): {m[2]}"
+    return f"cannot initialise ROS: {text}"
+
+
+def _fatal(name: str, msg: str) -> int:
+    print(f"[{name}] fatal: {' '.join(msg.split())}", file=sys.stderr, flush=True)
+    return 2
+
+
+@contextlib.contextmanager
+def _stderr_held() -> Iterator[dict]:
+    """Hold what C code writes to fd 2 (rcl logs its own line when init fails); the caller decides to replay it."""
+    held: dict = {"data": b""}
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):
+        yield held
+        return
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield held
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            held["data"] = tmp.read()
+
+
+class _StopRequest:
+    """Signal handler: remember the request and wake the executor; never raises, safe to receive repeatedly."""
+
+    def __init__(self) -> None:
+        self.requested = False
+        self.signals: list[int] = []
+        self.executor = None
+
+    def __call__(self, signum, _frame) -> None:
+        self.requested = True
+        self.signals.append(signum)
+        ex = self.executor
+        if ex is not None:
+            with contextlib.suppress(Exception):
+                ex.wake()  # triggers a guard condition: returns the executor from its wait at once
+
+
+def _describe(e: BaseException) -> str:
+    from rclpy.exceptions import ParameterException
+
+    if isinstance(e, ParameterException):
+        return parameter_exception_message(e)
+    text = str(e).strip()
+    return text if text else type(e).__name__
+
+
+def run_node(factory: Callable[[], object], name: str, fatal: tuple[type[BaseException], ...] = (),
+             args: list[str] | None = None, *, params_file: tuple[str, str] | None = None) -> int:
+    """Run the node built by ``factory`` until SIGINT/SIGTERM or an external shutdown; return the exit status.
+
+    ``fatal``: the node's own exception types that mean bad configuration (exit 2, one line);
+    ParameterError and rclpy's parameter and name exceptions are always fatal. ``args``: as for
+    ``rclpy.init`` (None: ``sys.argv``). ``params_file``: (package, file name in the package's ``config/``)
+    printed by ``--help``.
+    """
+    argv = list(sys.argv[1:] if args is None else args)
+    if wants_help(argv):
+        package = params_file[0] if params_file else getattr(factory, "__module__", "?").split(".")[0]
+        sys.stdout.write(help_text(name, package, params_file))
+        sys.stdout.flush()
+        return 0
+    for f in params_files(argv):
+        problem = check_params_file(f)
+        if problem:
+            return _fatal(name, problem)
+
+    stop = _StopRequest()
+    main_thread = threading.current_thread() is threading.main_thread()
+    old_handlers = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)} if main_thread else {}
+    old_hook = threading.excepthook
+
+    def thread_hook(a) -> None:
+        if stop.requested:  # a device thread failing against the closing node: one line, no traceback
+            print(f"[{name}] after the stop request, thread {getattr(a.thread, 'name', '?')} ended with "
+                  f"{a.exc_type.__name__}: {a.exc_value}", file=sys.stderr, flush=True)
+        else:
+            old_hook(a)
+
+    threading.excepthook = thread_hook
+    held: dict = {"node": None, "initialised": False}
+    try:
+        status = _start_and_spin(factory, name, fatal, args, stop, held)
     finally:
+        stop.requested = True  # from here on a signal only sets the flag again; thread errors are one line
+        close_ok = _release(name, held)
+        for s, h in old_handlers.items():
+            signal.signal(s, h)
+        threading.excepthook = old_hook
+    return status if close_ok else 1
+
+
+def _start_and_spin(factory, name: str, fatal: tuple[type[BaseException], ...], args, stop: _StopRequest,
+                    held: dict) -> int:
+    import rclpy
+    from rclpy.exceptions import NameValidationException, ParameterException
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    try:
+        with _stderr_held() as err:
+            rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    except Exception as e:  # noqa: BLE001 - RCLError, UnknownROSArgsError, ...: all bad arguments
+        return _fatal(name, init_error_message(e))
+    held["initialised"] = True
+    if err["data"]:
+        os.write(2, err["data"])  # init succeeded: what it wrote was not about a failure, show it
+    context = rclpy.get_default_context()
+    if stop.requested:
+        return 0
+    try:
+        held["node"] = node = factory()
+    except (ParameterError, ParameterException, NameValidationException, *fatal) as e:
+        return _fatal(name, _describe(e))
+    if stop.requested:
+        return 0
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    stop.executor = executor
+    try:
+        while not stop.requested and context.ok():
+            try:
+                executor.spin_once(timeout_sec=SPIN_SLICE_S)
+            except ExternalShutdownException:
+                break
+            except Exception:
+                if stop.requested or not context.ok():
+                    break  # a callback failing because we are stopping: not an error
+                raise
+    finally:
+        stop.executor = None
+        with contextlib.suppress(Exception):
+            executor.shutdown(timeout_sec=1.0)
+    return 0
+
+
+def _release(name: str, held: dict) -> bool:
+    """close() (stops device threads), destroy the node, shut rclpy down; False if close() raised."""
+    ok = True
+    node = held["node"]
+    if node is not None:
         close = getattr(node, "close", None)
         if close is not None:
-            close()
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+            try:
+                close()
+            except Exception:  # noqa: BLE001 - report, still release the node and rclpy
+                print(f"[{name}] close() failed:\n{traceback.format_exc()}", file=sys.stderr, flush=True)
+                ok = False
+        with contextlib.suppress(Exception):
+            node.destroy_node()
+    if held["initialised"]:
+        import rclpy
+
+        with contextlib.suppress(Exception):
+            rclpy.try_shutdown()
+    return ok
