@@ -295,7 +295,8 @@ class FusionNode(Node):
 
 
 def main(args=None) -> int:
-    return run_node(FusionNode, "fusion_node", (ParameterError, ValueError), args)
+    return run_node(FusionNode, "fusion_node", (ParameterError, ValueError), args,
+                    params_file=("fullperc_fusion", "fusion.yaml"))
 
 
 if __name__ == "__main__":

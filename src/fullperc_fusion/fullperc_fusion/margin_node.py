@@ -332,7 +332,8 @@ class MarginNode(Node):
 
 
 def main(args=None) -> int:
-    return run_node(MarginNode, "margin_node", (LayoutError, ParameterError, FileNotFoundError), args)
+    return run_node(MarginNode, "margin_node", (LayoutError, ParameterError, FileNotFoundError), args,
+                    params_file=("fullperc_fusion", "margin.yaml"))
 
 
 if __name__ == "__main__":
