@@ -31,7 +31,13 @@ class Diagnostics:
         self._pub = node.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._timer = node.create_timer(period_s, self.publish)
 
-    def set(self, name: str, level: int, message: str, values: dict | None = None) -> None:
+    def set(self, name: str, level: int, message: str, values: dict | None = None,
+            publish_on_change: bool = False) -> None:
+        """Store ``name``'s status; with ``publish_on_change`` a changed level is published at once.
+
+        Publishing a level change immediately (not at the next period) keeps a health verdict's latency to
+        its own evaluation period; messages and values alone never trigger a publish (no flooding).
+        """
         # DiagnosticStatus.level is a byte; accept the message constants (bytes) and plain ints alike
         lvl = bytes([as_level(level)])
         st = DiagnosticStatus(
@@ -42,7 +48,14 @@ class Diagnostics:
             values=[KeyValue(key=str(k), value=str(v)) for k, v in (values or {}).items()],
         )
         with self._lock:
+            prev = self._status.get(name)
             self._status[name] = st
+        if publish_on_change and (prev is None or prev.level != st.level):
+            self.publish()
+
+    def set_verdict(self, name: str, verdict, values: dict | None = None) -> None:
+        """Publish a :class:`fullperc_common.health.Verdict`: its level and message, ``values`` then its values."""
+        self.set(name, verdict.level, verdict.message, {**(values or {}), **verdict.values}, publish_on_change=True)
 
     def publish(self) -> None:
         with self._lock:

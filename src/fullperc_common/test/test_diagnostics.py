@@ -47,3 +47,19 @@ def test_as_level_accepts_message_bytes_and_ints():
 
     assert [as_level(v) for v in (OK, WARN, ERROR)] == [0, 1, 2]
     assert as_level(2) == 2
+
+
+def test_set_verdict_publishes_a_level_change_at_once():
+    from fullperc_common.health import Verdict
+
+    node = _FakeNode()
+    d = diagnostics.Diagnostics(node)
+    d.set_verdict("link", Verdict(1, "waiting", {"rate_hz": "0.0"}), {"state": "connecting"})
+    assert len(node.published) == 1  # a new status counts as a change
+    d.set_verdict("link", Verdict(1, "still waiting", {"rate_hz": "0.0"}))
+    assert len(node.published) == 1  # same level: the periodic timer publishes it
+    d.set_verdict("link", Verdict(2, "no frames", {"rate_hz": "0.0"}), {"state": "reconnecting"})
+    assert len(node.published) == 2
+    st = node.published[-1].status[0]
+    assert st.level == bytes([2]) and st.message == "no frames"
+    assert {kv.key: kv.value for kv in st.values} == {"state": "reconnecting", "rate_hz": "0.0"}
