@@ -25,7 +25,6 @@ back-off; reads are non-blocking cache reads and run on the executor.
 from __future__ import annotations
 
 import ctypes
-import os
 import threading
 import time
 from ctypes import POINTER, Structure, c_char, c_char_p, c_double, c_int, c_ushort, c_void_p
@@ -33,6 +32,7 @@ from ctypes import POINTER, Structure, c_char, c_char_p, c_double, c_int, c_usho
 import numpy as np
 
 from ..diana_kinematics import N_JOINTS
+from ..vendor_lib import load_vendor_library
 from . import JointSample
 
 
@@ -50,40 +50,22 @@ class DianaApiError(RuntimeError):
     """The DianaApi library cannot be loaded/used; the message names the library path."""
 
 
+_SIGNATURES = {
+    "initSrv": ([c_void_p, c_void_p, POINTER(srv_net_st)], c_int),
+    "destroySrv": ([c_char_p], c_int),
+    "getJointPos": ([POINTER(c_double), c_char_p], c_int),
+    "initSrvNetInfo": ([POINTER(srv_net_st)], None),  # optional from here on
+    "getTcpPos": ([POINTER(c_double), c_char_p], c_int),
+    "getDH": ([POINTER(c_double)] * 4 + [c_char_p], c_int),
+    "getLastError": ([c_char_p], c_int),
+    "formatError": ([c_int, c_char_p], c_char_p),
+}
+
+
 def load_library(path: str) -> ctypes.CDLL:
-    if not path:
-        raise DianaApiError("parameter 'api_library' is empty: give the path of libDianaApi.so")
-    if not os.path.isfile(path):
-        raise DianaApiError(f"DianaApi library not found: '{path}' does not exist (parameter 'api_library')")
-    try:
-        lib = ctypes.CDLL(os.path.abspath(path))
-    except OSError as e:
-        raise DianaApiError(f"cannot load DianaApi library '{path}': {e}") from e
-    missing = [s for s in _REQUIRED if not hasattr(lib, s)]
-    if missing:
-        raise DianaApiError(f"'{path}' is not the DianaApi library: missing symbols {', '.join(missing)}")
-    lib.initSrv.argtypes = [c_void_p, c_void_p, POINTER(srv_net_st)]
-    lib.initSrv.restype = c_int
-    lib.destroySrv.argtypes = [c_char_p]
-    lib.destroySrv.restype = c_int
-    lib.getJointPos.argtypes = [POINTER(c_double), c_char_p]
-    lib.getJointPos.restype = c_int
-    if hasattr(lib, "initSrvNetInfo"):
-        lib.initSrvNetInfo.argtypes = [POINTER(srv_net_st)]
-        lib.initSrvNetInfo.restype = None
-    if hasattr(lib, "getTcpPos"):
-        lib.getTcpPos.argtypes = [POINTER(c_double), c_char_p]
-        lib.getTcpPos.restype = c_int
-    if hasattr(lib, "getDH"):
-        lib.getDH.argtypes = [POINTER(c_double)] * 4 + [c_char_p]
-        lib.getDH.restype = c_int
-    if hasattr(lib, "getLastError"):
-        lib.getLastError.argtypes = [c_char_p]
-        lib.getLastError.restype = c_int
-    if hasattr(lib, "formatError"):
-        lib.formatError.argtypes = [c_int, c_char_p]
-        lib.formatError.restype = c_char_p
-    return lib
+    """Load ``libDianaApi.so`` from ``path`` and declare the functions we call; clear errors naming the path."""
+    return load_vendor_library(path, what="DianaApi", parameter="api_library", file_name="libDianaApi.so",
+                               signatures=_SIGNATURES, required=_REQUIRED, error=DianaApiError)
 
 
 class DianaApiBackend:

@@ -1,7 +1,7 @@
 """Diana backend ``stream``: the simulator's joint-state UDP stream (wire format in ``fullperc_drivers.streams``).
 
-The receiver thread decodes datagrams (malformed ones are counted and skipped) and hands
-:class:`RawJointState` on; :class:`DianaStreamPipeline` (run on the executor) checks them, counts
+A :class:`~fullperc_drivers.udp_stream.UdpStreamBackend` decodes datagrams (malformed ones are counted and
+skipped) and hands :class:`RawJointState` on; :class:`DianaStreamPipeline` (run on the executor) checks them, counts
 sequence gaps and maps the device timestamp to the host clock with :class:`~fullperc_drivers.clock_sync.ClockSync`.
 The stream carries no latency field: its timestamp is the sampling time on the device clock, and the
 offset estimate absorbs the (minimal) send delay — see the derivation in ``clock_sync``.
@@ -16,8 +16,8 @@ import numpy as np
 
 from ..clock_sync import ClockSync
 from ..diana_kinematics import N_JOINTS
-from ..handoff import UdpReceiver
-from ..streams import StreamDecodeError, decode_diana
+from ..streams import decode_diana
+from ..udp_stream import UdpStreamBackend
 from . import JointSample
 
 
@@ -40,33 +40,15 @@ class StreamCounters:
     stamp_not_increasing: int = 0
 
 
-class DianaStreamBackend:
-    name = "stream"
+def raw_joint_state(data: bytes, recv_ns: int) -> RawJointState:
+    """One Diana datagram as a :class:`RawJointState` (raises ``StreamDecodeError`` if malformed)."""
+    s = decode_diana(data)
+    return RawJointState(s.sequence, s.timestamp_ns, recv_ns, s.q, s.dq)
 
+
+class DianaStreamBackend(UdpStreamBackend[RawJointState]):
     def __init__(self, host: str, port: int, on_state: Callable[[RawJointState], None]) -> None:
-        self._on_state = on_state
-        self.decode_errors = 0
-        self.last_error = ""
-        self.datagrams = 0
-        self._rx = UdpReceiver(host, port, self._datagram, name="diana-stream")
-        self.address = self._rx.address
-
-    @property
-    def connected(self) -> bool:
-        return True  # connectionless; liveness is judged from sample arrival by the node
-
-    def _datagram(self, data: bytes, recv_ns: int) -> None:
-        self.datagrams += 1
-        try:
-            s = decode_diana(data)
-        except StreamDecodeError as e:
-            self.decode_errors += 1
-            self.last_error = str(e)
-            return
-        self._on_state(RawJointState(s.sequence, s.timestamp_ns, recv_ns, s.q, s.dq))
-
-    def close(self) -> None:
-        self._rx.close()
+        super().__init__(host, port, on_state, raw_joint_state, thread_name="diana-stream")
 
 
 class DianaStreamPipeline:

@@ -27,7 +27,6 @@ the backend's worker thread, so the ROS executor never blocks; it reconnects wit
 from __future__ import annotations
 
 import ctypes
-import os
 import threading
 import time
 from collections.abc import Callable
@@ -48,6 +47,7 @@ from ctypes import (
     c_void_p,
 )
 
+from ..vendor_lib import load_vendor_library
 from .frames import RawBody, RawFrame
 
 MAX_MODELS = 200
@@ -159,38 +159,22 @@ class NokovSdkError(RuntimeError):
     """The SDK library cannot be loaded/used; the message names the library path."""
 
 
+_SIGNATURES = {
+    "CreateClient": ([POINTER(c_void_p)], c_int),
+    "DestroyClient": ([c_void_p], c_int),
+    "Initialize": ([c_void_p, c_char_p], c_int),
+    "Uninitialize": ([c_void_p], c_int),
+    "SetDataCallback": ([c_void_p, DATA_CALLBACK, c_void_p], c_int),
+    "GetDataDescriptions": ([c_void_p, POINTER(POINTER(sDataDescriptions))], c_int),
+    "SetNotifyMsgCallback": ([c_void_p, NOTIFY_CALLBACK, c_void_p], c_int),  # optional
+    "NokovVersion": ([c_void_p, POINTER(c_ubyte)], None),  # optional
+}
+
+
 def load_library(path: str) -> ctypes.CDLL:
     """Load ``libnokov_sdk.so`` from ``path`` and declare the flat C API; clear errors naming the path."""
-    if not path:
-        raise NokovSdkError("parameter 'sdk_library' is empty: give the path of libnokov_sdk.so")
-    if not os.path.isfile(path):
-        raise NokovSdkError(f"NOKOV SDK library not found: '{path}' does not exist (parameter 'sdk_library')")
-    try:
-        lib = ctypes.CDLL(os.path.abspath(path))
-    except OSError as e:
-        raise NokovSdkError(f"cannot load NOKOV SDK library '{path}': {e}") from e
-    missing = [s for s in _REQUIRED if not hasattr(lib, s)]
-    if missing:
-        raise NokovSdkError(f"'{path}' is not the NOKOV SDK: missing symbols {', '.join(missing)}")
-    lib.CreateClient.argtypes = [POINTER(c_void_p)]
-    lib.CreateClient.restype = c_int
-    lib.DestroyClient.argtypes = [c_void_p]
-    lib.DestroyClient.restype = c_int
-    lib.Initialize.argtypes = [c_void_p, c_char_p]
-    lib.Initialize.restype = c_int
-    lib.Uninitialize.argtypes = [c_void_p]
-    lib.Uninitialize.restype = c_int
-    lib.SetDataCallback.argtypes = [c_void_p, DATA_CALLBACK, c_void_p]
-    lib.SetDataCallback.restype = c_int
-    lib.GetDataDescriptions.argtypes = [c_void_p, POINTER(POINTER(sDataDescriptions))]
-    lib.GetDataDescriptions.restype = c_int
-    if hasattr(lib, "SetNotifyMsgCallback"):
-        lib.SetNotifyMsgCallback.argtypes = [c_void_p, NOTIFY_CALLBACK, c_void_p]
-        lib.SetNotifyMsgCallback.restype = c_int
-    if hasattr(lib, "NokovVersion"):
-        lib.NokovVersion.argtypes = [c_void_p, POINTER(c_ubyte)]
-        lib.NokovVersion.restype = None
-    return lib
+    return load_vendor_library(path, what="NOKOV SDK", parameter="sdk_library", file_name="libnokov_sdk.so",
+                               signatures=_SIGNATURES, required=_REQUIRED, error=NokovSdkError)
 
 
 def read_descriptions(lib: ctypes.CDLL, handle: c_void_p) -> dict[int, str]:
