@@ -24,9 +24,9 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            'ndi_driver = fullperc_drivers.ndi_node:main',
-            'omc_driver = fullperc_drivers.omc_node:main',
-            'diana_state = fullperc_drivers.diana_node:main',
+            'ndi_driver = fullperc_drivers.ndi_driver:main',
+            'omc_driver = fullperc_drivers.omc_driver:main',
+            'diana_state = fullperc_drivers.diana_state:main',
         ],
     },
 )

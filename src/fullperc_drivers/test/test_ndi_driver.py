@@ -140,3 +140,72 @@ def test_bringup_sequence_and_nonfinite_pose_refused():
     assert not fr.tools["b"].visible and fr.tools["b"].position_m is None  # NaN quaternion refused
     assert not fr.tools["c"].visible
     assert d.counters.bad_poses == 1
+
+
+def _refusing_device(refuse: dict[str, str], poses):
+    """``_bx_device`` that answers ``refuse[command + handle]`` (e.g. ``{"PINIT02": "ERROR0D"}``) instead."""
+    inner = _bx_device(poses)
+
+    def respond(raw):
+        c = decode_command(raw)
+        key = c.name + c.params[:2].upper()
+        if key in refuse:
+            return encode_ascii_reply(refuse[key])
+        return inner(raw)
+
+    return respond
+
+
+@pytest.mark.parametrize("step", ["PINIT", "PENA", "PVWR"])
+def test_a_tool_the_device_refuses_is_reported_and_the_others_are_tracked(step):
+    rom = write_rom(TOOLS["tool"][1], "8700339")
+    pose = (np.array([1.0, 0, 0, 0]), np.array([1.0, 2.0, -1500.0]), 0.1)
+    t = ScriptedTransport(_refusing_device({f"{step}02": "ERROR0D"}, {1: pose, 3: pose}))
+    events = []
+    cfg = DriverConfig(tools=[ToolConfig("a", rom), ToolConfig("b", rom, source="/roms/b.rom"), ToolConfig("c", rom)])
+    d = NdiDriver(cfg, transport=t, on_event=events.append)
+    d.connect()  # no exception: one refused tool does not fail the bring-up
+    assert d.handles == {"a": 1, "c": 3} and list(d.refused) == ["b"]
+    assert f"{step} answered ERROR0D" in d.refused["b"]
+    refused = [e for e in events if e.kind == "tool_refused"]
+    assert [(e.tool, e.detail) for e in refused] == [("b", d.refused["b"])]
+    tracking = [e for e in events if e.kind == "state" and e.state == "tracking"]
+    assert tracking[-1].tools == ("a", "c") and "refused: b" in tracking[-1].detail
+    sent = [decode_command(s) for s in t.sent]
+    assert any(c.name == "PHF" and c.params.startswith("02") for c in sent)  # its handle is freed
+    fr = d.poll_once()
+    assert fr.tools["a"].visible and fr.tools["c"].visible and not fr.tools["b"].visible
+
+
+def test_every_tool_refused_fails_the_bring_up_naming_them():
+    rom = write_rom(TOOLS["tool"][1], "8700339")
+    t = ScriptedTransport(_refusing_device({"PINIT01": "ERROR0D", "PINIT02": "ERROR0D"}, {}))
+    d = NdiDriver(DriverConfig(tools=[ToolConfig("a", rom), ToolConfig("b", rom)]), transport=t)
+    with pytest.raises(NdiLinkError, match="refused every tool.*a: .*ERROR0D.*b: "):
+        d.connect()
+
+
+def test_refused_transform_says_why():
+    rom = write_rom(TOOLS["tool"][1], "8700339")
+    t = ScriptedTransport(_bx_device({1: (np.array([np.nan, 0, 0, 0]), np.zeros(3), 0.1)}))
+    d = NdiDriver(DriverConfig(tools=[ToolConfig("a", rom)]), transport=t)
+    d.connect()
+    s = d.poll_once().tools["a"]
+    assert not s.visible and s.refused == "non-finite or non-unit transform"
+
+
+@pytest.mark.parametrize("content, why", [(b"", "0 bytes"), (b"NDI\x00" + bytes(748), "0 markers"),
+                                          (b"x" * 752, "no 'NDI")])
+def test_rom_files_are_checked_before_use(tmp_path, content, why):
+    from fullperc_drivers.ndi.rom import RomFileError
+
+    p = tmp_path / "t.rom"
+    p.write_bytes(content)
+    with pytest.raises(RomFileError, match=f"tool 'x': ROM file {p} rejected") as ei:
+        ToolConfig.from_file("x", p)
+    assert why in str(ei.value)
+    with pytest.raises(RomFileError, match="cannot read"):
+        ToolConfig.from_file("x", tmp_path / "missing.rom")
+    good = tmp_path / "good.rom"
+    good.write_bytes(write_rom(TOOLS["tool"][1], "8700339"))
+    assert ToolConfig.from_file("x", good).source == str(good)

@@ -9,9 +9,20 @@ check -> ``TSTART`` -> poll ``BX``/``TX`` at the configured rate -> ``TSTOP`` on
 
 Errors: a CRC error, a garbled reply or a read timeout is counted, the input is drained and the
 request repeated (``max_retries`` times); after that, or when the link drops, the driver closes
-the link, backs off (0 s first, then doubling up to ``backoff_max_s``) and runs the whole
-bring-up again (the tools are re-loaded). The driver never hands out a non-finite pose: a tool
-whose transform is not finite/unit is reported as not visible and counted in ``bad_poses``.
+the link, backs off (0 s first, then doubling up to ``backoff_max_s``; the back-off restarts from 0
+only after a bring-up delivered a frame, so a link that comes up and fails at once is not hammered)
+and runs the whole bring-up again (the tools are re-loaded). The driver never hands out a
+non-finite pose: a tool whose transform is not finite/unit is reported as not visible, with the
+reason in :attr:`ToolSample.refused`, and counted in ``bad_poses``.
+
+Tools the device refuses: an ``ERRORxx`` answer to a tool's PHRQ, PVWR, PINIT or PENA (or a tool
+that PHSR does not list as enabled) refuses that tool only: its handle is freed, the refusal is
+reported (``on_event`` ``tool_refused``, :attr:`NdiDriver.refused`) and the other tools are
+tracked. Only when the device refuses every tool does the bring-up fail (and retry with back-off).
+ROM files are checked before anything is sent (:meth:`ToolConfig.from_file`: :class:`RomFileError`).
+
+Threading: :meth:`start` runs :meth:`run` in a thread that calls ``on_frame`` and ``on_event``
+(both must not block or raise: the node puts them into a hand-off queue); :meth:`stop` joins it.
 """
 
 from __future__ import annotations
@@ -19,7 +30,6 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,249 +39,13 @@ import numpy as np
 from fullperc_common.transforms import is_finite_pose
 
 from . import replies as R
-from .protocol import (
-    FrameReader,
-    NdiCrcError,
-    NdiDeviceError,
-    NdiError,
-    NdiProtocolError,
-    Reply,
-    check_status,
-    encode_command,
-    parse_okay,
-)
+from .client import Counters, NdiClient, NdiTimeout  # noqa: F401 (NdiTimeout re-exported)
+from .frame_clock import FrameClock
+from .protocol import ERROR_CODES, NdiDeviceError, NdiError, NdiProtocolError, parse_okay
+from .rom import RomFileError, read_rom
 from .transport import NdiLinkError, SerialTransport, TcpTransport, Transport, baud_code
 
 log = logging.getLogger("fullperc.ndi")
-
-
-class NdiTimeout(NdiLinkError):
-    """No complete reply within the read timeout."""
-
-
-# ----------------------------------------------------------------------------------------------
-# Counters
-
-
-@dataclass
-class Counters:
-    commands: int = 0
-    frames: int = 0  # tracking replies parsed
-    duplicate_frames: int = 0  # poll returned a frame number already delivered
-    crc_errors: int = 0
-    garbled: int = 0  # replies that passed framing but failed to parse
-    timeouts: int = 0
-    retries: int = 0
-    device_errors: int = 0
-    device_warnings: int = 0
-    link_losses: int = 0
-    reconnects: int = 0  # successful bring-ups after a loss
-    bad_poses: int = 0  # non-finite / non-unit transforms refused
-    bytes_drained: int = 0
-
-    def as_dict(self) -> dict[str, int]:
-        return dict(self.__dict__)
-
-
-# ----------------------------------------------------------------------------------------------
-# Command client
-
-
-class NdiClient:
-    """Request/response over a :class:`Transport`, with CRC checks, timeouts and retries."""
-
-    def __init__(self, transport: Transport, read_timeout: float = 0.5, crc_form: bool = True,
-                 max_retries: int = 3, counters: Counters | None = None) -> None:
-        self.t = transport
-        self.read_timeout = read_timeout
-        self.crc_form = crc_form
-        self.max_retries = max_retries
-        self.counters = counters or Counters()
-        self._frames = FrameReader()
-
-    # -- low level ------------------------------------------------------------------------------
-    def _read_reply(self, timeout: float) -> Reply:
-        end = time.monotonic() + timeout
-        while True:
-            rep = self._frames.pop()  # may raise NdiCrcError / NdiProtocolError
-            if rep is not None:
-                return rep
-            left = end - time.monotonic()
-            if left <= 0:
-                raise NdiTimeout(f"no reply within {timeout:.3f} s")
-            self._frames.feed(self.t.read(left))
-
-    def _recover(self) -> None:
-        self._frames.clear()
-        self.counters.bytes_drained += self.t.drain()
-
-    def raw(self, name: str, params: str = "", timeout: float | None = None, retry: bool = True) -> Reply:
-        """Send one command and return its CRC-checked reply (``ERRORxx`` raises NdiDeviceError).
-
-        CRC errors, malformed frames and timeouts are counted and the command repeated up to
-        ``max_retries`` times; then the last error propagates (a link-level failure).
-        """
-        cmd = encode_command(name, params, self.crc_form)
-        attempts = 1 + (self.max_retries if retry else 0)
-        last: NdiError | None = None
-        for attempt in range(attempts):
-            if attempt:
-                self.counters.retries += 1
-            self.t.write(cmd)
-            self.counters.commands += 1
-            try:
-                rep = self._read_reply(self.read_timeout if timeout is None else timeout)
-            except NdiCrcError as e:
-                self.counters.crc_errors += 1
-                last = e
-                self._recover()
-                continue
-            except NdiTimeout as e:
-                self.counters.timeouts += 1
-                last = e
-                self._recover()
-                continue
-            except NdiProtocolError as e:
-                self.counters.garbled += 1
-                last = e
-                self._recover()
-                continue
-            if not rep.binary and rep.data.startswith(b"ERROR"):
-                self.counters.device_errors += 1
-            return check_status(rep, name)
-        assert last is not None
-        if isinstance(last, NdiLinkError):
-            raise last
-        raise NdiLinkError(f"{name}: {attempts} attempts failed, last: {last}") from last
-
-    def okay(self, name: str, params: str = "", timeout: float | None = None) -> None:
-        warn = parse_okay(self.raw(name, params, timeout), name)
-        if warn is not None:
-            self.counters.device_warnings += 1
-            log.warning("NDI %s answered WARNING%02X", name, warn)
-
-    def _parsed(self, name: str, params: str, parse: Callable, timeout: float | None = None):
-        """Send, parse; a reply that passes the CRC but does not parse is retried like a CRC error."""
-        for attempt in range(1 + self.max_retries):
-            rep = self.raw(name, params, timeout)
-            try:
-                return parse(rep)
-            except NdiProtocolError as e:
-                self.counters.garbled += 1
-                self._recover()
-                if attempt == self.max_retries:
-                    raise NdiLinkError(f"{name}: reply does not parse: {e}") from e
-                self.counters.retries += 1
-        raise AssertionError("unreachable")  # pragma: no cover
-
-    # -- commands -------------------------------------------------------------------------------
-    def init(self, timeout: float = 5.0) -> None:
-        self.okay("INIT", "", timeout)
-
-    def ver(self, option: int = 0) -> R.VersionInfo:
-        return self._parsed("VER", str(option), lambda r: R.parse_ver(r.text))
-
-    def apirev(self) -> R.ApiRevision:
-        return self._parsed("APIREV", "", lambda r: R.parse_apirev(r.text))
-
-    def get(self, name: str) -> dict[str, str]:
-        return self._parsed("GET", name, lambda r: R.parse_get(r.text))
-
-    def set(self, name: str, value) -> None:
-        self.okay("SET", f"{name}={value}")
-
-    def phsr(self, option: int = 0) -> list[tuple[int, int]]:
-        return self._parsed("PHSR", f"{option:02X}", lambda r: R.parse_phsr(r.text))
-
-    def phf(self, handle: int) -> None:
-        self.okay("PHF", f"{handle:02X}")
-
-    def phrq(self) -> int:
-        return self._parsed("PHRQ", "*********1****", lambda r: R.parse_phrq(r.text))
-
-    def pvwr(self, handle: int, rom: bytes, pad_to: int | None = None) -> int:
-        chunks = R.pvwr_params(handle, rom, pad_to)
-        for p in chunks:
-            self.okay("PVWR", p)
-        return len(chunks)
-
-    def pinit(self, handle: int) -> None:
-        self.okay("PINIT", f"{handle:02X}")
-
-    def pena(self, handle: int, priority: str = "D") -> None:
-        if priority not in ("S", "D", "B"):
-            raise ValueError("tracking priority must be S, D or B")
-        self.okay("PENA", f"{handle:02X}{priority}")
-
-    def tstart(self) -> None:
-        self.okay("TSTART", "")
-
-    def tstop(self) -> None:
-        self.okay("TSTOP", "")
-
-    def comm(self, baud: int) -> None:
-        self.okay("COMM", f"{baud_code(baud)}0000")
-
-    def bx(self, options: int = R.OPT_TRANSFORMS) -> R.TrackingData:
-        def parse(r: Reply) -> R.TrackingData:
-            if not r.binary:
-                raise NdiProtocolError("BX reply is not binary")
-            return R.parse_bx(r.data, options)
-
-        return self._parsed("BX", f"{options:04X}", parse)
-
-    def tx(self, options: int = R.OPT_TRANSFORMS) -> R.TrackingData:
-        def parse(r: Reply) -> R.TrackingData:
-            if r.binary:
-                raise NdiProtocolError("TX reply is binary")
-            return R.parse_tx(r.text, options)
-
-        return self._parsed("TX", f"{options:04X}", parse)
-
-
-# ----------------------------------------------------------------------------------------------
-# Device time -> host time
-
-
-class FrameClock:
-    """Maps device frame numbers to host time [ns].
-
-    Each reply gives (frame number f, host receive time r). With the device frame period P the
-    capture time is c(f) = c0 + f P, and r = c(f) + latency with latency >= its minimum, so the
-    lower envelope of r - f P over a sliding window estimates c0 + min latency; subtracting the
-    configured device latency gives the capture time. A frame number that goes backwards or jumps
-    by more than ``max_jump_s`` resets the estimate (device re-initialised or reconnected).
-    """
-
-    def __init__(self, frame_rate_hz: float, window: int = 240, device_latency_s: float = 0.0,
-                 max_jump_s: float = 10.0) -> None:
-        if not frame_rate_hz > 0:
-            raise ValueError("frame_rate_hz must be > 0")
-        self.period_ns = 1e9 / frame_rate_hz
-        self.latency_ns = int(device_latency_s * 1e9)
-        self.max_jump = max_jump_s * frame_rate_hz
-        self._offsets: deque[float] = deque(maxlen=window)
-        self._last_frame: int | None = None
-        self._base_frame = 0
-        self.resets = 0
-
-    def reset(self) -> None:
-        self._offsets.clear()
-        self._last_frame = None
-
-    def stamp(self, frame: int, recv_ns: int) -> int:
-        if self._last_frame is not None:
-            d = frame - self._last_frame
-            if d < 0 or d > self.max_jump:
-                self.reset()
-                self.resets += 1
-        if self._last_frame is None:
-            self._base_frame = frame
-        self._last_frame = frame
-        k = frame - self._base_frame
-        self._offsets.append(recv_ns - k * self.period_ns)
-        c0 = min(self._offsets)
-        return int(c0 + k * self.period_ns) - self.latency_ns
 
 
 # ----------------------------------------------------------------------------------------------
@@ -283,10 +57,24 @@ class ToolConfig:
     name: str
     rom: bytes
     priority: str = "D"  # PENA: S static/reference, D dynamic, B button box
+    source: str = ""  # where the ROM came from (a file path), for messages
 
     @classmethod
     def from_file(cls, name: str, path: str | Path, priority: str = "D") -> ToolConfig:
-        return cls(name, Path(path).read_bytes(), priority)
+        """Read and check a ROM file; :class:`RomFileError` (naming tool and file) if it is not a tool definition."""
+        try:
+            data = Path(path).read_bytes()
+        except OSError as e:
+            raise RomFileError(f"tool '{name}': cannot read ROM file {path}: {e.strerror or e}") from e
+        try:
+            read_rom(data)
+        except NdiProtocolError as e:
+            raise RomFileError(f"tool '{name}': ROM file {path} rejected ({len(data)} bytes): {e}") from e
+        return cls(name, data, priority, str(path))
+
+    @property
+    def label(self) -> str:
+        return f"'{self.name}'" + (f" (ROM {self.source})" if self.source else "")
 
 
 @dataclass
@@ -340,6 +128,25 @@ class ToolSample:
     port_status: int = 0
     frame_number: int = 0
     markers: int = 0
+    refused: str = ""  # why a transform the device reported was not handed out ("" = not refused)
+
+
+@dataclass
+class DriverEvent:
+    """What the driver thread reports besides frames (the node logs these and feeds its health ladder).
+
+    ``kind`` ``state``: ``state`` is connecting | configuring | tracking | reconnecting | stopped, ``detail``
+    the reason or summary; on ``tracking``, ``tools`` are the tools the device accepted; on ``reconnecting``,
+    ``link_lost`` says whether the link had been tracking (else a bring-up attempt failed).
+    ``kind`` ``tool_refused``: ``tool`` (its :attr:`ToolConfig.label` in ``detail``) was refused by the device.
+    """
+
+    kind: str
+    state: str = ""
+    detail: str = ""
+    tool: str = ""
+    tools: tuple[str, ...] = ()
+    link_lost: bool = False
 
 
 @dataclass
@@ -356,11 +163,15 @@ class NdiDriver:
 
     def __init__(self, config: DriverConfig, on_frame: Callable[[FrameResult], None] | None = None,
                  on_state: Callable[[str, str], None] | None = None,
-                 transport: Transport | None = None) -> None:
+                 transport: Transport | None = None,
+                 on_event: Callable[[DriverEvent], None] | None = None) -> None:
         config.validate()
         self.cfg = config
         self.on_frame = on_frame
         self.on_state = on_state
+        self.on_event = on_event
+        self.refused: dict[str, str] = {}  # tool -> why the device refused it (last bring-up)
+        self._frames_since_connect = 0
         self.counters = Counters()
         self._transport = transport
         self.client: NdiClient | None = None
@@ -373,19 +184,33 @@ class NdiDriver:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._last_frame: int | None = None
+        self._dup_run = 0
         # Liveness record of reconnects: (lost at, tracking again at), time.monotonic_ns().
         self.reconnect_log: list[tuple[int, int]] = []
         self._lost_at: int | None = None
         self._lock = threading.Lock()
 
     # -- state ----------------------------------------------------------------------------------
-    def _set_state(self, state: str, detail: str = "") -> None:
+    def _set_state(self, state: str, detail: str = "", **kw) -> None:
         self.state, self.state_detail = state, detail
         if self.on_state:
             try:
                 self.on_state(state, detail)
             except Exception:  # noqa: BLE001 - a callback must not kill the driver
                 log.exception("state callback failed")
+        self._emit(DriverEvent("state", state, detail, **kw))
+
+    def _emit(self, ev: DriverEvent) -> None:
+        if self.on_event:
+            try:
+                self.on_event(ev)
+            except Exception:  # noqa: BLE001 - a callback must not kill the driver
+                log.exception("event callback failed")
+
+    def _refuse(self, tool: ToolConfig, why: str) -> None:
+        self.refused[tool.name] = why
+        log.warning("NDI tool %s %s", tool.label, why)
+        self._emit(DriverEvent("tool_refused", detail=why, tool=tool.name))
 
     def make_transport(self) -> Transport:
         if self._transport is not None:
@@ -417,21 +242,60 @@ class NdiDriver:
         for h, _st in c.phsr(0x01):
             c.phf(h)
         self.handles = {}
+        self.refused = {}
         for tool in cfg.tools:
-            h = c.phrq()
-            c.pvwr(h, tool.rom, cfg.pvwr_pad_to)
-            self.handles[tool.name] = h
+            step, h = "PHRQ", None
+            try:
+                h = c.phrq()
+                step = "PVWR"
+                c.pvwr(h, tool.rom, cfg.pvwr_pad_to)
+                self.handles[tool.name] = h
+            except NdiDeviceError as e:
+                self._refuse_and_free(c, tool, h, step, e)
         for tool in cfg.tools:
-            c.pinit(self.handles[tool.name])
-            c.pena(self.handles[tool.name], tool.priority)
+            h = self.handles.get(tool.name)
+            if h is None:
+                continue
+            step = "PINIT"
+            try:
+                c.pinit(h)
+                step = "PENA"
+                c.pena(h, tool.priority)
+            except NdiDeviceError as e:
+                self._refuse_and_free(c, tool, h, step, e)
         enabled = {h for h, st in c.phsr(0x04) if st & R.PHSR_ENABLED}
-        missing = [n for n, h in self.handles.items() if h not in enabled]
-        if missing:
-            raise NdiLinkError(f"tools not enabled after PENA: {missing}")
+        for tool in cfg.tools:
+            h = self.handles.get(tool.name)
+            if h is not None and h not in enabled:
+                self._refuse_and_free(c, tool, h, "PHSR", None)
+        if not self.handles:
+            raise NdiLinkError("the device refused every tool: "
+                               + "; ".join(f"{n}: {why}" for n, why in self.refused.items()))
         c.tstart()
         self.clock.reset()
         self._last_frame = None
-        self._set_state("tracking", f"{len(self.handles)} tools, firmware '{self.firmware}'")
+        self._frames_since_connect = 0
+        self._dup_run = 0
+        detail = f"{len(self.handles)} tools, firmware '{self.firmware}'"
+        if self.refused:
+            detail = f"{len(self.handles)} of {len(cfg.tools)} tools (refused: {', '.join(self.refused)}), " \
+                     f"firmware '{self.firmware}'"
+        self._set_state("tracking", detail, tools=tuple(self.handles))
+
+    def _refuse_and_free(self, c: NdiClient, tool: ToolConfig, h: int | None, step: str,
+                         e: NdiDeviceError | None) -> None:
+        """The device refused ``tool`` at ``step``: report it by name, free its handle, go on with the others."""
+        if e is None:
+            why = "not enabled after PENA (PHSR)"
+        else:
+            why = f"{step} answered ERROR{e.code:02X} ({ERROR_CODES.get(e.code, 'unrecognized error code')})"
+        self.handles.pop(tool.name, None)
+        self._refuse(tool, f"refused by the device: {why}")
+        if h is not None:
+            try:
+                c.phf(h)
+            except NdiDeviceError as fe:
+                log.info("PHF %02X after the refusal of %s failed: %s", h, tool.name, fe)
 
     def _serial_bringup(self, c: NdiClient, t: SerialTransport) -> None:
         """9600 8N1: INIT; if silent, break -> RESET -> INIT; then COMM and switch the host rate."""
@@ -480,15 +344,23 @@ class NdiDriver:
             return None
         if self._last_frame is not None and fno == self._last_frame:
             self.counters.duplicate_frames += 1
+            self._dup_run += 1
             return None
+        self._dup_run = 0
         self._last_frame = fno
+        self._frames_since_connect += 1
         stamp = self.clock.stamp(fno, recv)
         by_h = data.by_handle()
         tools: dict[str, ToolSample] = {}
-        for name, h in self.handles.items():
-            tt = by_h.get(h)
-            tools[name] = self._sample(name, tt, fno)
+        for tool in self.cfg.tools:  # every configured tool, a refused one as not visible
+            h = self.handles.get(tool.name)
+            tt = by_h.get(h) if h is not None else None
+            tools[tool.name] = self._sample(tool.name, tt, fno)
         return FrameResult(stamp, recv, fno, data.system_status, tools)
+
+    @property
+    def last_frame_number(self) -> int | None:
+        return self._last_frame
 
     def _sample(self, name: str, tt: R.ToolTransform | None, fno: int) -> ToolSample:
         if tt is None:
@@ -509,6 +381,7 @@ class NdiDriver:
                     s.markers = len(tt.markers_mm)
             else:
                 self.counters.bad_poses += 1
+                s.refused = "non-finite or non-unit transform"
         return s
 
     # -- main loop ------------------------------------------------------------------------------
@@ -519,6 +392,8 @@ class NdiDriver:
         return self._thread
 
     def stop(self, timeout: float = 5.0) -> None:
+        """Stop polling, TSTOP and close the link, and join the thread: no callback runs after this returns
+        (unless the thread is stuck longer than ``timeout``)."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout)
@@ -535,13 +410,13 @@ class NdiDriver:
                     self.reconnect_log.append((self._lost_at, time.monotonic_ns()))
                     self._lost_at = None
                 first = False
-                backoff = 0.0
                 self._poll_loop()
             except (NdiError, OSError) as e:
                 if self._stop.is_set():
                     break
                 self.last_error = str(e)
-                if self.state == "tracking":
+                lost = self.state == "tracking"
+                if lost:
                     self.counters.link_losses += 1
                     self._lost_at = time.monotonic_ns()
                     log.warning("NDI link lost: %s", e)
@@ -549,7 +424,10 @@ class NdiDriver:
                     log.info("NDI bring-up failed: %s", e)
                 if not first and self._lost_at is None:
                     self._lost_at = time.monotonic_ns()
-                self._set_state("reconnecting", str(e))
+                if self._frames_since_connect:
+                    backoff = 0.0  # the link worked: come back at once
+                self._frames_since_connect = 0
+                self._set_state("reconnecting", str(e), link_lost=lost)
                 if self.client is not None:
                     self.client.t.close()
                 if self._stop.wait(backoff):
@@ -582,7 +460,9 @@ class NdiDriver:
                 continue
             now = time.monotonic()
             if fr is None:
-                target = now + 0.2 * frame_period
+                # a repeated frame: re-poll a fifth of a period later; a device that keeps repeating one
+                # frame number for a second (frozen) is polled at the frame rate, not five times faster
+                target = now + (frame_period if self._dup_run > self.cfg.frame_rate_hz else 0.2 * frame_period)
             else:
                 target += step
                 if target < now - frame_period:  # fell far behind (e.g. retries): restart the grid

@@ -47,6 +47,13 @@ TOOLS: dict[str, tuple[str, list[tuple[float, float, float]]]] = {
 }
 
 
+class RomFileError(ValueError):
+    """A tool's ROM file cannot be read or is not an NDI tool definition; the message names tool and file.
+
+    Raised at start-up, before anything is sent to a device: a node treats it as fatal (exit 2).
+    """
+
+
 @dataclass(frozen=True)
 class RomInfo:
     part_number: str

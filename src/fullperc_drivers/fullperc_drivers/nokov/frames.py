@@ -20,6 +20,8 @@ from ..clock_sync import ClockSync
 # magnitude (mm) is a sentinel, not a measurement.
 SENTINEL_MM = 99_000.0
 QUAT_UNIT_TOL = 1e-2  # float32 quaternions from the device; renormalised after this check
+# body_validity reasons that mean "the device sent a pose we refused" (not "the body is out of view")
+REFUSED_REASONS = frozenset({"non-finite", "non-unit quaternion"})
 
 
 @dataclass

@@ -23,8 +23,8 @@ from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_diana_kinematics import _DOC_TABLE, _mdh_product  # noqa: E402
-from test_omc_node import Listener as _OmcListener  # noqa: E402  (same spin helpers)
-from test_omc_node import free_udp_port  # noqa: E402
+from test_omc_driver import Listener as _OmcListener  # noqa: E402  (same spin helpers)
+from test_omc_driver import free_udp_port  # noqa: E402
 
 FIRST_SEQ, GAP_AT, GAP = 10, 120, 2
 NAN_AT, SIX_AT = (40, 41), (70,)
@@ -222,7 +222,7 @@ def test_shipped_params_file_matches_reference_table_and_starts(procs, rclpy_con
     finally:
         lis.close()
     st, values = lis.last_status("diana")
-    assert p.poll() is None and "no joint state yet" in st.message and values["dh_source"] == "parameters"
+    assert p.poll() is None and "no joint state received yet" in st.message and values["dh_source"] == "parameters"
 
 
 if __name__ == "__main__":

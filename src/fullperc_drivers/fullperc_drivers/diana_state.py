@@ -1,17 +1,23 @@
 """``diana_state``: Diana 7 joint state -> ``/diana/joint_states``, ``/diana/flange_pose`` (+ ``/diana/tool_pose``).
 
-Backends: ``stream`` (the simulator's UDP joint-state stream; device timestamps mapped to the host clock)
-and ``diana_api`` (the vendor library through ctypes, polled at ``rate_hz`` from the SDK's local cache;
-stamped at the read). Poses come from :class:`~fullperc_drivers.diana_kinematics.DianaKinematics`, with
+Backends: ``stream`` (the simulator's UDP joint-state stream; device timestamps mapped to the host clock; the
+receiver thread only puts items into a :class:`~fullperc_drivers.handoff.Handoff`, the executor drains it) and
+``diana_api`` (the vendor library through ctypes, polled at ``rate_hz`` from the SDK's local cache on the
+executor; stamped at the read). Poses come from :class:`~fullperc_drivers.diana_kinematics.DianaKinematics`, with
 the DH table from ``dh_source``: ``nominal`` (reference table), ``parameters`` (``dh_a/alpha/d/theta``,
 e.g. a real robot's ``getDH`` output copied into the yaml) or ``controller`` (``getDH`` read at connect,
 ``diana_api`` only). Joint names ``joint1..joint7``; poses in frame ``diana_base``.
+
+Health (``/diagnostics``, status ``diana_state: diana``; the rule is in :mod:`fullperc_common.health`, one item
+``arm``): ERROR when no new joint state arrived for ``stale_timeout_s`` (not connected / sequence frozen / stream
+stopped) or when no good joint state was published for ``health.stale_after_s`` because every sample was
+refused (non-finite, wrong joint count, pose not computable); WARN for recent refusals, decode errors, read
+failures, queue overflow, a controller TCP that differs from our FK, and repeated reconnects.
 """
 
 from __future__ import annotations
 
 import sys
-import time
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
@@ -20,6 +26,7 @@ from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import JointState
 
 from fullperc_common.diagnostics import Diagnostics
+from fullperc_common.health import ERROR, WARN, Health
 from fullperc_common.node_main import run_node
 from fullperc_common.params import ParameterError, declare
 from fullperc_common.ros_conv import ns_to_stamp, pose_stamped
@@ -31,7 +38,7 @@ from .diana.api import DianaApiBackend, DianaApiError
 from .diana.stream import DianaStreamBackend, DianaStreamPipeline, RawJointState
 from .diana_kinematics import DIANA7_MDH, JOINT_NAMES, DianaKinematics
 from .handoff import Handoff
-from .omc_node import ERROR, OK, WARN, make_qos
+from .node_common import HEALTH_PERIOD_S, ConsoleThrottle, HealthReport, declare_health, make_qos
 
 
 class DianaStateNode(Node):
@@ -58,6 +65,7 @@ class DianaStateNode(Node):
         age = declare(self, "age_compensation_s", 0.0, lambda v: 0 <= v < 1, "0..1 s")
         self.stale_s = declare(self, "stale_timeout_s", 1.0, lambda v: v > 0, "> 0")
         diag_period = declare(self, "diagnostics_period_s", 1.0, lambda v: v > 0, "> 0")
+        health_cfg = declare_health(self, frames_stale_after_s=self.stale_s)
         if self.dh_source == "controller" and backend != "diana_api":
             raise ParameterError("parameter 'dh_source' = 'controller' needs backend 'diana_api'")
 
@@ -76,16 +84,17 @@ class DianaStateNode(Node):
         self.pub_flange = self.create_publisher(PoseStamped, "/diana/flange_pose", q)
         self.pub_tool = self.create_publisher(PoseStamped, "/diana/tool_pose", q) if self.publish_tool else None
         self.diag = Diagnostics(self, hardware_id=f"diana7:{backend}", period_s=diag_period)
+        self.health = Health(["arm"], health_cfg, item_kind="arm", output="joint state", frame="joint state",
+                             unseen_level=ERROR)
+        self.console = ConsoleThrottle(self.get_logger, period_s=5.0)
+        self.report = HealthReport(self.diag, "diana", self.health, self.console)
         self.backend_name = backend
         self.samples = 0
         self.publish_errors = 0
-        self.stalls = 0
-        self._stalled = False
-        self._last_mono: float | None = None
-        self._rate_count = 0
-        self._rate_t0 = time.monotonic()
-        self._rate_hz = 0.0
         self._vendor_dev_mm: float | None = None
+        self._seen = {"decode": 0, "invalid": 0, "read": 0, "overflow": 0}
+        self._connected: bool | None = None
+        self.handoff = None
         if backend == "stream":
             self.pipeline = DianaStreamPipeline(ClockSync(window_s=window))
             self._gc = self.create_guard_condition(self._drain)
@@ -97,14 +106,18 @@ class DianaStateNode(Node):
             self.backend = DianaApiBackend(library, robot_ip, age_compensation_s=age)
             self._poll = self.create_timer(1.0 / rate, self._poll_api)
             self.get_logger().info(f"DianaApi from {library}, robot {robot_ip}, polling at {rate} Hz")
-        self._diag_timer = self.create_timer(diag_period, self._update_diagnostics)
+        self._diag_timer = self.create_timer(min(diag_period, HEALTH_PERIOD_S), self._update_diagnostics)
         self._update_diagnostics()
 
     def _drain(self) -> None:
         for raw in self.handoff.drain():
+            self.health.frame(raw.sequence)
+            invalid = self.pipeline.counters.invalid
             s = self.pipeline.process(raw)
             if s is not None:
                 self._publish(s)
+            elif self.pipeline.counters.invalid > invalid:
+                self.health.refused("arm", self.pipeline.last_reason)
 
     def _poll_api(self) -> None:
         if not self._dh_loaded and self.backend.connected:
@@ -118,13 +131,16 @@ class DianaStateNode(Node):
                     self.backend.last_error = f"controller DH table rejected: {e}"
             if not self._dh_loaded:
                 return  # never publish poses from a table we were told not to use
+        invalid = self.backend.invalid
         s = self.backend.read()
         if s is not None:
+            self.health.frame()
             self._publish(s)
+        elif self.backend.invalid > invalid:
+            self.health.frame()
+            self.health.refused("arm", self.backend.last_error)
 
     def _publish(self, s: JointSample) -> None:
-        self._last_mono = time.monotonic()
-        self._rate_count += 1
         self.samples += 1
         js = JointState()
         js.header.stamp = ns_to_stamp(s.stamp_ns)
@@ -148,23 +164,23 @@ class DianaStateNode(Node):
                 self._vendor_dev_mm = float(max(dp, dr))
         except ValueError as e:
             self.publish_errors += 1
-            self.get_logger().warn(f"pose not published: {e}", throttle_duration_sec=5.0)
+            self.health.refused("arm", f"pose not computable: {e}")
+            self.console("pose", f"pose not published: {e}")
+        else:
+            self.health.good("arm")
 
     def _update_diagnostics(self) -> None:
-        now = time.monotonic()
-        dt = now - self._rate_t0
-        if dt > 0:
-            self._rate_hz = self._rate_count / dt
-        self._rate_count, self._rate_t0 = 0, now
         be = self.backend
-        stale = self._last_mono is None or now - self._last_mono > self.stale_s
-        if stale and self._last_mono is not None and not self._stalled:
-            self.stalls += 1
-        self._stalled = stale and self._last_mono is not None
-        values = {"backend": self.backend_name, "connected": be.connected, "rate_hz": f"{self._rate_hz:.1f}",
-                  "samples": self.samples, "stalls": self.stalls, "publish_errors": self.publish_errors,
-                  "dh_source": self.dh_source, "dh_loaded": self._dh_loaded, "last_error": be.last_error}
-        errors = False
+        if be.connected != self._connected:
+            if be.connected:
+                self.health.link_up()
+            else:
+                self.health.link_down(be.last_error or "not connected")
+            self._connected = be.connected
+        values = {"backend": self.backend_name, "connected": be.connected, "samples": self.samples,
+                  "publish_errors": self.publish_errors, "dh_source": self.dh_source, "dh_loaded": self._dh_loaded,
+                  "last_error": be.last_error}
+        conditions: list[tuple[int, str]] = []
         if self.pipeline is not None:
             c = self.pipeline.counters
             off = self.pipeline.sync.offset_ns
@@ -172,32 +188,36 @@ class DianaStateNode(Node):
                           invalid=c.invalid, restarts=c.restarts, stamp_not_increasing=c.stamp_not_increasing,
                           queue_overflow=self.handoff.overflow, clock_resets=self.pipeline.sync.stats.resets,
                           clock_offset_ms="n/a" if off is None else f"{off / 1e6:.3f}")
-            errors = bool(be.decode_errors or c.invalid or self.handoff.overflow)
+            problems = (("decode", be.decode_errors, "decode errors", be.last_error),
+                        ("overflow", self.handoff.overflow, "queue overflows", ""))
         else:
             values.update(read_failures=be.read_failures, invalid=be.invalid, connect_attempts=be.connect_attempts,
                           vendor_tcp_vs_fk_mm="n/a" if self._vendor_dev_mm is None else f"{self._vendor_dev_mm:.3f}")
-            errors = bool(be.read_failures or be.invalid)
+            problems = (("read", be.read_failures, "read failures", be.last_error),)
+            if not self._dh_loaded and be.connected:
+                conditions.append((WARN, f"waiting for the controller's DH table (getDH): {be.last_error or ''}"))
             if self._vendor_dev_mm is not None and self._vendor_dev_mm > 1.0:
-                errors = True
                 values["warning"] = "controller TCP differs from our flange FK (other DH table or active TCP set)"
-        if not be.connected:
-            level, msg = ERROR, f"not connected: {be.last_error}"
-        elif self._last_mono is None:
-            level, msg = WARN, "connected, no joint state yet"
-        elif stale:
-            level, msg = ERROR, f"no joint state for {now - self._last_mono:.1f} s (stream stopped)"
-        elif errors:
-            level, msg = WARN, "receiving, with errors (see values)"
-        else:
-            level, msg = OK, f"receiving at {self._rate_hz:.1f} Hz"
-        self.diag.set("diana", level, msg, values)
+                conditions.append((WARN, f"controller TCP {self._vendor_dev_mm:.1f} mm from our flange FK "
+                                         "(other DH table or active TCP set)"))
+        for key, n, what, detail in problems:
+            if n > self._seen[key]:
+                self.health.problem(what, n - self._seen[key], detail)
+            self._seen[key] = n
+        values["rate_hz"] = f"{self.health.rate_hz():.1f}"
+        self.report.publish(values, conditions)
 
     def close(self) -> None:
+        """Stop the backend's threads (stream receiver / API worker) before the node is destroyed."""
+        if self.handoff is not None:
+            self.handoff.notify = None
+        self._diag_timer.cancel()
         self.backend.close()
 
 
 def main(args=None) -> int:
-    return run_node(DianaStateNode, "diana_state", (ParameterError, DianaApiError, OSError), args)
+    return run_node(DianaStateNode, "diana_state", (ParameterError, DianaApiError, OSError), args,
+                    params_file=("fullperc_drivers", "diana.yaml"))
 
 
 if __name__ == "__main__":

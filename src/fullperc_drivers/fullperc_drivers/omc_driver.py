@@ -4,24 +4,25 @@ Thin ROS layer around the ROS-free core (:mod:`fullperc_drivers.nokov`): a backe
 UDP reader) puts :class:`RawFrame` into a :class:`~fullperc_drivers.handoff.Handoff` and triggers a guard
 condition; the executor drains it, runs :class:`FramePipeline` (dedupe, gaps, mm -> m, capture stamp on the
 host clock) and publishes. Untracked bodies get a quality message with ``visible: false`` and no pose.
-``/diagnostics`` reports connection, frame rate, dropped frames (frame-number gaps), decode errors, clock
-offset and stalls (no frame for ``stale_timeout_s``).
+
+Health (``/diagnostics``, status ``omc_driver: omc``; the rule is in :mod:`fullperc_common.health`): ERROR when
+no new frame arrived for ``stale_timeout_s`` (not connected / frame number frozen / stream stopped, counted as a
+stall) or when every body's pose was refused (non-finite, non-unit quaternion) for ``health.stale_after_s``;
+WARN per body not seen or refused for that long, for recent decode errors / implausible latencies / queue
+overflow, and for repeated SDK reconnects; OK only while every body's poses flow. Values: frame rate, dropped
+frames (frame-number gaps), decode errors, clock offset, stalls.
 """
 
 from __future__ import annotations
 
-import re
 import sys
 import time
 
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 
-from fullperc_common.diagnostics import ERROR as _ERROR
-from fullperc_common.diagnostics import OK as _OK
-from fullperc_common.diagnostics import WARN as _WARN
 from fullperc_common.diagnostics import Diagnostics
+from fullperc_common.health import Health
 from fullperc_common.node_main import run_node
 from fullperc_common.params import ParameterError, declare
 from fullperc_common.ros_conv import ns_to_stamp, pose_stamped
@@ -30,29 +31,12 @@ from fullperc_msgs.msg import TrackingQuality
 
 from .clock_sync import ClockSync
 from .handoff import Handoff
-from .nokov.frames import FramePipeline, MocapFrame, RawFrame
+from .node_common import HEALTH_PERIOD_S, ConsoleThrottle, HealthReport, declare_health, make_qos, topic_name
+from .nokov.frames import REFUSED_REASONS, FramePipeline, MocapFrame, RawFrame
 from .nokov.sdk import NokovSdkBackend, NokovSdkError
 from .nokov.stream import OmcStreamBackend
 
-
-def as_level(v) -> int:
-    """DiagnosticStatus level constants are bytes in the Jazzy wheels; ``Diagnostics.set`` takes an int."""
-    return v[0] if isinstance(v, bytes) else int(v)
-
-
-OK, WARN, ERROR = as_level(_OK), as_level(_WARN), as_level(_ERROR)
-
-
-def topic_name(body: str) -> str:
-    """A device body name as a ROS topic token (names.md names pass through unchanged)."""
-    s = re.sub(r"[^A-Za-z0-9_]", "_", body.strip())
-    return s if s and not s[0].isdigit() else f"b_{s}"
-
-
-def make_qos(kind: str, depth: int) -> QoSProfile:
-    if kind == "sensor":
-        return qos_profile_sensor_data
-    return QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
+__all__ = ["OmcDriverNode", "main", "make_qos", "topic_name"]
 
 
 class OmcDriverNode(Node):
@@ -81,25 +65,27 @@ class OmcDriverNode(Node):
         self.stale_s = declare(self, "stale_timeout_s", 1.0, lambda v: v > 0, "> 0")
         self.reconnect_s = declare(self, "reconnect_after_s", 5.0, lambda v: v > 0, "> 0")
         diag_period = declare(self, "diagnostics_period_s", 1.0, lambda v: v > 0, "> 0")
+        health_cfg = declare_health(self, frames_stale_after_s=self.stale_s)
 
         self.bodies = None if (not bodies or "all" in bodies) else set(bodies)
         self.qos = make_qos(qos, depth)
         self.pipeline = FramePipeline(ClockSync(window_s=window, transport_delay_ns=int(transport * 1e9)),
                                       device_stamp=dev_stamp, stamp_source=stamp_src, latency_compensation=lat)
         self.diag = Diagnostics(self, hardware_id=f"nokov:{p['backend']}", period_s=diag_period)
+        self.health = Health(sorted(self.bodies or ()), health_cfg, item_kind="body", output="pose", frame="frame")
+        self.console = ConsoleThrottle(self.get_logger, period_s=5.0)
+        self.report = HealthReport(self.diag, "omc", self.health, self.console)
         self._gc = self.create_guard_condition(self._drain)
         self.handoff: Handoff[RawFrame] = Handoff(maxlen=256, notify=self._gc.trigger)
         self._pose_pubs: dict[str, object] = {}
         self._quality_pubs: dict[str, object] = {}
         self.unnamed = 0
         self.publish_errors = 0
-        self.stalls = 0
-        self._stalled = False
+        self.refused = 0
         self._last_frame_mono: float | None = None
-        self._rate_count = 0
-        self._rate_t0 = time.monotonic()
-        self._rate_hz = 0.0
         self._reconnect_requested = False
+        self._seen = {"decode": 0, "latency": 0, "overflow": 0}
+        self._connected: bool | None = None
         self.backend_name = p["backend"]
         if p["backend"] == "stream":
             self.backend = OmcStreamBackend(p["stream_host"], p["stream_port"], self.handoff.put)
@@ -110,7 +96,7 @@ class OmcDriverNode(Node):
                                    f"server {p['server']}")
         for name in sorted(self.bodies or ()):
             self._pubs_for(name)  # explicit bodies: topics exist before the first frame
-        self._diag_timer = self.create_timer(diag_period, self._update_diagnostics)
+        self._diag_timer = self.create_timer(min(diag_period, HEALTH_PERIOD_S), self._update_diagnostics)
         self.subscribers = SubscriberLog(self, lambda: self._pose_pubs)
         self._update_diagnostics()
 
@@ -127,13 +113,13 @@ class OmcDriverNode(Node):
             if self.backend_name == "nokov_sdk":
                 for b in raw.bodies:
                     b.name = b.name or self.backend.name_of(b.id)
+            self.health.frame(raw.frame_number)
             frame = self.pipeline.process(raw)
             if frame is not None:
                 self._publish(frame)
 
     def _publish(self, frame: MocapFrame) -> None:
         self._last_frame_mono = time.monotonic()
-        self._rate_count += 1
         latency = max(0.0, (frame.recv_ns - frame.stamp_ns) * 1e-9)
         for b in frame.bodies:
             if not b.name:
@@ -157,60 +143,68 @@ class OmcDriverNode(Node):
                 except ValueError as e:  # refused non-finite pose: report, publish as not visible
                     self.publish_errors += 1
                     q.visible = False
-                    self.get_logger().warn(f"body {b.name}: {e}", throttle_duration_sec=5.0)
+                    self.health.refused(b.name, str(e))
+                    self.console(f"refused:{b.name}", f"body {b.name}: {e}")
+                else:
+                    self.health.good(b.name)
+            elif b.reason in REFUSED_REASONS:
+                self.refused += 1
+                self.health.refused(b.name, b.reason)
             q_pub.publish(q)
 
     def _update_diagnostics(self) -> None:
         now = time.monotonic()
-        dt = now - self._rate_t0
-        if dt > 0:
-            self._rate_hz = self._rate_count / dt
-        self._rate_count, self._rate_t0 = 0, now
         c = self.pipeline.counters
         be = self.backend
+        if be.connected != self._connected:
+            if be.connected:
+                self.health.link_up()
+            else:
+                self.health.link_down(be.last_error or "not connected")
+            self._connected = be.connected
         stale = self._last_frame_mono is None or now - self._last_frame_mono > self.stale_s
-        if stale and self._last_frame_mono is not None and not self._stalled:
-            self.stalls += 1
-        self._stalled = stale and self._last_frame_mono is not None
         if (self.backend_name == "nokov_sdk" and stale and be.connected and self._last_frame_mono is not None
                 and now - self._last_frame_mono > self.reconnect_s and not self._reconnect_requested):
             self._reconnect_requested = True
             be.request_reconnect()
+            self.console("reconnect", f"no frames from the NOKOV SDK for {now - self._last_frame_mono:.1f} s: "
+                                      "re-initialising it")
         if not stale:
             self._reconnect_requested = False
+        for key, n, what in (("decode", getattr(be, "decode_errors", 0), "decode errors"),
+                             ("latency", c.bad_latency, "implausible latencies"),
+                             ("overflow", self.handoff.overflow, "queue overflows")):
+            if n > self._seen[key]:
+                self.health.problem(what, n - self._seen[key], be.last_error if key == "decode" else "")
+            self._seen[key] = n
         off = self.pipeline.sync.offset_ns
         values = {
-            "backend": self.backend_name, "connected": be.connected, "frame_rate_hz": f"{self._rate_hz:.1f}",
+            "backend": self.backend_name, "connected": be.connected,
             "frames": c.frames, "dropped_frames": c.dropped, "duplicate_frames": c.duplicates,
-            "frame_restarts": c.restarts, "stalls": self.stalls,
+            "frame_restarts": c.restarts,
             "decode_errors": getattr(be, "decode_errors", 0), "callback_errors": getattr(be, "callback_errors", 0),
             "queue_overflow": self.handoff.overflow, "bad_latency": c.bad_latency,
             "no_device_time": c.no_device_time, "stamp_not_increasing": c.stamp_not_increasing,
             "clock_offset_ms": "n/a" if off is None else f"{off / 1e6:.3f}",
             "clock_resets": self.pipeline.sync.stats.resets, "unnamed_bodies": self.unnamed,
-            "publish_errors": self.publish_errors, "last_error": be.last_error,
+            "publish_errors": self.publish_errors, "refused_bodies": self.refused, "last_error": be.last_error,
         }
+        values["frame_rate_hz"] = f"{self.health.rate_hz():.1f}"
         if self.backend_name == "nokov_sdk":
             values.update(sdk_version=be.version, names=len(be.names), name_refreshes=be.name_refreshes,
                           connect_attempts=be.connect_attempts)
-        if not be.connected:
-            level, msg = ERROR, f"not connected: {be.last_error}"
-        elif self._last_frame_mono is None:
-            level, msg = WARN, "connected, no frame received yet"
-        elif stale:
-            level, msg = ERROR, f"no frames for {now - self._last_frame_mono:.1f} s (stream stopped)"
-        elif getattr(be, "decode_errors", 0) or c.bad_latency or self.handoff.overflow:
-            level, msg = WARN, "receiving, with errors (see values)"
-        else:
-            level, msg = OK, f"receiving at {self._rate_hz:.1f} Hz"
-        self.diag.set("omc", level, msg, values)
+        self.report.publish(values)
 
     def close(self) -> None:
+        """Stop the backend's threads (receiver / SDK callbacks and worker) before the node is destroyed."""
+        self.handoff.notify = None
+        self._diag_timer.cancel()
         self.backend.close()
 
 
 def main(args=None) -> int:
-    return run_node(OmcDriverNode, "omc_driver", (ParameterError, NokovSdkError, OSError), args)
+    return run_node(OmcDriverNode, "omc_driver", (ParameterError, NokovSdkError, OSError), args,
+                    params_file=("fullperc_drivers", "omc.yaml"))
 
 
 if __name__ == "__main__":
