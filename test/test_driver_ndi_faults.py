@@ -1,0 +1,327 @@
+"""``ndi_driver`` under injected faults: the installed executable against the installed ``vega_emulator``.
+
+Between the two sits :class:`FaultProxy`, a small TCP proxy in this process that forwards the Combined API
+command by command and can: freeze BX replies (the same reply, same frame number, over and over), make every BX
+body garbage behind a valid CRC, put NaN into every transform, slow every reply down, and answer ``ERROR0D`` to
+the PINIT of one tool's ROM (what a Vega says to a ROM it refuses). The tests check what an operator sees: the
+``/diagnostics`` level and message (leaving OK, saying why, coming back to OK only when poses flow), the console
+lines, the exit status -- with liveness bounds only (``wait_for``), never a wall-clock assertion.
+"""
+
+from __future__ import annotations
+
+import math
+import signal
+import socket
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fullperc_common.testing import installed_exe, wait_for
+from fullperc_drivers.ndi import replies as R
+from fullperc_drivers.ndi.protocol import FrameReader, decode_command, encode_ascii_reply, encode_binary_reply
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIG = ROOT / "src" / "fullperc_drivers" / "config"
+OK, WARN, ERROR = 0, 1, 2
+
+
+class FaultProxy:
+    """driver <-> proxy <-> emulator, one command and one reply at a time; ``mode`` applies to BX replies."""
+
+    def __init__(self, upstream_port: int, refuse_rom: bytes | None = None, delay_s: float = 0.0) -> None:
+        self.upstream = ("127.0.0.1", upstream_port)
+        self.refuse_rom = refuse_rom
+        self.delay_s = delay_s
+        self.mode = "pass"  # pass | freeze | garbage | nan
+        self.refused_pinit = 0
+        self._last_bx: bytes | None = None
+        self._srv = socket.create_server(("127.0.0.1", 0))
+        self._srv.settimeout(0.2)
+        self.port = self._srv.getsockname()[1]
+        self._stop = threading.Event()
+        self._threads = [threading.Thread(target=self._accept, daemon=True)]
+        self._threads[0].start()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._srv.close()
+        for t in self._threads:
+            t.join(2.0)
+
+    def _accept(self) -> None:
+        while not self._stop.is_set():
+            try:
+                conn, _ = self._srv.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            t = threading.Thread(target=self._serve, args=(conn,), daemon=True)
+            t.start()
+            self._threads.append(t)
+
+    def _serve(self, conn: socket.socket) -> None:
+        up = socket.create_connection(self.upstream, timeout=5.0)
+        conn.settimeout(0.2)
+        reader = FrameReader()
+        roms: dict[str, bytearray] = {}
+        buf = bytearray()
+        try:
+            while not self._stop.is_set():
+                try:
+                    data = conn.recv(65536)
+                except TimeoutError:
+                    continue
+                if not data:
+                    return
+                buf += data
+                while b"\r" in buf:
+                    i = buf.index(b"\r")
+                    line, buf = bytes(buf[:i + 1]), buf[i + 1:]
+                    reply = self._handle(line, up, reader, roms)
+                    if self.delay_s:
+                        time.sleep(self.delay_s)
+                    conn.sendall(reply)
+        except OSError:
+            return
+        finally:
+            conn.close()
+            up.close()
+
+    def _forward(self, line: bytes, up: socket.socket, reader: FrameReader):
+        up.sendall(line)
+        while True:
+            rep = reader.pop()
+            if rep is not None:
+                return rep
+            chunk = up.recv(65536)
+            if not chunk:
+                raise OSError("emulator closed the connection")
+            reader.feed(chunk)
+
+    def _handle(self, line: bytes, up: socket.socket, reader: FrameReader, roms: dict[str, bytearray]) -> bytes:
+        cmd = decode_command(line)
+        if cmd.name == "PVWR":  # remember what each handle was given
+            h, addr = cmd.params[:2].upper(), int(cmd.params[2:6], 16)
+            rom = roms.setdefault(h, bytearray(1024))
+            rom[addr:addr + 64] = bytes.fromhex(cmd.params[6:])
+        if cmd.name == "PINIT" and self.refuse_rom is not None:
+            rom = roms.get(cmd.params[:2].upper())
+            if rom is not None and bytes(rom[:len(self.refuse_rom)]) == self.refuse_rom:
+                self.refused_pinit += 1
+                return encode_ascii_reply("ERROR0D")
+        rep = self._forward(line, up, reader)
+        if not rep.binary:
+            return encode_ascii_reply(rep.data)
+        if cmd.name != "BX":
+            return encode_binary_reply(rep.data)
+        if self.mode == "freeze" and self._last_bx is not None:
+            return encode_binary_reply(self._last_bx)
+        if self.mode == "garbage":
+            return encode_binary_reply(b"\xff" * len(rep.data))
+        if self.mode == "nan":
+            opt = int(cmd.params or "1", 16)
+            data = R.parse_bx(rep.data, opt)
+            for t in data.tools:
+                if t.q_wxyz is not None:
+                    t.q_wxyz = np.full(4, np.nan)
+            return encode_binary_reply(R.format_bx(data, opt))
+        self._last_bx = rep.data
+        return encode_binary_reply(rep.data)
+
+
+class Listener:
+    """This process's view of the driver: poses per tool and the latest ``ndi_driver: link`` status."""
+
+    def __init__(self, context, tools=("tool", "base")) -> None:
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import PoseStamped
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+        self.node = rclpy.create_node("ndi_fault_listener", context=context)
+        self.lock = threading.Lock()
+        self.poses = {t: 0 for t in tools}
+        self.history: list[tuple[int, str, dict]] = []
+        qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+        for t in tools:
+            self.node.create_subscription(PoseStamped, f"/ots/{t}/pose", lambda m, t=t: self._pose(t), qos)
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._diag, 50)
+        self.ex = SingleThreadedExecutor(context=context)
+        self.ex.add_node(self.node)
+        self._stop = threading.Event()
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+
+    def _pose(self, t: str) -> None:
+        with self.lock:
+            self.poses[t] += 1
+
+    def _diag(self, arr) -> None:
+        for st in arr.status:
+            if st.name == "ndi_driver: link":
+                lvl = st.level[0] if isinstance(st.level, bytes) else int(st.level)
+                with self.lock:
+                    self.history.append((lvl, st.message, {kv.key: kv.value for kv in st.values}))
+
+    def _spin(self) -> None:
+        while not self._stop.is_set():
+            self.ex.spin_once(timeout_sec=0.05)
+
+    def close(self) -> None:
+        self._stop.set()
+        self.thread.join(2)
+        self.ex.shutdown()
+        self.node.destroy_node()
+
+    def n_poses(self, tool: str) -> int:
+        with self.lock:
+            return self.poses[tool]
+
+    def status(self) -> tuple[int | None, str, dict]:
+        with self.lock:
+            return self.history[-1] if self.history else (None, "", {})
+
+    def wait_level(self, level: int, *needles: str, timeout: float = 30.0, what: str = "") -> str:
+        def ok():
+            lvl, msg, _ = self.status()
+            return lvl == level and all(n in msg for n in needles)
+        wait_for(ok, timeout=timeout, what=what or f"level {level} with {needles} (last: {self.status()[:2]})")
+        return self.status()[1]
+
+
+def start_emulator(procs, tmp_path, *extra) -> int:
+    port_file = tmp_path / "emu_port"
+    procs.start([installed_exe("fullperc_eval", "vega_emulator"), "--port", "0", "--port-file", str(port_file),
+                 "--tool", f"tool={CONFIG / 'tool.rom'}", "--tool", f"base={CONFIG / 'base.rom'}",
+                 "--pose", "tool=25,-40,-1500,0,0,0.6,0.8", "--pose", "base=150,80,-1700", *extra],
+                name="vega_emulator")
+    wait_for(lambda: port_file.exists() and port_file.read_text().strip(), timeout=30, what="emulator port")
+    return int(port_file.read_text())
+
+
+def start_driver(procs, port: int, *params: str, name: str = "ndi_driver"):
+    args = [installed_exe("fullperc_drivers", "ndi_driver"), "--ros-args", "-p", f"port:={port}"]
+    for p in params:
+        args += ["-p", p]
+    return procs.start(args, name=name)
+
+
+def free_tcp_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_health_leaves_ok_on_frozen_nan_and_garbage_replies_and_recovers(procs, tmp_path, rclpy_context):
+    proxy = FaultProxy(start_emulator(procs, tmp_path))
+    drv = start_driver(procs, proxy.port, "health.reconnect_window_s:=3.0")
+    lis = Listener(rclpy_context)
+    try:
+        wait_for(lambda: lis.n_poses("tool") > 30 and lis.n_poses("base") > 30, timeout=40, what="poses")
+        assert "tracking 2 tools at" in lis.wait_level(OK, what="OK while poses flow")
+
+        proxy.mode = "freeze"  # same BX reply, same frame number, over and over
+        msg = lis.wait_level(ERROR, "frame number frozen", what="ERROR for frozen replies")
+        assert "no new frames for" in msg
+        n = lis.n_poses("tool")
+        proxy.mode = "pass"
+        lis.wait_level(OK, what="OK again once poses flow")
+        assert lis.n_poses("tool") > n
+
+        proxy.mode = "nan"  # every transform NaN: refused, and the level says so
+        msg = lis.wait_level(ERROR, "every pose refused", what="ERROR for refused poses")
+        assert "non-finite" in msg or "not a" in msg or "NaN" in msg.lower(), msg
+        proxy.mode = "pass"
+        lis.wait_level(OK, what="OK after the NaN phase")
+
+        proxy.mode = "garbage"  # every BX body garbage behind a valid CRC: reconnects, never OK
+        msg = lis.wait_level(ERROR, "no new frames for", what="ERROR for garbage replies")
+        t_end = time.monotonic() + 3.0
+        while time.monotonic() < t_end:  # it stays out of OK while the garbage lasts
+            assert lis.status()[0] != OK, lis.status()[1]
+            time.sleep(0.1)
+        assert int(lis.status()[2]["reconnects_recent"]) >= 1 or "not connected" in lis.status()[1]
+        proxy.mode = "pass"
+        lis.wait_level(OK, timeout=40, what="OK after the garbage phase")
+        assert drv.poll() is None
+    finally:
+        lis.close()
+        proxy.close()
+    assert procs.stop(drv) == 0
+    log = procs.log(drv)
+    assert "Traceback" not in log
+    assert "frame number frozen" in log  # the level changes reached the console too
+
+
+def test_a_rom_the_device_refuses_is_named_and_the_other_tool_keeps_tracking(procs, tmp_path, rclpy_context):
+    base_rom = CONFIG / "base.rom"
+    proxy = FaultProxy(start_emulator(procs, tmp_path), refuse_rom=base_rom.read_bytes())
+    drv = start_driver(procs, proxy.port, f"tool_roms:=[{CONFIG / 'tool.rom'}, {base_rom}]")
+    lis = Listener(rclpy_context)
+    try:
+        wait_for(lambda: lis.n_poses("tool") > 60, timeout=40, what="poses of the accepted tool")
+        msg = lis.wait_level(WARN, "tool 'base'", "refused by the device", what="WARN naming the refused tool")
+        assert "ERROR0D" in msg and str(base_rom) in msg
+        values = lis.status()[2]
+        assert values["link_losses"] == "0" and values["refused_tools"] == "base"  # no reconnect loop
+        assert lis.n_poses("base") == 0 and proxy.refused_pinit == 1
+    finally:
+        lis.close()
+        proxy.close()
+    log = procs.log(drv)
+    line = next((ln for ln in log.splitlines() if "tool 'base'" in ln and "refused" in ln), "")
+    assert str(base_rom) in line and "PINIT" in line, log[-2000:]
+
+
+@pytest.mark.parametrize("content", [b"", b"this is not a tool definition\n" * 40])
+def test_a_garbage_rom_file_stops_the_driver_naming_the_file(procs, tmp_path, content):
+    bad = tmp_path / "broken.rom"
+    bad.write_bytes(content)
+    p = start_driver(procs, free_tcp_port(), f"tool_roms:=[{bad}, base.rom]")
+    wait_for(lambda: p.poll() is not None, timeout=40, what="ndi_driver to exit")
+    log = procs.log(p)
+    assert p.returncode == 2, log
+    lines = [ln for ln in log.splitlines() if str(bad) in ln]
+    assert len(lines) == 1 and "rejected" in lines[0] and "tool definition" in lines[0], log
+    assert "tool 'tool'" in lines[0]
+    assert "Traceback" not in log
+
+
+def test_an_unreachable_device_is_explained_on_the_console(procs, tmp_path):
+    port = free_tcp_port()  # nothing listens there
+    tcp = start_driver(procs, port, name="ndi_tcp")
+    missing = tmp_path / "no_such_serial_device"
+    ser = start_driver(procs, port, "transport:=serial", f"serial_device:={missing}", name="ndi_serial")
+    wait_for(lambda: "Connection refused" in procs.log(tcp), timeout=40, what="the TCP reason on the console")
+    wait_for(lambda: str(missing) in procs.log(ser) and "cannot open serial port" in procs.log(ser), timeout=40,
+             what="the serial reason on the console")
+    line = next(ln for ln in procs.log(tcp).splitlines() if "Connection refused" in ln)
+    assert f"127.0.0.1:{port}" in line and "ndi_driver" in line
+    time.sleep(3.0)  # throttled: a retry every couple of seconds must not flood the console
+    assert procs.log(tcp).count("Connection refused") <= 3
+    for p in (tcp, ser):
+        assert p.poll() is None
+        assert procs.stop(p) == 0
+
+
+def test_ctrl_c_over_a_slow_link_exits_0_without_a_traceback(procs, tmp_path, rclpy_context):
+    proxy = FaultProxy(start_emulator(procs, tmp_path), delay_s=0.02)
+    lis = Listener(rclpy_context)
+    try:
+        for i in range(2):
+            n0 = lis.n_poses("tool")
+            drv = start_driver(procs, proxy.port, name=f"ndi_driver_{i}")
+            wait_for(lambda n0=n0: lis.n_poses("tool") > n0 + 20, timeout=40, what="poses over the slow link")
+            assert procs.stop(drv, signal.SIGINT) == 0, procs.log(drv)
+            log = procs.log(drv)
+            assert "Traceback" not in log and "callback failed" not in log, log[-3000:]
+    finally:
+        lis.close()
+        proxy.close()
+    assert math.isfinite(lis.n_poses("tool"))
