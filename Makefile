@@ -39,10 +39,10 @@ bench: build
 	@$(ENV) python bench/run_all.py
 
 dataset: build
-	@$(ENV) python -m fullperc_eval.dataset --out bags
+	@$(ENV) python -m fullperc_eval.sim.dataset --out bags
 
 eval: build
-	@$(ENV) python -m fullperc_eval.evaluate_all --bags bags --json bags/eval.json
+	@$(ENV) python -m fullperc_eval.evaluation.evaluate_all --bags bags --json bags/eval.json
 
 # Re-pin requirements/lock-cpXY.txt from what is installed in the venv.
 lock: setup

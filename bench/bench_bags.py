@@ -1,4 +1,4 @@
-"""Bag write/read throughput of fullperc_eval.bag_io against rosbags' own Writer/AnyReader.
+"""Bag write/read throughput of fullperc_eval.bag (writer, reader) against rosbags' own Writer/AnyReader.
 
 Figures (medians over repeats, messages per second, 20 000 raw PoseStamped CDR messages):
   bags_write_mcap   BagWriter.write, MCAP, flushed every 0.5 s     baseline: rosbags Writer (MCAP, v9)
@@ -26,9 +26,11 @@ def main() -> None:
     from rosbags.highlevel import AnyReader
     from rosbags.rosbag2 import StoragePlugin, Writer
 
-    from fullperc_eval import bag_io
+    from fullperc_eval.bag.reader import BagReader
+    from fullperc_eval.bag.types import fullperc_typestore
+    from fullperc_eval.bag.writer import BagWriter
 
-    ts = bag_io.fullperc_typestore()
+    ts = fullperc_typestore()
     T = ts.types
     msg = T[TYPE](header=T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=1, nanosec=2),
                                                   frame_id="base"),
@@ -45,7 +47,7 @@ def main() -> None:
 
     def ours(storage: str):
         def run():
-            with bag_io.BagWriter(fresh(), storage=storage, typestore=ts) as w:
+            with BagWriter(fresh(), storage=storage, typestore=ts) as w:
                 w.add_topic(TOPIC, TYPE)
                 for i in range(N):
                     w.write(TOPIC, t0 + i * 1_000_000, raw)
@@ -66,13 +68,13 @@ def main() -> None:
             emit(name, N / t_ours, "msg/s", baseline=N / t_base, messages=N)
 
         bag = tmp / "read"
-        with bag_io.BagWriter(bag, typestore=ts) as w:
+        with BagWriter(bag, typestore=ts) as w:
             w.add_topic(TOPIC, TYPE)
             for i in range(N):
                 w.write(TOPIC, t0 + i * 1_000_000, raw)
 
         def read_ours():
-            with bag_io.BagReader(bag) as r:
+            with BagReader(bag) as r:
                 assert sum(1 for _ in r.messages()) == N
 
         def read_theirs():

@@ -27,9 +27,11 @@ REPEATS = 3
 
 
 def main() -> None:
-    from fullperc_eval.bag_io import BagReader
-    from fullperc_eval.dataset import synthetic_content, write_bag
-    from fullperc_eval.evaluate import JOINT_TOPIC, evaluate_bag, load_fusion_config
+    from fullperc_eval.bag.reader import BagReader
+    from fullperc_eval.evaluation.metrics import evaluate_bag
+    from fullperc_eval.evaluation.replay import JOINT_TOPIC
+    from fullperc_eval.sim.dataset import synthetic_content, write_bag
+    from fullperc_fusion.fusion_config import load_fusion_config
 
     tmp = None
     bag = ROOT / "bags" / "G-B-P"

@@ -60,7 +60,7 @@ def bench_parse() -> None:
 
 def start_emulator(tmp: Path) -> tuple[subprocess.Popen, int]:
     port_file = tmp / "port"
-    args = [sys.executable, "-m", "fullperc_eval.vega_emulator", "--port", "0", "--port-file", str(port_file)]
+    args = [sys.executable, "-m", "fullperc_eval.emulators.vega_cli", "--port", "0", "--port-file", str(port_file)]
     for i, n in enumerate(NAMES):
         args += ["--tool", f"{n}={CONFIG / (n + '.rom')}", "--pose", f"{n}={100 * i - 250},0,{-1500 - 30 * i}"]
     p = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

@@ -52,7 +52,7 @@ def _events(run_dir: Path) -> list[dict]:
 
 
 def _read(bag: Path, topics: list[str]) -> dict[str, list]:
-    from fullperc_eval.bag_io import BagReader
+    from fullperc_eval.bag.reader import BagReader
 
     got: dict[str, list] = {t: [] for t in topics}
     r = BagReader(bag)
@@ -105,7 +105,8 @@ def _true_labels(run_dir: Path, stamps_ns: np.ndarray) -> tuple[np.ndarray, np.n
 
     Returns (labels, valid mask, layout, true positions in the layout frame).
     """
-    from fullperc_eval.ground_truth import GroundTruth, load_calibration
+    from fullperc_eval.bag.calibration import load_calibration
+    from fullperc_eval.evaluation.ground_truth import GroundTruth
     from fullperc_fusion.layout import default_layout_path, load_layout
     from fullperc_fusion.margin import label_points
 
@@ -121,7 +122,7 @@ def _true_labels(run_dir: Path, stamps_ns: np.ndarray) -> tuple[np.ndarray, np.n
 
 
 def test_region_labels_follow_the_task_order(demo):
-    from fullperc_eval.evaluate import runs
+    from fullperc_common.runs import runs
     from fullperc_fusion.margin import label_points
 
     _, run_dir = demo
@@ -151,7 +152,9 @@ def test_recorded_bag_evaluates_like_the_live_outputs(demo):
     _, run_dir = demo
     off = json.loads((run_dir / "report" / "eval.json").read_text())["mae_mm"]
     live = json.loads((run_dir / "report" / "eval_live.json").read_text())["mae_mm"]
-    for method in ("omc", "kf", "bkf", "ckf", "cbkf"):
+    from fullperc_fusion.pipeline import FILTER_NAMES
+
+    for method in FILTER_NAMES:
         assert live[method] is not None, method
         # same core, same config, same first samples (test below). Under load the live node drops a few late
         # samples the recorder kept (seen: 0.06 mm on the OMC column with two busy loops running alongside)

@@ -24,14 +24,14 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            'sim = fullperc_eval.sim_node:main',
-            'vega_emulator = fullperc_eval.vega_emulator:main',
-            'record = fullperc_eval.bag_record:main',
-            'play = fullperc_eval.bag_play:main',
-            'evaluate = fullperc_eval.evaluate:main',
-            'supervisor = fullperc_eval.supervisor:main',
-            'echo = fullperc_eval.topic_tools:echo_main',
-            'pub = fullperc_eval.topic_tools:pub_main',
+            'sim = fullperc_eval.sim.cli:main',
+            'vega_emulator = fullperc_eval.emulators.vega_cli:main',
+            'record = fullperc_eval.bag.record:main',
+            'play = fullperc_eval.bag.play:main',
+            'evaluate = fullperc_eval.evaluation.cli:main',
+            'supervisor = fullperc_eval.graph.cli:main',
+            'echo = fullperc_eval.bag.topic_tools:echo_main',
+            'pub = fullperc_eval.bag.topic_tools:pub_main',
         ],
     },
 )

@@ -1,4 +1,4 @@
-"""Unit tests of the ROS-free bag module (fullperc_eval.bag_io): no DDS, no rclpy.
+"""Unit tests of the ROS-free bag modules (fullperc_eval.bag: writer, reader, recover, ...): no DDS, no rclpy.
 
 Bags written by BagWriter are read back with third-party readers (rosbags AnyReader/Reader, the
 mcap + mcap_ros2 reader, plain sqlite3), and their metadata.yaml is checked against rosbag2's v9
@@ -17,15 +17,22 @@ import numpy as np
 import pytest
 import yaml
 
-from fullperc_eval import bag_io
-from fullperc_eval.bag_io import BagError, BagWriter
+from fullperc_eval.bag import cli as bag_cli
+from fullperc_eval.bag import writer as bag_writer
+from fullperc_eval.bag.errors import BagError
+from fullperc_eval.bag.metadata import STORAGE_EXT, load_metadata
+from fullperc_eval.bag.qos import make_qos, parse_qos, qos_yaml
+from fullperc_eval.bag.reader import BagReader
+from fullperc_eval.bag.recover import reindex
+from fullperc_eval.bag.types import fullperc_typestore, interface_file, rosbag2_msgdef, type_hash_from_index
+from fullperc_eval.bag.writer import BagWriter
 
 T0 = 1_700_000_000_000_000_000
 
 
 @pytest.fixture(scope="module")
 def ts():
-    return bag_io.fullperc_typestore()
+    return fullperc_typestore()
 
 
 def _time(ts, ns: int):
@@ -95,7 +102,7 @@ def test_round_trip_with_rosbags_anyreader(tmp_path, ts, storage):
     from rosbags.highlevel import AnyReader
 
     bag = write_bag(tmp_path / "b", ts, storage=storage)
-    ext = bag_io.STORAGE_EXT[storage]
+    ext = STORAGE_EXT[storage]
     assert sorted(p.name for p in bag.iterdir()) == sorted(["metadata.yaml", f"b_0{ext}"])
     got: dict[str, list] = {}
     with AnyReader([bag]) as r:
@@ -172,7 +179,7 @@ def test_rosbags_reader_sees_qos_and_hash(tmp_path, ts):
     bag = tmp_path / "b"
     with BagWriter(bag, typestore=ts) as w:
         w.add_topic("/a", "geometry_msgs/msg/PoseStamped",
-                    [bag_io.make_qos(reliability="best_effort", durability="transient_local", depth=3,
+                    [make_qos(reliability="best_effort", durability="transient_local", depth=3,
                                      deadline_ns=1_500_000_000)])
         w.write_msg("/a", T0, pose(ts, 1, T0))
     with Reader(bag) as r:
@@ -185,20 +192,20 @@ def test_rosbags_reader_sees_qos_and_hash(tmp_path, ts):
 
 def test_msgdef_is_rosbag2_text(ts):
     """Root .msg text verbatim, then each dependency once after 80 '=' and 'MSG: pkg/Name'."""
-    text = bag_io.rosbag2_msgdef("fullperc_msgs/msg/Region")
-    root = bag_io.interface_file("fullperc_msgs/msg/Region").read_text()
+    text = rosbag2_msgdef("fullperc_msgs/msg/Region")
+    root = interface_file("fullperc_msgs/msg/Region").read_text()
     assert text.startswith(root)
     sections = text.split("\n" + "=" * 80 + "\n")
     names = [s.splitlines()[0] for s in sections[1:]]
     assert names == ["MSG: geometry_msgs/Point", "MSG: std_msgs/Header", "MSG: builtin_interfaces/Time"]
-    assert bag_io.rosbag2_msgdef("nonexistent_msgs/msg/X") is None
+    assert rosbag2_msgdef("nonexistent_msgs/msg/X") is None
 
 
 def test_typestore_registers_fullperc_msgs(ts):
     for name in ("FusionStatus", "Region", "TrackingQuality"):
         t = f"fullperc_msgs/msg/{name}"
         assert t in ts.types
-        assert ts.hash_rihs01(t) == bag_io.type_hash_from_index(t)  # rosbags' hash == rosidl's
+        assert ts.hash_rihs01(t) == type_hash_from_index(t)  # rosbags' hash == rosidl's
 
 
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
@@ -206,8 +213,8 @@ def test_split_by_duration(tmp_path, ts, storage):
     from rosbags.highlevel import AnyReader
 
     bag = write_bag(tmp_path / "s", ts, n=50, storage=storage, max_bag_duration=100_000_000)
-    info = bag_io.load_metadata(bag)
-    ext = bag_io.STORAGE_EXT[storage]
+    info = load_metadata(bag)
+    ext = STORAGE_EXT[storage]
     assert info["relative_file_paths"] == [f"s_{i}{ext}" for i in range(5)]
     assert [f["message_count"] for f in info["files"]] == [30] * 5
     with AnyReader([bag]) as r:
@@ -245,24 +252,24 @@ def test_killed_mcap_recovers_exactly_the_flushed_messages(tmp_path, ts):
     killed = _snapshot(bag, tmp_path / "killed")
     w.close()
     # metadata.yaml was refreshed at the flush, but the MCAP has no footer yet
-    assert bag_io.load_metadata(killed)["message_count"] == 30
+    assert load_metadata(killed)["message_count"] == 30
     with pytest.raises(BagError, match="incomplete.*reindex"):
-        bag_io.BagReader(killed)
-    meta, (rep,) = bag_io.reindex(killed)
+        BagReader(killed)
+    meta, (rep,) = reindex(killed)
     assert rep.recovered and rep.messages == 30 and (killed / "live_0.mcap.orig").exists()
     assert meta["rosbag2_bagfile_information"]["message_count"] == 30
     with AnyReader([killed]) as r:
         xs = [r.deserialize(raw, c.msgtype).pose.position.x for c, _, raw in r.messages()]
     assert xs == [float(i) for i in range(30)]
     # reindexing a complete bag changes nothing but metadata.yaml
-    _, (rep2,) = bag_io.reindex(killed)
+    _, (rep2,) = reindex(killed)
     assert not rep2.recovered
 
 
 def test_flush_interval_bounds_unflushed_data(tmp_path, ts, monkeypatch):
     """write() flushes by itself once flush_interval has passed (no explicit flush call)."""
     clock = [1000.0]
-    monkeypatch.setattr(bag_io.time, "monotonic", lambda: clock[0])
+    monkeypatch.setattr(bag_writer.time, "monotonic", lambda: clock[0])
     bag = tmp_path / "live"
     w = BagWriter(bag, typestore=ts, flush_interval=0.5).open()
     w.add_topic("/omc/tool/pose", "geometry_msgs/msg/PoseStamped")
@@ -271,7 +278,7 @@ def test_flush_interval_bounds_unflushed_data(tmp_path, ts, monkeypatch):
         w.write_msg("/omc/tool/pose", T0 + i, pose(ts, i, T0 + i))
     killed = _snapshot(bag, tmp_path / "killed")
     w.close()
-    _, (rep,) = bag_io.reindex(killed)
+    _, (rep,) = reindex(killed)
     assert rep.messages >= 100 - 50  # at most 0.5 s (50 messages) not on disk
 
 
@@ -292,7 +299,7 @@ def test_recover_truncated_mid_record(tmp_path, ts):
     w.close()
     f = killed / "live_0.mcap"
     f.write_bytes(f.read_bytes()[: (sizes[2] + sizes[3]) // 2])  # cut inside the 4th chunk
-    _, (rep,) = bag_io.reindex(killed)
+    _, (rep,) = reindex(killed)
     assert rep.recovered and rep.messages == 30 and rep.error
     with AnyReader([killed]) as r:
         assert r.message_count == 30
@@ -311,7 +318,7 @@ def test_killed_sqlite_keeps_committed_messages(tmp_path, ts):
         w.write_msg("/omc/tool/pose", T0 + i, pose(ts, i, T0 + i))
     killed = _snapshot(bag, tmp_path / "killed")  # includes the -wal file
     w.close()
-    meta, (rep,) = bag_io.reindex(killed)
+    meta, (rep,) = reindex(killed)
     assert rep.messages == 25 and meta["rosbag2_bagfile_information"]["message_count"] == 25
     with AnyReader([killed]) as r:
         assert r.message_count == 25
@@ -325,8 +332,8 @@ def test_reindex_rebuilds_missing_metadata(tmp_path, ts):
     original = yaml.safe_load((bag / "metadata.yaml").read_text())
     (bag / "metadata.yaml").unlink()
     with pytest.raises(BagError, match="no metadata.yaml.*reindex"):
-        bag_io.BagReader(bag)
-    meta, _ = bag_io.reindex(bag)
+        BagReader(bag)
+    meta, _ = reindex(bag)
     a, b = meta["rosbag2_bagfile_information"], original["rosbag2_bagfile_information"]
     for key in ("message_count", "duration", "starting_time", "relative_file_paths", "files",
                 "topics_with_message_count"):
@@ -337,7 +344,7 @@ def test_reindex_rebuilds_missing_metadata(tmp_path, ts):
 
 def test_bag_reader_filters_and_decodes(tmp_path, ts):
     bag = write_bag(tmp_path / "b", ts, n=20)
-    with bag_io.BagReader(bag) as r:
+    with BagReader(bag) as r:
         assert set(r.topics) == set(TOPICS) and r.message_count == 60
         assert r.topics["/ots/tool/quality"].offered_qos[0]["reliability"] == "reliable"
         msgs = list(r.messages(["/ots/tool/quality"], start=T0 + 5 * 10_000_000))
@@ -347,20 +354,20 @@ def test_bag_reader_filters_and_decodes(tmp_path, ts):
 
 def test_bad_inputs_raise_bag_error(tmp_path, ts):
     with pytest.raises(BagError, match="does not exist"):
-        bag_io.BagReader(tmp_path / "missing")
+        BagReader(tmp_path / "missing")
     bad = tmp_path / "bad"
     bad.mkdir()
     (bad / "metadata.yaml").write_text("just: [a, broken\n")
     with pytest.raises(BagError, match="not a valid rosbag2 metadata"):
-        bag_io.BagReader(bad)
+        BagReader(bad)
     bag = write_bag(tmp_path / "b", ts, n=5)
     (bag / "b_0.mcap").write_bytes(b"garbage" * 20)
     with pytest.raises(BagError, match="not an MCAP file"):
-        bag_io.BagReader(bag)
+        BagReader(bag)
     with pytest.raises(BagError, match="bad magic"):
-        bag_io.reindex(bag)
+        reindex(bag)
     with pytest.raises(BagError, match="no .mcap or .db3"):
-        bag_io.reindex(bad)
+        reindex(bad)
 
 
 def test_writer_rejects_bad_use(tmp_path, ts):
@@ -390,18 +397,18 @@ def test_parse_qos_accepts_v8_and_v9():
           "    nsec: 854775807\n  lifespan:\n    sec: 9223372036\n    nsec: 854775807\n  liveliness: 1\n"
           "  liveliness_lease_duration:\n    sec: 9223372036\n    nsec: 854775807\n"
           "  avoid_ros_namespace_conventions: false\n")
-    (q,) = bag_io.parse_qos(v8)
+    (q,) = parse_qos(v8)
     assert (q["history"], q["reliability"], q["durability"], q["liveliness"]) == \
         ("unknown", "reliable", "volatile", "automatic")
-    assert bag_io.parse_qos([q]) == [q] == bag_io.parse_qos(bag_io.qos_yaml([q]))
+    assert parse_qos([q]) == [q] == parse_qos(qos_yaml([q]))
     with pytest.raises(BagError):
-        bag_io.parse_qos([{"reliability": "sometimes"}])
+        parse_qos([{"reliability": "sometimes"}])
 
 
 def test_cli_info_and_reindex(tmp_path, ts, capsys):
     bag = write_bag(tmp_path / "b", ts, n=5)
-    assert bag_io.main(["info", str(bag)]) == 0
+    assert bag_cli.main(["info", str(bag)]) == 0
     assert "/ots/tool/quality | Type: fullperc_msgs/msg/TrackingQuality | Count: 5" in capsys.readouterr().out
-    assert bag_io.main(["reindex", str(bag)]) == 0
-    assert bag_io.main(["info", str(tmp_path / "nope")]) == 1
+    assert bag_cli.main(["reindex", str(bag)]) == 0
+    assert bag_cli.main(["info", str(tmp_path / "nope")]) == 1
     assert "error:" in capsys.readouterr().err

@@ -260,17 +260,17 @@ def test_round_trip_mcap_reader_and_metadata(recorded):
 
 
 @pytest.mark.system
-def test_bag_io_serialization_decodes_in_rclpy(recorded):
-    """bag_io.write_msg's CDR (rosbags typestore incl. our fullperc_msgs) decodes with the
+def test_bag_writer_serialization_decodes_in_rclpy(recorded):
+    """BagWriter.write_msg's CDR (rosbags typestore incl. our fullperc_msgs) decodes with the
     rosidl-generated rclpy code into the published values, so generated datasets replay like
     recordings. Bytes may differ only in alignment padding: Fast DDS does not zero it (seen: a
     leftover 'j' after a JointState name), so byte equality is not required."""
     from rclpy.serialization import deserialize_message
 
-    from fullperc_eval import bag_io
+    from fullperc_eval.bag.types import fullperc_typestore
 
     bag, stamps, _ = recorded
-    ts = bag_io.fullperc_typestore()
+    ts = fullperc_typestore()
     data = read_all(bag)
     for topic, msgs in data.items():
         cls = type(build_rclpy_msg(topic, 0, 0))
@@ -322,7 +322,10 @@ def test_replay_reproduces_bytes_and_timing(recorded, procs, tmp_path, rate):
 
 @pytest.mark.system
 def test_sigkill_loses_at_most_about_one_second(procs, tmp_path):
-    from fullperc_eval import bag_io
+    from fullperc_eval.bag.errors import BagError
+    from fullperc_eval.bag.metadata import load_metadata
+    from fullperc_eval.bag.reader import BagReader
+    from fullperc_eval.bag.recover import reindex
 
     bag = tmp_path / "killed"
     n = 4000  # 4 s at 1 kHz; the recorder is killed after 2 s
@@ -331,8 +334,8 @@ def test_sigkill_loses_at_most_about_one_second(procs, tmp_path):
 
     def flushed_count() -> int:  # the periodic metadata.yaml shows how much is on disk
         try:
-            return bag_io.load_metadata(bag)["message_count"]
-        except (bag_io.BagError, KeyError):
+            return load_metadata(bag)["message_count"]
+        except (BagError, KeyError):
             return 0
 
     wait_for(lambda: flushed_count() > 0, timeout=120, what="metadata.yaml refreshed while recording")
@@ -345,9 +348,9 @@ def test_sigkill_loses_at_most_about_one_second(procs, tmp_path):
     stamps = np.array(json.loads((tmp_path / "pub.json").read_text())["stamps"], dtype=np.int64)
 
     # Incomplete bag: a clear error first, then reindex makes it readable by third-party readers.
-    with pytest.raises(bag_io.BagError, match="reindex"):
-        bag_io.BagReader(bag).open()
-    meta, reports = bag_io.reindex(bag)
+    with pytest.raises(BagError, match="reindex"):
+        BagReader(bag).open()
+    meta, reports = reindex(bag)
     assert reports[0].recovered and (bag / "killed_0.mcap.orig").exists()
     data = read_all(bag)
     published_before_kill = int(np.sum(stamps < t_kill))
@@ -373,9 +376,9 @@ def entry_count(meta: dict, topic: str) -> int:
 
 def _small_bag(path: Path, n: int = 40, dt_ns: int = 10_000_000, storage: str = "mcap") -> Path:
     """A generated two-topic bag (ROS-free writer): /gen/a PoseStamped, /gen/b String, every dt."""
-    from fullperc_eval import bag_io
+    from fullperc_eval.bag.writer import BagWriter
 
-    with bag_io.BagWriter(path, storage=storage) as w:
+    with BagWriter(path, storage=storage) as w:
         T = w.typestore.types
         w.add_topic("/gen/a", "geometry_msgs/msg/PoseStamped")
         w.add_topic("/gen/b", "std_msgs/msg/String")
@@ -407,7 +410,8 @@ def test_play_topics_and_start_offset(procs, tmp_path, storage):
 @pytest.mark.system
 def test_play_loop_and_clock(procs, tmp_path):
     """--loop repeats the bag; --clock publishes bag time on /clock within the bag's time range."""
-    from fullperc_eval import bag_io
+    from fullperc_eval.bag.errors import BagError
+    from fullperc_eval.bag.metadata import load_metadata
 
     bag = _small_bag(tmp_path / "gen", n=20, dt_ns=5_000_000)
     src = read_all(bag)
@@ -418,8 +422,8 @@ def test_play_loop_and_clock(procs, tmp_path):
 
     def count(topic: str) -> int:
         try:
-            info = bag_io.load_metadata(out)
-        except bag_io.BagError:
+            info = load_metadata(out)
+        except BagError:
             return 0
         return next((e["message_count"] for e in info["topics_with_message_count"]
                      if e["topic_metadata"]["name"] == topic), 0)
@@ -515,10 +519,10 @@ def test_play_corrupt_metadata(tmp_path, ros_env):
 
 
 def test_play_unknown_message_type(tmp_path, ros_env):
-    from fullperc_eval import bag_io
+    from fullperc_eval.bag.writer import BagWriter
 
     bag = tmp_path / "unknown"
-    with bag_io.BagWriter(bag) as w:
+    with BagWriter(bag) as w:
         w.add_topic("/x", "nonexistent_msgs/msg/Thing", msgdef="int32 a\n", type_hash="")
         w.write("/x", 1_000, b"\x00\x01\x00\x00\x07\x00\x00\x00")
     _assert_clean_error(_run_exe("play", str(bag), env=ros_env), "nonexistent_msgs/msg/Thing", "/x")

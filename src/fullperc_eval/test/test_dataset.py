@@ -10,9 +10,12 @@ import numpy as np
 import pytest
 
 from fullperc_drivers.diana_kinematics import JOINT_NAMES, DianaKinematics
-from fullperc_eval.bag_io import BagError, BagReader, load_metadata
-from fullperc_eval.dataset import content_from_sim, generate, synthetic_content, write_bag
-from fullperc_eval.ground_truth import GroundTruth, load_calibration
+from fullperc_eval.bag.calibration import load_calibration
+from fullperc_eval.bag.errors import BagError
+from fullperc_eval.bag.metadata import load_metadata
+from fullperc_eval.bag.reader import BagReader
+from fullperc_eval.evaluation.ground_truth import GroundTruth
+from fullperc_eval.sim.dataset import content_from_sim, generate, synthetic_content, write_bag
 
 
 @pytest.fixture(scope="module")
@@ -111,7 +114,8 @@ def test_calibration_travels_with_the_bag(written):
 
 def test_simulator_truth_survives_the_bag(tmp_path):
     """Ground truth rebuilt from the bag (joint states + calibration.yaml) equals the simulator's own truth."""
-    from fullperc_eval.sim.run import build_scene, simulate
+    from fullperc_eval.sim.run import simulate
+    from fullperc_eval.sim.scene import build_scene
     from fullperc_eval.sim.trajectories import JointArc
 
     scene = build_scene(0)
@@ -145,6 +149,6 @@ def test_generate_refuses_to_overwrite_foreign_directories(tmp_path):
 
 
 def test_cli_rejects_unknown_task(tmp_path):
-    p = subprocess.run([sys.executable, "-m", "fullperc_eval.dataset", "--out", str(tmp_path), "--tasks", "B-X"],
+    p = subprocess.run([sys.executable, "-m", "fullperc_eval.sim.dataset", "--out", str(tmp_path), "--tasks", "B-X"],
                        capture_output=True, text=True, timeout=120)
     assert p.returncode == 2 and "unknown task 'B-X'" in p.stderr and "Traceback" not in p.stderr

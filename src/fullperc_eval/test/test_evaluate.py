@@ -13,20 +13,19 @@ import numpy as np
 import pytest
 import yaml
 
+from fullperc_common.runs import runs
 from fullperc_common.transforms import make_T
 from fullperc_drivers.diana_kinematics import DianaKinematics
-from fullperc_eval import evaluate as ev
-from fullperc_eval.dataset import synthetic_content, write_bag
-from fullperc_eval.ground_truth import (
-    Calibration,
-    CalibrationError,
-    GroundTruth,
-    load_calibration,
-    save_calibration,
-)
+from fullperc_eval.bag.calibration import Calibration, CalibrationError, load_calibration, save_calibration
+from fullperc_eval.evaluation.config import METHODS, EvaluationError, replay_config
+from fullperc_eval.evaluation.ground_truth import GroundTruth
+from fullperc_eval.evaluation.metrics import evaluate_bag, transition_segments
+from fullperc_eval.evaluation.report import write_report
+from fullperc_eval.evaluation.tables import to_json
+from fullperc_eval.sim.dataset import synthetic_content, write_bag
 from fullperc_fusion.filters import FilterParams
 from fullperc_fusion.frame_chain import ChainConfig
-from fullperc_fusion.pipeline import TargetConfig
+from fullperc_fusion.pipeline import FILTER_NAMES, TargetConfig
 
 OFFSET = (0.003, 0.001, -0.002)   # injected OMC error [m]; |OFFSET| = sqrt(14) mm
 
@@ -40,7 +39,7 @@ def synth(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def synth_eval(synth):
-    return ev.evaluate_bag(synth[0], progress=False)
+    return evaluate_bag(synth[0], progress=False)
 
 
 # ------------------------------------------------------------------------------------------- ground truth
@@ -107,17 +106,22 @@ def test_calibration_roundtrip_and_clear_errors(tmp_path):
 
 
 # ---------------------------------------------------------------------------------------------- segments
+def test_methods_are_the_pipeline_filters_in_the_papers_column_order():
+    assert sorted(METHODS) == sorted(FILTER_NAMES) and len(METHODS) == len(FILTER_NAMES)
+    assert METHODS[0] == "omc" and METHODS[-1] == "cbkf"  # Table 1: OMC first, CBKF last
+
+
 def test_runs_and_transition_segments_follow_the_documented_definition():
     t = np.arange(10) * 10
     #          0  1  2  3  4  5  6  7  8  9
     labels = [2, 2, 1, 1, 1, 3, 3, 3, 2, 2]
-    assert ev.runs(labels) == [(2, 0, 1), (1, 2, 4), (3, 5, 7), (2, 8, 9)]
-    segs = ev.transition_segments(t, np.array(labels))
+    assert runs(labels) == [(2, 0, 1), (1, 2, 4), (3, 5, 7), (2, 8, 9)]
+    segs = transition_segments(t, np.array(labels))
     assert [(s["from"], s["to"], s["t0_ns"], s["t1_ns"]) for s in segs] == [
         ("G", "B", 10, 40),   # last G sample .. last B sample
         ("B", "P", 40, 70),   # last B sample .. end of the following P run
         ("P", "G", 70, 90)]
-    assert ev.transition_segments(t[:3], np.array([1, 1, 1])) == []
+    assert transition_segments(t[:3], np.array([1, 1, 1])) == []
 
 
 # ---------------------------------------------------------------------------------------------- metrics
@@ -134,7 +138,7 @@ def test_compensated_filters_keep_the_bias_after_the_ots_leaves(synth_eval, synt
     without a bias state converges to the biased OMC, the compensated ones keep the learned offset."""
     r = synth_eval.result
     s = synth_eval.series
-    late = {m: s["errors"][m][(s["outputs"][m]["t_ns"] - synth[2]["t_omc_ns"][0]) * 1e-9 > 6.0] for m in ev.METHODS}
+    late = {m: s["errors"][m][(s["outputs"][m]["t_ns"] - synth[2]["t_omc_ns"][0]) * 1e-9 > 6.0] for m in METHODS}
     off = np.linalg.norm(OFFSET) * 1e3
     assert np.median(late["kf"]) == pytest.approx(off, rel=0.02)
     assert np.median(late["cbkf"]) < 0.05 * off
@@ -159,20 +163,20 @@ def test_common_stamp_mae_and_region_split_are_consistent(synth_eval):
     assert sum(fr.values()) == pytest.approx(1.0)
     # the region means, weighted by their output counts, give back the overall MAE
     s = synth_eval.series
-    for m in ev.METHODS:
+    for m in METHODS:
         ok = s["valid"][m]
         assert np.nanmean(s["errors"][m][ok]) == pytest.approx(r["mae_mm"][m])
 
 
 def test_evaluation_is_deterministic(synth, synth_eval):
-    again = ev.evaluate_bag(synth[0], progress=False).result
-    assert json.dumps(ev.to_json(again), sort_keys=True) == json.dumps(ev.to_json(synth_eval.result), sort_keys=True)
+    again = evaluate_bag(synth[0], progress=False).result
+    assert json.dumps(to_json(again), sort_keys=True) == json.dumps(to_json(synth_eval.result), sort_keys=True)
 
 
 def test_result_has_the_eval_json_schema(synth_eval):
-    r = ev.to_json(synth_eval.result)
+    r = to_json(synth_eval.result)
     json.dumps(r, allow_nan=False)
-    assert set(r["mae_mm"]) == {"omc", "kf", "bkf", "ckf", "cbkf"}
+    assert set(r["mae_mm"]) == set(FILTER_NAMES)
     assert r["task"] == "synthetic" and r["b_to_p"] is None    # this path never enters BVV then PVV
 
 
@@ -180,8 +184,8 @@ def test_result_has_the_eval_json_schema(synth_eval):
 def test_fusion_yaml_maps_to_the_node_defaults():
     """fusion.yaml says every value equals the node's built-in default: loading it must give the dataclass
     defaults (a drift between the file and the code would make live and offline disagree)."""
-    cfg, flat = ev.load_fusion_config()
-    want = TargetConfig(name="tool", chain=ChainConfig(), filters=ev.METHODS, params=FilterParams())
+    cfg, flat = replay_config()
+    want = TargetConfig(name="tool", chain=ChainConfig(), filters=METHODS, params=FilterParams())
     assert cfg.params == want.params
     assert (cfg.slop_ns, cfg.delay_ns) == (want.slop_ns, want.delay_ns)
     for f in dataclasses.fields(ChainConfig):
@@ -190,37 +194,36 @@ def test_fusion_yaml_maps_to_the_node_defaults():
     assert flat["idle_flush"] == 0.5
 
 
-def test_fusion_config_values_are_mapped_and_checked(tmp_path):
+def test_fusion_config_values_are_mapped_and_checked(synth, tmp_path):
     p = tmp_path / "f.yaml"
     p.write_text(yaml.safe_dump({"fusion_node": {"ros__parameters": {
         "noise": {"accel": 0.2, "global_std": 0.001}, "hop_to_bias": False, "slop": 0.002, "reorder_delay": 0.1,
         "local_chain": "direct", "init_samples": 5, "tool": {"omc_body": "t1"},
         "T_base_ots": [1, 2, 3, 0, 0, 0, 1]}}}))
-    cfg, _ = ev.load_fusion_config(p)
+    cfg, _ = replay_config(p)
+    assert cfg.filters == METHODS
     assert cfg.params.accel_noise == 0.2 and cfg.params.global_std == 0.001 and cfg.params.hop_to_bias is False
     assert (cfg.slop_ns, cfg.delay_ns) == (2_000_000, 100_000_000)
     assert cfg.chain.local_chain == "direct" and cfg.chain.init_samples == 5 and cfg.chain.omc_target == "t1"
     np.testing.assert_allclose(cfg.chain.T_base_ots[:3, 3], [1, 2, 3])
     p.write_text(yaml.safe_dump({"fusion_node": {"ros__parameters": {"T_rig_ots": [1, 2, 3]}}}))
-    with pytest.raises(ev.EvaluationError, match="T_rig_ots"):
-        ev.load_fusion_config(p)
+    with pytest.raises(EvaluationError, match="T_rig_ots"):
+        replay_config(p)
     p.write_text(yaml.safe_dump({"fusion_node": {"ros__parameters": {"noise": {"global_std": -1.0}}}}))
-    with pytest.raises(ev.EvaluationError, match="global_std"):
-        ev.load_fusion_config(p)
+    with pytest.raises(EvaluationError, match="global_std"):
+        evaluate_bag(synth[0], progress=False, fusion_config=p)
 
 
 def test_a_changed_filter_changes_the_numbers(synth, synth_eval):
-    cfg, _ = ev.load_fusion_config()
+    cfg, _ = replay_config()
     cfg.params = dataclasses.replace(cfg.params, hop_to_bias=False, bias_walk=1e-5)
-    other = ev.evaluate_bag(synth[0], progress=False, config=cfg).result
+    other = evaluate_bag(synth[0], progress=False, config=cfg).result
     assert other["mae_mm"]["omc"] == synth_eval.result["mae_mm"]["omc"]
     assert other["mae_mm"]["cbkf"] != synth_eval.result["mae_mm"]["cbkf"]
 
 
 # ------------------------------------------------------------------------------------------------ report
 def test_report_writes_plots_and_html(synth_eval, tmp_path):
-    from fullperc_eval.report import write_report
-
     index = write_report(synth_eval, tmp_path)
     text = index.read_text()
     for name in ("trajectory.png", "errors.png"):

@@ -13,8 +13,9 @@ import pytest
 import yaml
 
 from fullperc_common.testing import installed_exe
-from fullperc_eval.bag_io import BagWriter
-from fullperc_eval.dataset import synthetic_content, write_bag
+from fullperc_eval.bag.writer import BagWriter
+from fullperc_eval.sim.dataset import synthetic_content, write_bag
+from fullperc_fusion.pipeline import FILTER_NAMES
 
 TIMEOUT = 300   # liveness bound for a hung process, not a performance limit
 
@@ -50,7 +51,7 @@ def test_good_bag_prints_tables_and_writes_report_and_json(good_bag, tmp_path):
     assert p.returncode == 0, p.stdout + p.stderr
     assert "Table 1" in p.stdout and "CBKF" in p.stdout and "Table 2" in p.stdout
     data = json.loads((tmp_path / "r.json").read_text())
-    assert set(data["mae_mm"]) == {"omc", "kf", "bkf", "ckf", "cbkf"}
+    assert set(data["mae_mm"]) == set(FILTER_NAMES)
     assert f"{data['mae_mm']['omc']:6.2f}" in p.stdout
     assert json.loads((tmp_path / "rep" / "eval.json").read_text()) == data
     for f in ("index.html", "trajectory.png", "errors.png"):
@@ -164,7 +165,7 @@ def test_bad_layout(good_bag, tmp_path):
 def run_all(*args):
     import sys
 
-    return subprocess.run([sys.executable, "-m", "fullperc_eval.evaluate_all", *map(str, args), "--quiet"],
+    return subprocess.run([sys.executable, "-m", "fullperc_eval.evaluation.evaluate_all", *map(str, args), "--quiet"],
                           capture_output=True, text=True, timeout=TIMEOUT)
 
 
@@ -181,7 +182,7 @@ def test_evaluate_all_writes_the_eval_json_schema(tmp_path):
     rows = data["tasks"]
     assert [r["task"] for r in rows] == ["G-B-P", "P-G-B"]            # the paper's task order
     for r, off in zip(rows, (2.0, 4.0), strict=True):
-        assert set(r["mae_mm"]) == {"omc", "kf", "bkf", "ckf", "cbkf"}
+        assert set(r["mae_mm"]) == set(FILTER_NAMES)
         assert r["mae_mm"]["omc"] == pytest.approx(off, abs=1e-6)      # the injected offset [mm]
         assert "b_to_p" in r and r["bag"].endswith(r["task"])
     assert data["paper"]["table1_mae_mm"]["G-B-P"]["cbkf"] == 1.63

@@ -16,8 +16,9 @@ import math
 import pytest
 
 from fullperc_common.testing import workspace_root
-from fullperc_eval.evaluate import evaluate_bag, load_fusion_config
-from fullperc_eval.evaluate_all import TASK_ORDER
+from fullperc_eval.evaluation.config import replay_config
+from fullperc_eval.evaluation.evaluate_all import TASK_ORDER
+from fullperc_eval.evaluation.metrics import evaluate_bag
 
 BAGS = workspace_root() / "bags"
 EVAL_JSON = BAGS / "eval.json"
@@ -99,7 +100,7 @@ def test_committed_bag_reproduces_its_numbers(task, stored):
 def test_the_pin_detects_a_changed_filter(stored):
     """A 20 % change of one noise parameter of the filters must break the pin (the test above can fail)."""
     task = next(t for t in TASK_ORDER if stored[t]["b_to_p"] is not None)
-    cfg, _ = load_fusion_config()
+    cfg, _ = replay_config()
     cfg.params = dataclasses.replace(cfg.params, bias_walk=cfg.params.bias_walk * 1.2)
     changed = evaluate_bag(BAGS / task, progress=False, config=cfg).result
     diff = differences(stored[task], changed)

@@ -15,7 +15,7 @@ from fullperc_common.testing import installed_exe, wait_for
 from fullperc_drivers.ndi.protocol import encode_command
 from fullperc_drivers.streams import decode_diana, decode_omc
 from fullperc_eval.sim.live import LiveServer
-from fullperc_eval.sim.run import run_task
+from fullperc_eval.sim.runner import run_task
 
 TASK, SEED = "P-G-B", 2
 

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from fullperc_eval.sim.occluders import Box, rays_blocked_by_boxes, segment_segment_distance
+from fullperc_eval.sim.occluders import PlacedBox, points_in_boxes, rays_blocked_by_boxes, segment_segment_distance
 from fullperc_eval.sim.omc_model import CameraSet, NoiseModel, Occluders, fit_body, kabsch, observe_markers
 from fullperc_eval.sim.ots_model import OtsModel
-from fullperc_fusion.layout import NDI_PYRAMID_PLANES, Frustum, look_at_R, look_at_R_ndi
+from fullperc_fusion.layout import NDI_PYRAMID_PLANES, Box, Frustum, look_at_R, look_at_R_ndi
 
 TARGET = np.array([0.1, -0.05, 1.0])
 
@@ -144,10 +144,25 @@ def test_segment_distance_and_box_blocking():
     d = segment_segment_distance(np.array([0.0, 0, 0]), np.array([1.0, 0, 0]), np.array([0.5, 1, -1]),
                                  np.array([0.5, 1, 1]))
     assert d == pytest.approx(1.0)
-    box = Box("b", np.zeros(3), np.eye(3), np.array([0.5, 0.5, 0.5]))
+    box = PlacedBox.of("b", np.zeros(3), np.eye(3), np.array([0.5, 0.5, 0.5]))
     a = np.array([[-2.0, 0, 0], [-2.0, 2, 0]])
     b = np.array([[2.0, 0, 0], [2.0, 2, 0]])
     assert rays_blocked_by_boxes(a, b, [box]).tolist() == [True, False]
+
+
+def test_layout_box_placed_in_the_simulator_blocks_what_the_margin_model_blocks():
+    """The simulator's occluders are the margin model's Box, placed: for generic rays (no point exactly on a face,
+    where the simulator's segment includes its ends and Box.blocks does not) both say the same."""
+    rng = np.random.default_rng(3)
+    table = Box("table", np.array([-0.4, -1.0, 0.7]), np.array([0.4, 1.0, 0.8]))
+    cams = rng.uniform(-3.0, 3.0, (2000, 3)) + [0.0, 0.0, 1.5]
+    pts = rng.uniform(-1.0, 1.0, (2000, 3)) + [0.0, 0.0, 0.75]
+    placed = PlacedBox.from_layout(table)
+    sim = rays_blocked_by_boxes(pts, cams, [placed])
+    assert sim.tolist() == table.blocks(cams, pts).tolist()
+    assert 100 < sim.sum() < 1900  # both outcomes are exercised
+    inside = np.all((pts >= table.lo) & (pts <= table.hi), axis=1)
+    assert points_in_boxes(pts, [placed]).tolist() == inside.tolist() and inside.any()
 
 
 # ---------------------------------------------------------------------------------------------------- OTS

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from fullperc_common.transforms import inv_T
-from fullperc_eval.sim.run import omc_errors, run_task, simulate
+from fullperc_eval.sim.run import omc_errors, simulate
+from fullperc_eval.sim.runner import run_task
 from fullperc_eval.sim.scene import build_scene
 from fullperc_eval.sim.tasks import plan_task
 from fullperc_eval.sim.trajectories import JointArc

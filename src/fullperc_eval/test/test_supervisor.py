@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from fullperc_eval.supervisor import GraphError, Supervisor, load_graph, run_graph
+from fullperc_eval.graph.supervisor import GraphError, Supervisor, load_graph, run_graph
 
 
 def _alive(pid: int) -> bool:

@@ -12,7 +12,8 @@ from fullperc_drivers.ndi import replies as R
 from fullperc_drivers.ndi.crc import crc16_hex
 from fullperc_drivers.ndi.protocol import FrameReader, NdiCrcError, encode_command
 from fullperc_drivers.ndi.rom import read_rom
-from fullperc_eval.vega_emulator import FaultConfig, Frustum, ToolPose, VegaEmulator
+from fullperc_eval.emulators.vega_device import ToolPose, pyramid_frustum
+from fullperc_eval.emulators.vega_server import FaultConfig, VegaEmulator
 
 CONFIG = Path(__file__).resolve().parents[2] / "fullperc_drivers" / "config"
 ROMS = {n: (CONFIG / f"{n}.rom").read_bytes() for n in ("tool", "base")}
@@ -131,7 +132,7 @@ def test_tracking_replies_bx_tx_and_missing(emu):
 
 def test_outside_frustum_is_missing_unless_0800():
     far = ToolPose(np.array([0.0, 0.0, -3000.0]))
-    e = VegaEmulator(lambda t: {"tool": far}, ROMS, frustum=Frustum()).start()
+    e = VegaEmulator(lambda t: {"tool": far}, ROMS, frustum=pyramid_frustum()).start()
     try:
         c = Raw(e.port)
         c.cmd("INIT")
@@ -147,9 +148,21 @@ def test_outside_frustum_is_missing_unless_0800():
 
 
 def test_frustum_geometry():
-    f = Frustum(950, 2400, 20, 15)
+    f = pyramid_frustum(950, 2400, 20, 15)  # the margin model's Frustum, in metres
     pts = np.array([[0, 0, -1500], [0, 0, 1500], [0, 0, -900], [0, 0, -2500], [600, 0, -1500], [0, 450, -1500]])
-    assert f(pts).tolist() == [True, False, False, False, False, False]
+    assert f.contains(pts / 1000.0).tolist() == [True, False, False, False, False, False]
+    # the pyramid's lateral faces: |x| <= d tan(20 deg), |y| <= d tan(15 deg) at every depth d
+    for d in (950.0, 1200.0, 1700.0, 2400.0):
+        x, y = d * np.tan(np.radians(20.0)), d * np.tan(np.radians(15.0))
+        inside = np.array([[0.999 * x, 0, -d], [0, 0.999 * y, -d], [1.001 * x, 0, -d], [0, 1.001 * y, -d]])
+        assert f.contains(inside / 1000.0).tolist() == [True, True, False, False]
+    # as a margin-model Frustum the pyramid is |x| <= d tan(ax), |y| <= d tan(ay), near <= d <= far, everywhere
+    rng = np.random.default_rng(0)
+    p = np.column_stack([rng.uniform(-900, 900, 20000), rng.uniform(-800, 800, 20000), rng.uniform(-2600, -800, 20000)])
+    d = -p[:, 2]
+    closed_form = ((d >= 950) & (d <= 2400) & (np.abs(p[:, 0]) <= d * np.tan(np.radians(20.0)))
+                   & (np.abs(p[:, 1]) <= d * np.tan(np.radians(15.0))))
+    assert f.contains(p / 1000.0).tolist() == closed_form.tolist() and 1000 < closed_form.sum() < 19000
 
 
 def test_ver_get_set(emu):

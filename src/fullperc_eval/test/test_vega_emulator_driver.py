@@ -12,7 +12,8 @@ from scipy.spatial.transform import Rotation
 from fullperc_common.testing import wait_for
 from fullperc_drivers.ndi.driver import DriverConfig, NdiDriver, ToolConfig
 from fullperc_drivers.ndi.rom import TOOLS
-from fullperc_eval.vega_emulator import FaultConfig, ToolPose, VegaEmulator
+from fullperc_eval.emulators.vega_device import ToolPose
+from fullperc_eval.emulators.vega_server import FaultConfig, VegaEmulator
 
 CONFIG = Path(__file__).resolve().parents[2] / "fullperc_drivers" / "config"
 NAMES = list(TOOLS)  # six tools

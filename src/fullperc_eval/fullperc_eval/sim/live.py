@@ -1,6 +1,6 @@
 """Live serving of a simulated task: the device streams the drivers read, on 127.0.0.1 by default.
 
-The whole task is first simulated offline (:func:`fullperc_eval.sim.run.run_task`, a few seconds), then
+The whole task is first simulated offline (:func:`fullperc_eval.sim.runner.run_task`, a few seconds), then
 played out against the host clock at ``speed`` (1.0 = real time; 2.0 = the world runs twice as fast,
 and every time stamp, latency and rate is scaled with it so downstream sees a consistent, faster world).
 So live and offline data are the same measurements.
@@ -13,7 +13,7 @@ Streams (wire formats: :mod:`fullperc_drivers.streams`):
     markers used (untracked bodies carry zeros and tracked = 0: no NaN on the wire);
   * Diana: one UDP datagram per joint-state sample (``encode_diana``) to ``diana_addr`` (default
     127.0.0.1:3884), stamped with the sample time on the device clock;
-  * NDI Vega: the Combined-API emulator (:class:`fullperc_eval.vega_emulator.VegaEmulator`) on TCP
+  * NDI Vega: the Combined-API emulator (:class:`fullperc_eval.emulators.vega_server.VegaEmulator`) on TCP
     ``vega_port`` (default 8765; 0 = any free port, reported on stdout), fed with the OTS model's
     measurements: the latest simulated Vega frame at or before the emulator's frame time, MISSING when
     the model did not see the tool.
@@ -30,11 +30,14 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from pathlib import Path
 
 import numpy as np
 
+from fullperc_common.share import share_path
 from fullperc_drivers.streams import DianaState, OmcBody, OmcFrame, encode_diana, encode_omc
+from fullperc_eval.emulators.vega_device import ToolPose
+from fullperc_eval.emulators.vega_server import VegaEmulator
+from fullperc_fusion.layout import Frustum
 
 from .run import SimRun
 from .scene import OMC_BODIES
@@ -43,22 +46,13 @@ _REGION = {1: "BVV", 2: "GVV", 3: "PVV"}
 
 
 def _roms() -> dict[str, bytes]:
-    """The NDI tool definitions the driver uploads (fullperc_drivers/config/{tool,base}.rom)."""
-    cands = []
-    try:
-        from ament_index_python.packages import get_package_share_directory
-
-        cands.append(Path(get_package_share_directory("fullperc_drivers")) / "config")
-    except Exception:  # noqa: BLE001 - not installed: use the source tree
-        pass
-    cands.append(Path(__file__).resolve().parents[3] / "fullperc_drivers" / "config")
+    """The NDI tool definitions the driver uploads (fullperc_drivers/config/{tool,base}.rom); missing ones left out."""
     out: dict[str, bytes] = {}
     for name in ("tool", "base"):
-        for d in cands:
-            p = d / f"{name}.rom"
-            if p.exists():
-                out[name] = p.read_bytes()
-                break
+        try:
+            out[name] = share_path("fullperc_drivers", "config", f"{name}.rom").read_bytes()
+        except FileNotFoundError:
+            pass
     return out
 
 
@@ -67,7 +61,7 @@ class LiveServer:
 
     def __init__(self, run: SimRun, speed: float = 1.0, omc_addr: tuple[str, int] = ("127.0.0.1", 3883),
                  diana_addr: tuple[str, int] = ("127.0.0.1", 3884), vega_port: int | None = 8765,
-                 vega_host: str = "127.0.0.1", device_clock_offset_ns: int = 0, frustum=None,
+                 vega_host: str = "127.0.0.1", device_clock_offset_ns: int = 0, frustum: Frustum | None = None,
                  log: Callable[[dict], None] | None = None) -> None:
         if not speed > 0:
             raise ValueError(f"speed must be > 0, got {speed}")
@@ -96,8 +90,6 @@ class LiveServer:
 
     # ------------------------------------------------------------------------------------------- vega
     def _vega_source(self, t_host_ns: int) -> dict:
-        from fullperc_eval.vega_emulator import ToolPose
-
         if not self.t0_host_ns:  # the task clock has not started: nothing in view yet
             return {}
         ots = self.run.ots
@@ -116,8 +108,6 @@ class LiveServer:
     def _start_vega(self) -> None:
         if self.vega_port is None:
             return
-        from fullperc_eval.vega_emulator import VegaEmulator
-
         kw = {}
         if self.frustum is not None:
             kw["frustum"] = self.frustum

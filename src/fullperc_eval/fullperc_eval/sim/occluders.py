@@ -5,6 +5,12 @@ the OMC/OTS models can test every marker x camera ray of a whole chunk of frames
 A ray is a segment from a marker to a camera centre; it is blocked when it passes within a
 capsule's radius of the capsule's axis segment, or through a box.
 
+A box is the margin model's :class:`fullperc_fusion.layout.Box` (axis-aligned, ``lo``/``hi``) given in its own
+frame and placed in ``omc`` by a rotation and a centre (:class:`PlacedBox`): the layout's occluders unrotated,
+scene.yaml's obstacles and the robot's cart turned about z. The segment test here is the simulator's own: a ray
+counts as blocked when it touches the box anywhere on [marker, camera], both ends included, where the margin
+model's :meth:`~fullperc_fusion.layout.Box.blocks` spares a point lying on the box's surface.
+
 Staff walk seeded paths (:class:`StaffWalker`): each person moves through random waypoints
 inside a rectangular floor zone with a smooth (raised-cosine) speed profile between waypoints,
 so occlusion starts and ends gradually, as when a person steps into a camera's line of sight.
@@ -15,6 +21,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from fullperc_fusion.layout import Box
 
 _EPS = 1e-12
 
@@ -63,16 +71,37 @@ def rays_blocked_by_capsules(ray_a: np.ndarray, ray_b: np.ndarray, cap_a: np.nda
 
 
 @dataclass(frozen=True)
-class Box:
-    """An oriented box: centre and rotation (omc_from_box) in the omc frame, half extents [m]."""
+class PlacedBox:
+    """An oriented box: the margin model's :class:`~fullperc_fusion.layout.Box` centred in its own frame
+    (``lo = -half``, ``hi = half``), placed in omc by ``center`` and ``R`` (omc_from_box)."""
 
-    name: str
+    box: Box
     center: np.ndarray
     R: np.ndarray
-    half: np.ndarray
+
+    @classmethod
+    def of(cls, name: str, center: np.ndarray, R: np.ndarray, half: np.ndarray) -> PlacedBox:
+        """A box of half extents ``half`` [m] centred at ``center`` with rotation ``R`` (omc_from_box)."""
+        half = np.asarray(half, dtype=float)
+        return cls(Box(name, -half, half), np.asarray(center, dtype=float), np.asarray(R, dtype=float))
+
+    @classmethod
+    def from_layout(cls, b: Box) -> PlacedBox:
+        """One of the layout's axis-aligned occluders (``lo``/``hi`` in omc)."""
+        lo, hi = np.asarray(b.lo), np.asarray(b.hi)
+        return cls.of(b.name, (lo + hi) / 2, np.eye(3), (hi - lo) / 2)
+
+    @property
+    def name(self) -> str:
+        return self.box.name
+
+    @property
+    def half(self) -> np.ndarray:
+        """Half extents along the box's own axes [m]."""
+        return self.box.hi
 
 
-def rays_blocked_by_boxes(ray_a: np.ndarray, ray_b: np.ndarray, boxes: list[Box]) -> np.ndarray:
+def rays_blocked_by_boxes(ray_a: np.ndarray, ray_b: np.ndarray, boxes: list[PlacedBox]) -> np.ndarray:
     """Which segments [ray_a, ray_b] (shape (..., 3)) cross any of the static boxes (slab test)."""
     blocked = np.zeros(ray_a.shape[:-1], dtype=bool)
     for box in boxes:
@@ -95,7 +124,7 @@ def rays_blocked_by_boxes(ray_a: np.ndarray, ray_b: np.ndarray, boxes: list[Box]
     return blocked
 
 
-def points_in_boxes(points: np.ndarray, boxes: list[Box], margin: float = 0.0) -> np.ndarray:
+def points_in_boxes(points: np.ndarray, boxes: list[PlacedBox], margin: float = 0.0) -> np.ndarray:
     """(..., 3) points -> bool, True where a point lies inside any box grown by ``margin``."""
     out = np.zeros(points.shape[:-1], dtype=bool)
     for box in boxes:

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .occluders import Box, rays_blocked_by_boxes, rays_blocked_by_capsules
+from .occluders import PlacedBox, rays_blocked_by_boxes, rays_blocked_by_capsules
 
 
 @dataclass
@@ -96,7 +96,7 @@ class Occluders:
     cap_a: np.ndarray
     cap_b: np.ndarray
     cap_r: np.ndarray
-    boxes: list[Box] = field(default_factory=list)
+    boxes: list[PlacedBox] = field(default_factory=list)
 
     @classmethod
     def none(cls, F: int) -> Occluders:

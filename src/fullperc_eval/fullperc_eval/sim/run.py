@@ -1,6 +1,7 @@
 """Offline simulation: a whole task's measurements and ground truth as numpy arrays (no ROS, no sockets).
 
-This is the API the dataset/evaluation code uses::
+:func:`simulate` measures one planned arc in a scene; :func:`fullperc_eval.sim.runner.run_task` (also
+``fullperc_eval.sim.run_task``) plans a task and simulates it. This is the API the dataset/evaluation code uses::
 
     from fullperc_eval.sim import run_task
     run = run_task("P-B-G-P", seed=0)          # ~30 s of motion, a few seconds to compute
@@ -32,13 +33,12 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-from fullperc_common.transforms import inv_T, mean_T
+from fullperc_common.transforms import inv_T, make_T, mean_T
 from fullperc_fusion.margin import BVV, label_points
 
 from .omc_model import BodyFit, NoiseModel, Occluders, fit_body, observe_markers
-from .scene import OMC_BODIES, OTS_TOOLS, Scene, build_scene
-from .tasks import plan_task
-from .trajectories import JointArc, link_capsules
+from .scene import OMC_BODIES, OTS_TOOLS, Scene
+from .trajectories import JointArc, arm_geometry, link_capsules
 
 CHUNK = 240  # frames per vectorised block (fixed: the noise draw order depends on it)
 
@@ -159,8 +159,6 @@ def _time_grid(duration_s: float, rate_hz: float, phase_s: float = 0.0) -> np.nd
 
 
 def _arm_state(scene: Scene, arc: JointArc, t_ns: np.ndarray):
-    from .trajectories import arm_geometry
-
     Q, dQ = arc.sample(t_ns / 1e9)
     origins, flange = arm_geometry(scene.dk, Q)
     T_tool = scene.T_omc_diana_base @ flange @ scene.T_flange_tool
@@ -303,24 +301,6 @@ def simulate_ideal_visibility(scene: Scene, arc: JointArc, rate_hz: float = 30.0
     return frac_b, float(fits["tool"].tracked.mean())
 
 
-def run_task(task: str = "P-B-G-P", seed: int = 0, config=None, layout=None, noise: bool = True,
-             staff: bool = True, miscalibration: bool = True) -> SimRun:
-    """Plan ``task`` (one of :data:`~fullperc_eval.sim.tasks.TASKS`) and simulate it with ``seed``.
-
-    ``config``: scene.yaml path or dict (default: the installed one); ``layout``: a loaded layout (default:
-    the shared or_layout.yaml). ``noise``/``staff``/``miscalibration`` switch the error sources off for tests.
-    """
-    scene = build_scene(seed, config=config, layout=layout, miscalibration=miscalibration)
-    plan = plan_task(task, scene)
-    scene = scene.with_diana_base(plan.T_omc_diana_base)
-    run = simulate(scene, plan.arc, task=task, noise=noise, staff=staff)
-    run.info["plan_attempts"] = plan.attempts
-    run.info["region_path_m"] = plan.region_path_m
-    run.info["ots_fraction_b"] = plan.ots_fraction_b
-    run.info["omc_fraction"] = plan.omc_fraction
-    return run
-
-
 # ---------------------------------------------------------------------------------------------- evaluation
 def omc_errors(run: SimRun, body: str = "tool") -> dict[str, np.ndarray]:
     """Position errors [m] of the raw OMC measurement of ``body`` on its tracked frames.
@@ -333,8 +313,6 @@ def omc_errors(run: SimRun, body: str = "tool") -> dict[str, np.ndarray]:
     ok = b.tracked
     e_omc = np.linalg.norm(b.position[ok] - run.truth.T_omc_tool[ok, :3, 3], axis=1)
     base = run.omc.bodies["base"]
-    from fullperc_common.transforms import make_T
-
     Tb = [make_T(p, q) for p, q in zip(base.position[base.tracked], base.quat_xyzw[base.tracked], strict=True)]
     out = {"omc": e_omc, "tracked": ok}
     if Tb:
@@ -344,4 +322,4 @@ def omc_errors(run: SimRun, body: str = "tool") -> dict[str, np.ndarray]:
     return out
 
 
-__all__ = ["SimRun", "run_task", "simulate", "build_scene", "omc_errors"]
+__all__ = ["SimRun", "simulate", "simulate_ideal_visibility", "omc_errors"]

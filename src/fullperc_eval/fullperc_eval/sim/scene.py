@@ -16,7 +16,7 @@ the OMC image noise and the OTS image noise. Same seed -> bit-identical scene an
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -24,16 +24,17 @@ import numpy as np
 import yaml
 from scipy.spatial.transform import Rotation
 
+from fullperc_common.share import share_path
 from fullperc_common.transforms import inv_T, make_T
 from fullperc_drivers.diana_kinematics import DianaKinematics
 from fullperc_fusion.layout import Layout, default_layout_path, load_layout
 
-from .occluders import Box, StaffWalker
+from .occluders import PlacedBox, StaffWalker
 from .omc_model import CameraSet, NoiseModel
 from .ots_model import OtsModel
 
-OMC_BODIES = ("base", "ots_rig", "tool")  # bodies the OMC tracks (names.md)
-OTS_TOOLS = ("tool", "base")  # NDI tools the Vega tracks (names.md)
+OMC_BODIES = ("base", "ots_rig", "tool")  # bodies the OMC tracks (README: default OMC bodies)
+OTS_TOOLS = ("tool", "base")  # NDI tools the Vega tracks (README: default NDI tools)
 
 
 class SceneError(ValueError):
@@ -42,18 +43,7 @@ class SceneError(ValueError):
 
 def default_scene_path() -> Path:
     """The installed ``share/fullperc_eval/config/scene.yaml``, else the source copy."""
-    try:
-        from ament_index_python.packages import get_package_share_directory
-
-        p = Path(get_package_share_directory("fullperc_eval")) / "config" / "scene.yaml"
-        if p.exists():
-            return p
-    except Exception:  # noqa: BLE001 - not installed: fall back to the source tree
-        pass
-    p = Path(__file__).resolve().parents[2] / "config" / "scene.yaml"
-    if p.exists():
-        return p
-    raise FileNotFoundError("scene.yaml not found in the fullperc_eval share directory or the source tree")
+    return share_path("fullperc_eval", "config", "scene.yaml")
 
 
 def load_scene_config(path: str | os.PathLike | None = None) -> dict:
@@ -110,7 +100,7 @@ class Scene:
     omc_cams: CameraSet  # true + believed (miscalibrated) extrinsics
     omc_noise: NoiseModel
     ots: OtsModel
-    static_boxes: list[Box]  # layout occluders + scene.yaml obstacles (the robot cart is added by ``boxes``)
+    static_boxes: list[PlacedBox]  # layout occluders + scene.yaml obstacles (the robot cart is added by ``boxes``)
     staff: list[StaffWalker]
     bodies: dict[str, BodyDef]
     dk: DianaKinematics
@@ -126,7 +116,7 @@ class Scene:
         return np.random.default_rng(self.noise_seeds[0]), np.random.default_rng(self.noise_seeds[1])
 
     @property
-    def boxes(self) -> list[Box]:
+    def boxes(self) -> list[PlacedBox]:
         """Every static box, including the Diana's cart under its current base pose."""
         cart = self.config.get("diana", {}).get("cart")
         if not cart:
@@ -134,12 +124,10 @@ class Scene:
         size = np.asarray(cart["size"], dtype=float)
         R = self.T_omc_diana_base[:3, :3]
         c = self.T_omc_diana_base[:3, 3] + R @ np.array([0.0, 0.0, -size[2] / 2 - float(cart.get("gap", 0.0))])
-        return [*self.static_boxes, Box("robot_cart", c, R, size / 2)]
+        return [*self.static_boxes, PlacedBox.of("robot_cart", c, R, size / 2)]
 
     def with_diana_base(self, T_omc_diana_base: np.ndarray) -> Scene:
         """The same scene (same seed streams) with the arm's cart moved to ``T_omc_diana_base``."""
-        from dataclasses import replace
-
         return replace(self, T_omc_diana_base=np.asarray(T_omc_diana_base, dtype=float).copy())
 
     @property
@@ -170,10 +158,9 @@ def _bodies(cfg: dict) -> dict[str, BodyDef]:
     return out
 
 
-def _boxes(cfg: dict, layout: Layout) -> list[Box]:
+def _boxes(cfg: dict, layout: Layout) -> list[PlacedBox]:
     """The layout's static occluders (so labels and measurements share them) plus scene.yaml's extra obstacles."""
-    out = [Box(b.name, (np.asarray(b.lo) + np.asarray(b.hi)) / 2, np.eye(3), (np.asarray(b.hi) - np.asarray(b.lo)) / 2)
-           for b in getattr(layout, "occluders", ())]
+    out = [PlacedBox.from_layout(b) for b in getattr(layout, "occluders", ())]
     for i, b in enumerate(cfg.get("obstacles") or []):
         try:
             c = np.asarray(b["center"], dtype=float)
@@ -183,8 +170,8 @@ def _boxes(cfg: dict, layout: Layout) -> list[Box]:
             raise SceneError(f"scene field 'obstacles[{i}]': needs center, size (and optional yaw_deg)") from e
         if c.shape != (3,) or size.shape != (3,) or np.any(size <= 0):
             raise SceneError(f"scene field 'obstacles[{i}]': bad center/size")
-        out.append(Box(str(b.get("name", f"box{i}")), c, Rotation.from_euler("z", yaw, degrees=True).as_matrix(),
-                       size / 2))
+        out.append(PlacedBox.of(str(b.get("name", f"box{i}")), c,
+                                Rotation.from_euler("z", yaw, degrees=True).as_matrix(), size / 2))
     return out
 
 

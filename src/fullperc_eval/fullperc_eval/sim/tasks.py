@@ -53,9 +53,13 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from fullperc_common.runs import runs
+from fullperc_common.share import share_path
 from fullperc_fusion.margin import BVV, GVV, PVV, label_points
 
 from .occluders import points_in_boxes
+from .run import simulate_ideal_visibility
+from .scene import build_scene
 from .trajectories import JointArc, arm_geometry, link_capsules
 
 TASKS: tuple[str, ...] = ("G-B-P", "P-G-B", "P-G-B-P", "P-B-G", "B-G-P", "P-B-G-P")
@@ -79,11 +83,7 @@ def parse_task(task: str) -> tuple[int, ...]:
 
 def compress(labels: np.ndarray) -> tuple[int, ...]:
     """Run-length compress a label sequence to the order of regions visited: [3,3,1,1,2] -> (3, 1, 2)."""
-    lab = np.asarray(labels)
-    if lab.size == 0:
-        return ()
-    keep = np.concatenate([[True], lab[1:] != lab[:-1]])
-    return tuple(int(v) for v in lab[keep])
+    return tuple(label for label, _, _ in runs(labels))
 
 
 def order_name(order: tuple[int, ...]) -> str:
@@ -127,17 +127,6 @@ def feasible_poses(scene, origins: np.ndarray, p_tool_omc: np.ndarray, clearance
     return ok
 
 
-def _runs(labels: np.ndarray) -> list[tuple[int, int, int]]:
-    """(label, start, end_exclusive) of each run."""
-    out = []
-    start = 0
-    for i in range(1, len(labels) + 1):
-        if i == len(labels) or labels[i] != labels[start]:
-            out.append((int(labels[start]), start, i))
-            start = i
-    return out
-
-
 def _candidate_windows(labels: np.ndarray, s: np.ndarray, order: tuple[int, ...], min_path: float,
                        lead: float) -> list[tuple[int, int]]:
     """Index windows [i0, i1] of a feasible sweep whose compressed labels equal ``order``.
@@ -145,18 +134,18 @@ def _candidate_windows(labels: np.ndarray, s: np.ndarray, order: tuple[int, ...]
     s: cumulative path length along the sweep. The first run contributes its last ``lead`` metres, the last run
     its first ``lead`` metres; every run must offer at least ``min_path`` metres.
     """
-    runs = _runs(labels)
+    r = runs(labels)  # (label, first, last inclusive); the *_e below are end-exclusive indices (last + 1)
     n = len(order)
     out = []
-    for k in range(len(runs) - n + 1):
-        win = runs[k:k + n]
-        if tuple(r[0] for r in win) != order:
+    for k in range(len(r) - n + 1):
+        win = r[k:k + n]
+        if tuple(w[0] for w in win) != order:
             continue
-        lengths = [s[min(e, len(s) - 1)] - s[b] for _, b, e in win]
+        lengths = [s[min(last + 1, len(s) - 1)] - s[first] for _, first, last in win]
         if min(lengths) < min_path:
             continue
-        first_b, first_e = win[0][1], win[0][2]
-        last_b, last_e = win[-1][1], win[-1][2]
+        first_b, first_e = win[0][1], win[0][2] + 1
+        last_b, last_e = win[-1][1], win[-1][2] + 1
         # start `lead` metres before the first boundary, end `lead` metres after the last one
         i0 = int(np.searchsorted(s, s[first_e] - lead, side="left"))
         i0 = min(max(i0, first_b), first_e - 1)
@@ -174,8 +163,6 @@ def tool_positions(scene, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
 
 
 def _physics(scene, arc: JointArc, order: tuple[int, ...], st: dict) -> tuple[bool, str, float, float]:
-    from .run import simulate_ideal_visibility
-
     frac_ots_b, frac_omc = simulate_ideal_visibility(scene, arc, rate_hz=float(st["check_rate_hz"]))
     if BVV in order and frac_ots_b < st["min_ots_fraction"]:
         return False, "Vega sees the tool too little in the B part", frac_ots_b, frac_omc
@@ -299,15 +286,9 @@ def source_plans_path() -> Path:
 def default_plans_path() -> Path | None:
     """The installed ``share/fullperc_eval/config/task_plans.yaml``, else the source copy, else None."""
     try:
-        from ament_index_python.packages import get_package_share_directory
-
-        p = Path(get_package_share_directory("fullperc_eval")) / "config" / PLANS_FILE
-        if p.exists():
-            return p
-    except Exception:  # noqa: BLE001 - not installed: fall back to the source tree
-        pass
-    p = source_plans_path()
-    return p if p.exists() else None
+        return share_path("fullperc_eval", "config", PLANS_FILE)
+    except FileNotFoundError:
+        return None
 
 
 def plan_to_dict(plan: TaskPlan) -> dict:
@@ -546,8 +527,6 @@ def check_arc_order(scene, arc: JointArc, order: tuple[int, ...], rate_hz: float
 
 def write_plans(path: str | os.PathLike | None = None, tasks=TASKS, log=print) -> Path:
     """Plan ``tasks`` cold on the default scene (seed 0) and write them as the shipped plans file."""
-    from .scene import build_scene
-
     out = Path(path) if path is not None else source_plans_path()
     scene = build_scene(0)
     plans = {}

@@ -1,6 +1,6 @@
 """`make demo`: the whole fullperc graph on the simulated OR, then the evaluation of what it recorded.
 
-Runs ``config/demo_graph.yaml`` with the :mod:`supervisor` -- simulator (NDI Vega emulator on TCP, NOKOV-like
+Runs ``config/demo_graph.yaml`` with the :mod:`.supervisor` -- simulator (NDI Vega emulator on TCP, NOKOV-like
 OMC and Diana UDP streams), ``omc_driver``, ``ndi_driver``, ``diana_state``, ``fusion_node`` (CBKF plus CKF,
 BKF, KF and the OMC pass-through side by side), ``margin_node`` and ``record`` as separate processes on a
 private DDS domain over localhost -- for one task, prints the region changes ``margin_node`` reports live,
@@ -22,6 +22,11 @@ import sys
 import time
 from pathlib import Path
 
+from fullperc_eval.evaluation.config import EvaluationError
+from fullperc_eval.evaluation.metrics import evaluate_bag
+from fullperc_eval.evaluation.report import write_report
+from fullperc_eval.evaluation.tables import format_table1, format_table2, write_json
+
 from .supervisor import run_graph
 
 
@@ -41,9 +46,6 @@ def graph_path(root: Path) -> Path:
 
 def run_demo(task: str, seed: str, out: Path, root: Path, speed: str = "1.0",
              extra: dict[str, str] | None = None) -> int:
-    from .evaluate import EvaluationError, evaluate_bag, format_table1, format_table2, write_json
-    from .report import write_report
-
     out = out / f"{task}-{time.strftime('%Y%m%d-%H%M%S')}"
     out.mkdir(parents=True, exist_ok=False)
     os.environ.setdefault("ROS_DOMAIN_ID", str(101 + os.getpid() % 100))

@@ -1,6 +1,6 @@
 """``make eval``: evaluate every bag in a directory, print the six-row Table 1 (+ Table 2), write one JSON.
 
-    python -m fullperc_eval.evaluate_all --bags bags --json bags/eval.json [--reports DIR] [--quiet]
+    python -m fullperc_eval.evaluation.evaluate_all --bags bags --json bags/eval.json [--reports DIR] [--quiet]
 
 A bag is any sub-directory with a ``metadata.yaml``; rows come in the paper's task order (G-B-P, P-G-B,
 P-G-B-P, P-B-G, B-G-P, P-B-G-P), other bags after them by name. The JSON is::
@@ -9,7 +9,7 @@ P-G-B-P, P-B-G, B-G-P, P-B-G-P), other bags after them by name. The JSON is::
                 "cbkf": ..}, "b_to_p": {"max_mm": {...}, "median_mm": {...}, ...} | null, ...}, ...],
      "paper": {...the paper's Table 1 and 2, for comparison...}}
 
-with every figure of :func:`fullperc_eval.evaluate.evaluate_bag` per task (MAE on common stamps, by region,
+with every figure of :func:`fullperc_eval.evaluation.metrics.evaluate_bag` per task (MAE on common stamps, by region,
 segments, ...). After the tables it compares with the paper: the CBKF/OMC MAE ratio per task, and whether the
 method ordering of the paper (OMC worst, CBKF <= CKF, CKF < KF, BKF <= KF) holds.
 """
@@ -23,8 +23,12 @@ import time
 from pathlib import Path
 from typing import Any
 
-from .bag_io import BagError
-from .evaluate import METHODS, EvaluationError, evaluate_bag, format_table1, format_table2, write_json
+from fullperc_eval.bag.errors import BagError
+
+from .config import METHODS, EvaluationError
+from .metrics import evaluate_bag
+from .report import write_report
+from .tables import format_table1, format_table2, write_json
 
 TASK_ORDER = ("G-B-P", "P-G-B", "P-G-B-P", "P-B-G", "B-G-P", "P-B-G-P")
 PAPER_TABLE1 = {  # Sensors 2023, 23(20), 8637, Table 1: MAE [mm], columns OMC KF BKF CKF CBKF
@@ -78,7 +82,8 @@ def format_comparison(comp: list[dict[str, Any]]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m fullperc_eval.evaluate_all", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m fullperc_eval.evaluation.evaluate_all",
+                                 description=__doc__.split("\n")[0])
     ap.add_argument("--bags", default="bags", help="directory holding one bag per task (default: bags)")
     ap.add_argument("--json", default=None, help="write all figures to this JSON file (make eval: bags/eval.json)")
     ap.add_argument("--reports", default=None, help="also write a report (plots, HTML) per bag into DIR/<task>/")
@@ -97,8 +102,6 @@ def main(argv: list[str] | None = None) -> int:
             r["bag"] = os.path.relpath(bag)
             rows.append(r)
             if args.reports:
-                from .report import write_report
-
                 write_report(ev, Path(args.reports) / bag.name)
             if not args.quiet:
                 print(f"  {bag.name}: {r['messages']} messages in {time.monotonic() - t1:.1f} s", file=sys.stderr)

@@ -19,16 +19,12 @@ import sys
 import time
 from typing import Any
 
-from fullperc_eval import bag_io
-from fullperc_eval.bag_io import BagError
-from fullperc_eval.bag_record import (
-    StopFlag,
-    fully_qualified,
-    get_message,
-    load_qos_overrides,
-    rclpy_qos_from_dict,
-    split_ros_args,
-)
+from .errors import BagError
+from .metadata import TopicInfo
+from .qos import rclpy_qos_from_dict
+from .reader import BagReader
+from .record import StopFlag, fully_qualified, load_qos_overrides, split_ros_args
+from .types import get_message
 
 NODE_NAME = "rosbag2_player"
 CLOCK_TOPIC = "/clock"
@@ -63,7 +59,7 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
-def select_topics(reader: bag_io.BagReader, args: argparse.Namespace) -> list[str]:
+def select_topics(reader: BagReader, args: argparse.Namespace) -> list[str]:
     explicit = [fully_qualified(t) for t in args.topics]
     exclude = {fully_qualified(t) for t in args.exclude_topics}
     rx = re.compile(args.regex) if args.regex else None
@@ -85,7 +81,7 @@ def select_topics(reader: bag_io.BagReader, args: argparse.Namespace) -> list[st
     return out
 
 
-def publisher_qos(info: bag_io.TopicInfo, depth: int):
+def publisher_qos(info: TopicInfo, depth: int):
     """rosbag2 adapt_offer_to_recorded_offers: the common recorded offer, else reliable/volatile."""
     keys = ("reliability", "durability", "deadline", "liveliness", "liveliness_lease_duration")
     offers = info.offered_qos
@@ -120,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.publisher_depth <= 0 or args.read_ahead_queue_size <= 0:
         ap.error("--publisher-depth and --read-ahead-queue-size must be > 0")
     try:
-        reader = bag_io.BagReader(args.bag_path)
+        reader = BagReader(args.bag_path)
         reader.open()
         topics = select_topics(reader, args)
         if not topics and not args.clock:

@@ -22,6 +22,15 @@ import time
 
 import numpy as np
 
+from fullperc_eval.bag.calibration import save_calibration
+from fullperc_fusion.layout import load_layout
+
+from .dataset import sim_calibration
+from .live import LiveServer
+from .run import simulate
+from .scene import build_scene
+from .tasks import TASKS, TaskPlanningError, plan_task
+
 
 def _addr(s: str) -> tuple[str, int]:
     host, _, port = s.rpartition(":")
@@ -54,8 +63,6 @@ def _ros_params(argv: list[str]) -> list[str]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from fullperc_eval.sim.tasks import TASKS
-
     ap = argparse.ArgumentParser(prog="sim", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--task", default="P-B-G-P", choices=TASKS)
     ap.add_argument("--seed", type=int, default=0)
@@ -108,12 +115,6 @@ def main(argv: list[str] | None = None) -> int:
     if not args.speed > 0:
         print(f"sim: --speed must be > 0, got {args.speed}", file=sys.stderr)
         return 2
-    from fullperc_eval.sim.live import LiveServer
-    from fullperc_eval.sim.run import simulate
-    from fullperc_eval.sim.scene import build_scene
-    from fullperc_eval.sim.tasks import TaskPlanningError, plan_task
-    from fullperc_fusion.layout import load_layout
-
     t0 = time.perf_counter()
     layout = load_layout(args.layout) if args.layout else None
     scene = build_scene(args.seed, config=args.scene, layout=layout)
@@ -131,18 +132,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.save_npz:
         run.save_npz(args.save_npz)
     if args.calibration_out:
-        from fullperc_eval.dataset import sim_calibration
-        from fullperc_eval.ground_truth import save_calibration
-
         save_calibration(args.calibration_out, sim_calibration(run))
     if args.no_serve:
         return 0
 
-    frustum = scene.layout.frustum
     server = LiveServer(run, speed=args.speed, omc_addr=args.omc_addr, diana_addr=args.diana_addr,
                         vega_port=None if args.vega_port < 0 else args.vega_port, vega_host=args.vega_host,
-                        device_clock_offset_ns=args.device_clock_offset_ns,
-                        frustum=lambda p: frustum.contains(np.asarray(p, dtype=float) / 1000.0))
+                        device_clock_offset_ns=args.device_clock_offset_ns, frustum=scene.layout.frustum)
 
     def _stop(*_):
         server.stop()

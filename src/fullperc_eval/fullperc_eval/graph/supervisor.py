@@ -24,7 +24,6 @@ SIGKILL after another ``grace``.
 
 from __future__ import annotations
 
-import argparse
 import os
 import re
 import shutil
@@ -285,37 +284,3 @@ def run_graph(path: str | Path, values: dict[str, str], log_dir: Path, root: Pat
             signal.signal(s, h)
     sup.say("supervisor", "all processes stopped: " + ", ".join(f"{k}={v}" for k, v in codes.items()))
     return 1 if sup.failed else 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="supervisor", description=__doc__.split("\n\n")[0])
-    sub = ap.add_subparsers(dest="cmd", required=True)
-    r = sub.add_parser("run", help="run a graph file")
-    r.add_argument("graph")
-    r.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
-    r.add_argument("--logs", default="log/supervisor")
-    r.add_argument("--timeout", type=float, default=None, help="shut down after S seconds")
-    d = sub.add_parser("demo", help="the simulated-OR demo (see README)")
-    d.add_argument("--task", default="P-B-G-P")
-    d.add_argument("--seed", default="0")
-    d.add_argument("--out", default="demo_out")
-    d.add_argument("--speed", default="1.0", help="simulation speed (1.0 = real time)")
-    d.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
-                   help="graph variable, e.g. vega_outage=8:14 (switch the Vega off from task second 8 to 14)")
-    args = ap.parse_args(argv)
-    root = Path(os.environ.get("FULLPERC_ROOT", os.getcwd()))
-    try:
-        if args.cmd == "run":
-            values = dict(kv.split("=", 1) for kv in args.set)
-            return run_graph(args.graph, values, Path(args.logs), root, args.timeout)
-        from .demo import run_demo
-
-        return run_demo(task=args.task, seed=args.seed, out=Path(args.out), root=root, speed=args.speed,
-                        extra=dict(kv.split("=", 1) for kv in args.set))
-    except GraphError as e:
-        print(f"supervisor: {e}", file=sys.stderr)
-        return 2
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -2,12 +2,12 @@
 
 Subscribes with raw subscriptions (the CDR bytes exactly as they came off the wire) to the chosen
 topics, or to every topic found by polling the graph (``--all``), and writes them with
-:class:`fullperc_eval.bag_io.BagWriter` (MCAP by default, sqlite3 optional). The bag time of a
+:class:`.writer.BagWriter` (MCAP by default, sqlite3 optional). The bag time of a
 message is its DDS reception time, the MCAP publish time its source time, as in rosbag2.
 
 Durability: the writer finishes its chunk / commits and refreshes metadata.yaml every
 ``--flush-interval`` seconds (0.5 s default), so a killed recorder loses at most about that much;
-``python -m fullperc_eval.bag_io reindex BAG`` then makes the bag complete again. SIGINT and
+``python -m fullperc_eval.bag reindex BAG`` then makes the bag complete again. SIGINT and
 SIGTERM drain what DDS already delivered and close the bag cleanly.
 
 Deviations from rosbag2, on purpose: subscriptions use keep_last ``--subscription-depth``
@@ -18,7 +18,6 @@ nothing; no services/``--use-sim-time``/snapshot mode; ``--duration`` stops afte
 from __future__ import annotations
 
 import argparse
-import importlib
 import re
 import signal
 import sys
@@ -27,23 +26,18 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from fullperc_eval import bag_io
-from fullperc_eval.bag_io import BagError
+import yaml
+
+from .errors import BagError
+from .metadata import STORAGES
+from .qos import offered_qos_dict, rclpy_qos_from_dict
+from .types import get_message, resolve_definition
+from .writer import DEFAULT_FLUSH_INTERVAL, BagWriter
 
 NODE_NAME = "rosbag2_recorder"
 
 
-# ---------------------------------------------------------------- helpers shared with bag_play
-
-def get_message(msgtype: str):
-    """Python class of 'pkg/msg/Name' (what rosidl_runtime_py.get_message does; not on PyPI)."""
-    try:
-        pkg, kind, name = bag_io.split_type(msgtype)
-        return getattr(importlib.import_module(f"{pkg}.{kind}"), name)
-    except (BagError, ImportError, AttributeError) as err:
-        raise BagError(f"unknown message type {msgtype!r}: cannot import its Python class "
-                       f"({type(err).__name__}: {err})") from None
-
+# ---------------------------------------------------------------- helpers shared with play
 
 def fully_qualified(topic: str) -> str:
     topic = topic.strip()
@@ -54,68 +48,10 @@ def is_hidden(topic: str) -> bool:
     return any(tok.startswith("_") for tok in topic.split("/") if tok)
 
 
-def rclpy_qos_from_dict(d: dict[str, Any], depth_default: int = 10):
-    """rclpy QoSProfile from a v9 profile map / override entry (``ros2 bag`` YAML keys)."""
-    from rclpy.duration import Duration
-    from rclpy.qos import (
-        DurabilityPolicy,
-        HistoryPolicy,
-        LivelinessPolicy,
-        QoSProfile,
-        ReliabilityPolicy,
-    )
-
-    allowed = {"history", "depth", "reliability", "durability", "deadline", "lifespan", "liveliness",
-               "liveliness_lease_duration", "avoid_ros_namespace_conventions"}
-    unknown = set(d) - allowed
-    if unknown:
-        raise BagError(f"unknown QoS key(s) {sorted(unknown)} (allowed: {', '.join(sorted(allowed))})")
-
-    def pol(cls, key, default):
-        v = d.get(key, default)
-        try:
-            return cls.get_from_short_key(str(v)) if isinstance(v, str) else cls(int(v))
-        except (KeyError, ValueError) as err:
-            raise BagError(f"QoS {key}: invalid value {v!r}") from err
-
-    def dur(key):
-        v = d.get(key)
-        if v is None:
-            return Duration()
-        sec, nsec = int(v.get("sec", 0)), int(v.get("nsec", 0))
-        if sec < 0 or nsec < 0:
-            raise BagError(f"QoS {key}: negative duration {v!r}")
-        if (sec, nsec) == (bag_io.INFINITE_SEC, bag_io.INFINITE_NSEC):
-            return Duration(nanoseconds=0)  # infinite offers are requested as "unspecified"
-        return Duration(seconds=sec, nanoseconds=nsec)
-
-    history = pol(HistoryPolicy, "history", "keep_last")
-    if history == HistoryPolicy.UNKNOWN:  # a publisher cannot be created with UNKNOWN (reference §3.5)
-        history = HistoryPolicy.KEEP_LAST
-    depth = int(d.get("depth", depth_default) or depth_default)
-    if depth < 0:
-        raise BagError(f"QoS depth must be >= 0, got {depth}")
-    rel = pol(ReliabilityPolicy, "reliability", "reliable")
-    durab = pol(DurabilityPolicy, "durability", "volatile")
-    live = pol(LivelinessPolicy, "liveliness", "system_default")
-    if rel == ReliabilityPolicy.UNKNOWN:
-        rel = ReliabilityPolicy.RELIABLE
-    if durab == DurabilityPolicy.UNKNOWN:
-        durab = DurabilityPolicy.VOLATILE
-    if live == LivelinessPolicy.UNKNOWN:
-        live = LivelinessPolicy.SYSTEM_DEFAULT
-    return QoSProfile(history=history, depth=depth, reliability=rel, durability=durab, deadline=dur("deadline"),
-                      lifespan=dur("lifespan"), liveliness=live,
-                      liveliness_lease_duration=dur("liveliness_lease_duration"),
-                      avoid_ros_namespace_conventions=bool(d.get("avoid_ros_namespace_conventions", False)))
-
-
 def load_qos_overrides(path: str | None) -> dict[str, Any]:
     """``--qos-profile-overrides-path`` YAML: {topic: profile map} -> {topic: rclpy QoSProfile}."""
     if not path:
         return {}
-    import yaml
-
     try:
         data = yaml.safe_load(Path(path).read_text()) or {}
     except (OSError, yaml.YAMLError) as err:
@@ -131,13 +67,6 @@ def load_qos_overrides(path: str | None) -> dict[str, Any]:
         except BagError as err:
             raise BagError(f"QoS override for {topic!r}: {err}") from None
     return out
-
-
-def offered_qos_dict(q) -> dict[str, Any]:
-    """rclpy QoSProfile (from get_publishers_info_by_topic) -> metadata v9 profile map."""
-    return bag_io.make_qos(int(q.history), int(q.depth), int(q.reliability), int(q.durability),
-                           q.deadline.nanoseconds, q.lifespan.nanoseconds, int(q.liveliness),
-                           q.liveliness_lease_duration.nanoseconds, bool(q.avoid_ros_namespace_conventions))
 
 
 class StopFlag:
@@ -171,7 +100,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="record", description="Record ROS 2 topics into a rosbag2 bag "
                                  "(MCAP or sqlite3), like `ros2 bag record`.")
     ap.add_argument("-o", "--output", help="bag directory (must not exist); default rosbag2_<date>-<time>")
-    ap.add_argument("-s", "--storage", choices=bag_io.STORAGES, default="mcap", help="storage plugin (mcap)")
+    ap.add_argument("-s", "--storage", choices=STORAGES, default="mcap", help="storage plugin (mcap)")
     ap.add_argument("--topics", nargs="+", default=[], metavar="TOPIC", help="topics to record")
     ap.add_argument("topics_positional", nargs="*", metavar="TOPIC", help=argparse.SUPPRESS)
     ap.add_argument("-a", "--all", "--all-topics", dest="all", action="store_true",
@@ -195,7 +124,7 @@ def build_parser() -> argparse.ArgumentParser:
                     default="none", help="mcap: zstd_* compress the chunks")
     ap.add_argument("--custom-data", nargs="+", default=[], metavar="KEY=VALUE", help="stored in metadata.yaml")
     ap.add_argument("--node-name", default=NODE_NAME)
-    ap.add_argument("--flush-interval", type=float, default=bag_io.DEFAULT_FLUSH_INTERVAL, metavar="SEC",
+    ap.add_argument("--flush-interval", type=float, default=DEFAULT_FLUSH_INTERVAL, metavar="SEC",
                     help="write data and metadata.yaml at least this often; bounds loss on a crash (0.5)")
     ap.add_argument("--fsync", action="store_true", help="also fsync at each flush (power-loss safety)")
     ap.add_argument("--subscription-depth", type=int, default=1000, metavar="N",
@@ -206,7 +135,7 @@ def build_parser() -> argparse.ArgumentParser:
 class Recorder:
     """Topic discovery + raw subscriptions feeding a BagWriter (one node, single-threaded)."""
 
-    def __init__(self, node, writer: bag_io.BagWriter, args: argparse.Namespace) -> None:
+    def __init__(self, node, writer: BagWriter, args: argparse.Namespace) -> None:
         self.node = node
         self.writer = writer
         self.args = args
@@ -258,7 +187,7 @@ class Recorder:
 
         try:
             cls = get_message(msgtype)
-            encoding, msgdef, type_hash = bag_io.resolve_definition(msgtype)
+            encoding, msgdef, type_hash = resolve_definition(msgtype)
             # rosbag2: the endpoints' hash if they all agree, "" if they disagree.
             hashes = {str(p.topic_type_hash) for p in pubs}
             if len(hashes) > 1:
@@ -341,7 +270,7 @@ def main(argv: list[str] | None = None) -> int:
         custom[k] = v
     try:
         load_qos_overrides(args.qos_profile_overrides_path)  # fail before touching the disk
-        writer = bag_io.BagWriter(
+        writer = BagWriter(
             args.output or default_output(), storage=args.storage, flush_interval=args.flush_interval,
             fsync=args.fsync, max_bag_size=args.max_bag_size, max_bag_duration=int(args.max_bag_duration * 1e9),
             compression="zstd" if args.storage_preset_profile.startswith("zstd") else "", custom_data=custom)
@@ -352,7 +281,7 @@ def main(argv: list[str] | None = None) -> int:
     return _run(writer, args, ros_args)
 
 
-def _run(writer: bag_io.BagWriter, args: argparse.Namespace, ros_args: list[str]) -> int:
+def _run(writer: BagWriter, args: argparse.Namespace, ros_args: list[str]) -> int:
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions

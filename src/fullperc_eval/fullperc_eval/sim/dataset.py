@@ -1,6 +1,6 @@
 """``make dataset``: the six evaluation tasks simulated offline and written as rosbag2 (MCAP) bags.
 
-    python -m fullperc_eval.dataset --out bags [--tasks G-B-P P-G-B ...] [--seed 0]
+    python -m fullperc_eval.sim.dataset --out bags [--tasks G-B-P P-G-B ...] [--seed 0]
 
 Each task becomes ``<out>/<task>/`` holding what a ``record`` of the live system would hold -- the driver
 topics with the drivers' types, frames, units and stamps -- plus the calibration the evaluator needs:
@@ -11,7 +11,7 @@ topics with the drivers' types, frames, units and stamps -- plus the calibration
 * ``/diana/joint_states`` (JointState, ``joint1..joint7``, frame ``diana_base``) and ``/diana/flange_pose``
   (PoseStamped, FK of the nominal DH table, frame ``diana_base``);
 * ``calibration.yaml``: T_base_diana_base, T_flange_tool, T_omc_base -- the simulator's true values
-  (see :mod:`fullperc_eval.ground_truth` for why the evaluator does not estimate them);
+  (see :mod:`fullperc_eval.evaluation.ground_truth` for why the evaluator does not estimate them);
 * ``metadata.yaml`` ``custom_data``: generator, task, seed (the evaluator takes the task name from here).
 
 Stamps: ``header.stamp`` is the acquisition time on the host clock (simulator time + a fixed epoch, so the
@@ -34,13 +34,22 @@ from pathlib import Path
 
 import numpy as np
 
-from fullperc_common.transforms import T_to_pq, inv_T
+from fullperc_common.transforms import T_to_pq, inv_T, make_T
+from fullperc_drivers.diana_kinematics import JOINT_NAMES, DianaKinematics
+from fullperc_eval.bag.calibration import Calibration, save_calibration
+from fullperc_eval.bag.errors import BagError
+from fullperc_eval.bag.metadata import load_metadata
+from fullperc_eval.bag.qos import make_qos
+from fullperc_eval.bag.writer import BagWriter
+from fullperc_fusion.layout import default_layout_path, load_layout
 
-from .bag_io import BagError, BagWriter, load_metadata, make_qos
-from .ground_truth import Calibration, save_calibration
+from .runner import run_task
+from .tasks import TASKS
 
 EPOCH_NS = 1_700_000_000_000_000_000   # 2023-11-14T22:13:20Z: fixed "host clock" start of every bag
 DIANA_LATENCY_NS = 1_000_000           # joint state push -> host (UDP on the robot LAN); an assumption
+# The generator's name as recorded in every bag it writes (metadata custom_data, calibration source): the
+# committed sample bags carry it, and generate() replaces only bags with this name; not a module path.
 GENERATOR = "fullperc_eval.dataset"
 PORT_STATUS_OK = 0x31                  # NDI PSTAT: occupied | initialized | enabled (what the Vega reports)
 
@@ -96,8 +105,6 @@ def _types(ts):
 
 def write_bag(path: str | Path, content: BagContent, *, compression: str = "zstd") -> Path:
     """Write ``content`` as a rosbag2 MCAP bag directory at ``path`` (must not exist) + calibration.yaml."""
-    from fullperc_drivers.diana_kinematics import JOINT_NAMES, DianaKinematics
-
     path = Path(path)
     w = BagWriter(path, storage="mcap", compression=compression, custom_data=content.custom_data,
                   flush_interval=3600.0)
@@ -187,15 +194,10 @@ def synthetic_content(duration_s: float = 10.0, *, omc_offset=(0.003, 0.0, 0.0),
     arm 100 Hz. Returns the content and the truth: ``t_omc_ns`` and ``p_base_true`` (F, 3) at the OMC frames,
     ``offset_base`` (F, 3) -- the injected error expressed in ``base``.
     """
-    from fullperc_drivers.diana_kinematics import DianaKinematics
-    from fullperc_fusion.layout import default_layout_path, load_layout
-
     rng = np.random.default_rng(seed)
     lay = load_layout(default_layout_path())
     T_omc_ots = np.asarray(lay.ots.T_omc_ots, float)
     q_base = np.array([0.0, -0.7071067811865476, 0.0, 0.7071067811865476])
-    from fullperc_common.transforms import make_T
-
     T_omc_base = make_T([-0.6, 0.35, 1.10], q_base)
     T_omc_diana_base = make_T([0.2, -0.65, 0.8], [0, 0, 0, 1])
     T_flange_tool = make_T([0, 0, -0.06], [1, 0, 0, 0])
@@ -267,7 +269,7 @@ def device_precision(b: BodyArrays, device: str) -> BodyArrays:
 
 
 def content_from_sim(run, epoch_ns: int = EPOCH_NS, wire_precision: bool = True) -> BagContent:
-    """The bag content of one :class:`fullperc_eval.sim.run.SimRun` (simulator time + ``epoch_ns``).
+    """The bag content of one :class:`.run.SimRun` (simulator time + ``epoch_ns``).
 
     ``wire_precision``: poses as the drivers publish them from the devices' float32 replies
     (:func:`device_precision`); False keeps the simulator's float64 values.
@@ -307,8 +309,6 @@ def _is_ours(bagdir: Path) -> bool:
 
 def generate(out: str | Path, tasks, seed: int = 0, log=print) -> list[Path]:
     """Simulate ``tasks`` and write one bag per task into ``out``; replaces bags this generator wrote before."""
-    from .sim.run import run_task
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     written = []
@@ -335,9 +335,7 @@ def generate(out: str | Path, tasks, seed: int = 0, log=print) -> list[Path]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from .sim.tasks import TASKS
-
-    ap = argparse.ArgumentParser(prog="python -m fullperc_eval.dataset", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m fullperc_eval.sim.dataset", description=__doc__.split("\n")[0])
     ap.add_argument("--out", default="bags", help="directory for the bags (default: bags)")
     ap.add_argument("--tasks", nargs="+", default=list(TASKS), help=f"tasks to generate (default: {' '.join(TASKS)})")
     ap.add_argument("--seed", type=int, default=0, help="simulator seed (default 0)")

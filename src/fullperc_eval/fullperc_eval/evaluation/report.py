@@ -18,9 +18,14 @@ from typing import Any
 
 import numpy as np
 
+from fullperc_common.runs import runs
+
+from .config import METHODS
+
 REGION_COLORS = {1: ("#2ca02c", "BVV"), 2: ("#1f77b4", "GVV"), 3: ("#d62728", "PVV")}
-METHOD_STYLE = {"omc": ("#7f7f7f", "OMC"), "kf": ("#ff7f0e", "KF"), "bkf": ("#bcbd22", "BKF"),
-                "ckf": ("#17becf", "CKF"), "cbkf": ("#9467bd", "CBKF")}
+# (colour, legend name) per method, in the order of METHODS (omc, kf, bkf, ckf, cbkf)
+METHOD_STYLE = {m: (c, m.upper()) for m, c in zip(
+    METHODS, ("#7f7f7f", "#ff7f0e", "#bcbd22", "#17becf", "#9467bd"), strict=True)}
 
 
 def _plt():
@@ -33,8 +38,6 @@ def _plt():
 
 
 def _shade(ax, t_s: np.ndarray, labels: np.ndarray) -> None:
-    from .evaluate import runs
-
     for lab, a, b in runs(labels):
         color, _ = REGION_COLORS.get(lab, ("#ffffff", "?"))
         t1 = t_s[b + 1] if b + 1 < len(t_s) else t_s[b]

@@ -1,7 +1,9 @@
 """`echo` and `pub`: the parts of `ros2 topic echo/pub` we need, for systems without the ros2 CLI.
 
 The PyPI wheels ship no ros2cli and no rosidl_runtime_py, so this carries the small pieces:
-type lookup by name, message <-> plain dict, and a wait for discovery before publishing.
+type lookup by name (:func:`.types.get_message`, the one the recorder and the player use), message <->
+plain dict, and a wait for discovery before publishing. It lives in :mod:`fullperc_eval.bag` for that shared
+type lookup.
 
     echo /fullperc/tool/pose [--type geometry_msgs/msg/PoseStamped] [--count N] [--timeout S]
     pub  /topic fullperc_msgs/msg/TrackingQuality '{"body": "tool", "visible": true}' [--rate HZ] [--count N]
@@ -12,27 +14,15 @@ type lookup by name, message <-> plain dict, and a wait for discovery before pub
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 import sys
 import time
 from typing import Any
 
+from .errors import BagError
+from .types import get_message
+
 SCALARS = (bool, int, float, str)
-
-
-def get_message(type_name: str):
-    """Message class from 'pkg/msg/Type' (or 'pkg/Type'); raises ValueError naming the type."""
-    parts = type_name.split("/")
-    if len(parts) == 2:
-        parts = [parts[0], "msg", parts[1]]
-    if len(parts) != 3 or not all(parts):
-        raise ValueError(f"message type must look like pkg/msg/Type, got {type_name!r}")
-    try:
-        mod = importlib.import_module(f"{parts[0]}.{parts[1]}")
-        return getattr(mod, parts[2])
-    except (ImportError, AttributeError) as e:
-        raise ValueError(f"unknown message type {type_name!r}: {e}") from e
 
 
 def to_dict(msg: Any) -> Any:
@@ -116,7 +106,7 @@ def echo_main(argv: list[str] | None = None) -> int:
                 return 1
             rclpy.spin_once(node, timeout_sec=0.1)
         return 0
-    except ValueError as e:
+    except (ValueError, BagError) as e:
         print(f"echo: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
@@ -147,7 +137,7 @@ def pub_main(argv: list[str] | None = None) -> int:
         if not isinstance(values, dict):
             raise ValueError("values must be a mapping")
         msg = fill(cls(), values)
-    except (ValueError, TypeError, AssertionError, yaml.YAMLError) as e:
+    except (ValueError, TypeError, AssertionError, BagError, yaml.YAMLError) as e:
         print(f"pub: {e}", file=sys.stderr)
         return 2
 

@@ -1,0 +1,128 @@
+"""Reading rosbag2 bags through rosbags' AnyReader, with every failure turned into a clear :class:`BagError`.
+
+Before opening, the bag is checked the way a user would want it explained: metadata.yaml present and valid,
+every storage file it lists present, every MCAP file complete (a recorder that was killed leaves one without
+footer; the error then names the command that recovers it).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from .errors import BagError
+from .metadata import METADATA_FILE, REINDEX_HINT, TopicInfo, load_metadata
+from .qos import parse_qos
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+@dataclass
+class BagMessage:
+    topic: str
+    msgtype: str
+    timestamp: int  # bag (receive) time, ns
+    data: bytes  # serialized CDR as recorded
+
+
+class BagReader:
+    """Read a rosbag2 bag through rosbags' AnyReader, with errors turned into clear BagErrors.
+
+    ``topics`` maps name -> TopicInfo (type, count, offered QoS in v9 form, type hash) from
+    metadata.yaml; :meth:`messages` yields :class:`BagMessage` in timestamp order.
+    """
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = Path(path)
+        self.info = load_metadata(self.path)
+        self.storage = str(self.info.get("storage_identifier", ""))
+        for rel in self.info.get("relative_file_paths") or []:
+            f = self.path / rel
+            if not f.is_file():
+                raise BagError(f"bag {str(self.path)!r}: file {rel!r} listed in {METADATA_FILE} is missing")
+            if self.storage == "mcap":
+                check_mcap_complete(f, self.path)
+        self.topics: dict[str, TopicInfo] = {}
+        for entry in self.info.get("topics_with_message_count") or []:
+            try:
+                tm = entry["topic_metadata"]
+                self.topics[tm["name"]] = TopicInfo(
+                    tm["name"], tm["type"], parse_qos(tm.get("offered_qos_profiles")),
+                    str(tm.get("type_description_hash", "") or ""), tm.get("serialization_format", "cdr"),
+                    count=int(entry.get("message_count", 0)))
+            except (KeyError, TypeError, ValueError) as err:
+                raise BagError(f"{self.path / METADATA_FILE}: malformed topic entry {entry!r} ({err})") from None
+        self._reader = None
+
+    def open(self) -> BagReader:
+        from rosbags.highlevel import AnyReader
+
+        try:
+            self._reader = AnyReader([self.path])
+            self._reader.open()
+        except Exception as err:  # noqa: BLE001 - rosbags raises many types for broken files
+            self._reader = None
+            raise BagError(f"cannot read bag {str(self.path)!r}: {type(err).__name__}: {err}") from None
+        return self
+
+    def __enter__(self) -> BagReader:
+        return self.open()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if self._reader is not None:
+            self._reader.close()
+            self._reader = None
+
+    @property
+    def start_time(self) -> int:
+        return int(self.info.get("starting_time", {}).get("nanoseconds_since_epoch", 0))
+
+    @property
+    def duration(self) -> int:
+        return int(self.info.get("duration", {}).get("nanoseconds", 0))
+
+    @property
+    def message_count(self) -> int:
+        return int(self.info.get("message_count", 0))
+
+    def messages(self, topics: Iterable[str] | None = None, start: int | None = None,
+                 stop: int | None = None) -> Iterator[BagMessage]:
+        """Messages of ``topics`` (all if None) with ``start <= timestamp < stop``, in time order."""
+        if self._reader is None:
+            self.open()
+        want = None if topics is None else set(topics)
+        conns = [c for c in self._reader.connections if want is None or c.topic in want]
+        try:
+            for conn, t, raw in self._reader.messages(connections=conns, start=start, stop=stop):
+                yield BagMessage(conn.topic, conn.msgtype, int(t), bytes(raw))
+        except BagError:
+            raise
+        except Exception as err:  # noqa: BLE001
+            raise BagError(f"bag {str(self.path)!r} is corrupt: {type(err).__name__}: {err}") from None
+
+    def deserialize(self, data: bytes, msgtype: str) -> Any:
+        """Decode with the definitions stored in the bag (no installed packages needed)."""
+        if self._reader is None:
+            self.open()
+        return self._reader.deserialize(data, msgtype)
+
+
+def check_mcap_complete(path: Path, bagdir: Path) -> None:
+    """BagError unless ``path`` starts and ends with the MCAP magic (a killed recorder leaves no footer)."""
+    with open(path, "rb") as f:
+        head = f.read(8)
+        if head != MCAP_MAGIC:
+            raise BagError(f"{path} is not an MCAP file (bad magic); the bag is corrupt")
+        f.seek(0, os.SEEK_END)
+        if f.tell() < 16:
+            raise BagError(f"{path} is truncated; the bag is corrupt")
+        f.seek(-8, os.SEEK_END)
+        if f.read(8) != MCAP_MAGIC:
+            raise BagError(f"{path} is incomplete (the recorder did not close it, e.g. it was killed); "
+                           f"recover it with: {REINDEX_HINT} {bagdir}")

@@ -1,0 +1,220 @@
+"""Metrics of one replay against the ground truth: the paper's Table 1 (MAE) and Table 2 (B->P segment).
+
+:func:`evaluate_bag` is the whole evaluation of one bag: configuration (:mod:`.config`), replay
+(:mod:`.replay`), ground truth (:mod:`.ground_truth`) and these metrics. The error of a method is
+|p_method - p_true| in ``base`` at every pose it output; the true path is labelled with the view-margin model
+(:func:`fullperc_fusion.margin.label_points`, layout in the ``omc`` frame) on the joint-state time grid.
+
+Definitions (documented in the README, pinned by tests):
+
+* **MAE** of a method = mean Euclidean position error [mm] over *every pose the method outputs* (what
+  ``/fullperc/<target>/<filter>/pose`` would carry). The pass-through only outputs when the OMC sees the
+  target; the filters also output on OTS-only items. ``mae_common_mm`` is the same mean over the stamps at
+  which *all* methods output, for a like-for-like comparison.
+* **Segments**: the label sequence on the joint-state grid is split into runs of equal labels. The segment
+  X->Y of two consecutive runs starts at the *last* sample of the X run and ends at the last sample of the
+  following Y run (both inclusive): it covers the moment of leaving X and the whole stay in Y. The paper's
+  Table 2 segment is the first **B->P** segment (a BVV run directly followed by a PVV run); a path that goes
+  B->G->P has no B->P segment (``b_to_p`` is null). Its ``max_mm`` / ``median_mm`` are over the errors of the
+  poses each method output inside the segment.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fullperc_common.runs import runs
+from fullperc_common.transforms import make_T, mean_T
+from fullperc_eval.bag.calibration import Calibration, CalibrationError, load_calibration
+from fullperc_eval.bag.errors import BagError
+from fullperc_eval.bag.metadata import load_metadata
+from fullperc_fusion.layout import LayoutError, default_layout_path, load_layout
+from fullperc_fusion.margin import label_points
+from fullperc_fusion.pipeline import TargetConfig
+
+from .config import METHODS, EvaluationError, replay_config
+from .ground_truth import GroundTruth
+from .replay import Replay, live_replay, replay
+
+LETTER = {1: "B", 2: "G", 3: "P"}
+
+
+def transition_segments(t_ns: np.ndarray, labels: np.ndarray) -> list[dict[str, Any]]:
+    """Every X->Y segment of consecutive label runs: [last sample of X, last sample of Y] (see module doc)."""
+    r = runs(labels)
+    out = []
+    for (la, _, ea), (lb, _, eb) in zip(r, r[1:], strict=False):
+        out.append({"from": LETTER.get(la, str(la)), "to": LETTER.get(lb, str(lb)),
+                    "t0_ns": int(t_ns[ea]), "t1_ns": int(t_ns[eb])})
+    return out
+
+
+def _finite_pose(pq) -> bool:
+    p, q = pq
+    return bool(np.all(np.isfinite(p)) and np.all(np.isfinite(q)) and np.linalg.norm(q) > 0.5)
+
+
+def _stats(e_mm: np.ndarray) -> dict[str, float | int | None]:
+    if e_mm.size == 0:
+        return {"n": 0, "mae": None, "rmse": None, "max": None, "median": None, "min": None, "q1": None, "q3": None,
+                "p95": None}
+    q1, med, q3, p95 = np.percentile(e_mm, [25, 50, 75, 95])
+    return {"n": int(e_mm.size), "mae": float(e_mm.mean()), "rmse": float(np.sqrt(np.mean(e_mm**2))),
+            "max": float(e_mm.max()), "median": float(med), "min": float(e_mm.min()), "q1": float(q1),
+            "q3": float(q3), "p95": float(p95)}
+
+
+@dataclass
+class Evaluation:
+    result: dict[str, Any]                 # everything that goes into the JSON
+    series: dict[str, Any]                 # arrays for the plots
+
+
+def evaluate_replay(rep: Replay, calibration: Calibration, layout, kinematics=None) -> Evaluation:
+    """Errors against the ground truth, region labels, Table 1 / Table 2 figures of one replay."""
+    try:
+        gt = GroundTruth(rep.joint_t_ns, rep.joint_q, calibration, kinematics)
+    except ValueError as e:
+        raise EvaluationError(f"{rep.bag}: {e}") from None
+    # region labels of the true path on the joint-state grid, in the layout (omc) frame
+    grid_t = gt.t_ns
+    P_grid, ok_grid = gt.position_base(grid_t)
+    warnings = list(rep.warnings)
+    if calibration.T_omc_base is not None:
+        T_omc_base, omc_base_source = calibration.T_omc_base, "calibration"
+    elif any(_finite_pose(p) for p in rep.omc_base_poses):
+        T_omc_base = mean_T([make_T(p, q / np.linalg.norm(q)) for p, q in rep.omc_base_poses if _finite_pose((p, q))])
+        omc_base_source = "mean of the recorded OMC base poses"
+    else:
+        raise EvaluationError(f"{rep.bag}: no T_omc_base in the calibration and no OMC base-marker poses in the "
+                              "bag: cannot place the path in the layout frame for the region labels")
+    P_omc = P_grid @ T_omc_base[:3, :3].T + T_omc_base[:3, 3]
+    labels, margin = label_points(layout, P_omc)
+    labels = np.asarray(labels, dtype=np.int64)
+    order = "-".join(LETTER.get(r[0], "?") for r in runs(labels))
+    if rep.task and set(rep.task.split("-")) <= set("BGP") and order != rep.task:
+        warnings.append(f"the margin model labels the recorded path {order}, the bag says task {rep.task}")
+
+    # errors per method at each output stamp
+    all_t = np.unique(np.concatenate([o["t_ns"] for o in rep.outputs.values()] + [np.zeros(0, np.int64)]))
+    P_true_all, ok_all = gt.position_base(all_t)
+    errors: dict[str, np.ndarray] = {}
+    valid: dict[str, np.ndarray] = {}
+    out_labels: dict[str, np.ndarray] = {}
+    for f, o in rep.outputs.items():
+        idx = np.searchsorted(all_t, o["t_ns"])
+        ok = ok_all[idx] if idx.size else np.zeros(0, bool)
+        e = np.full(len(idx), np.nan)
+        if idx.size:
+            e[ok] = np.linalg.norm(o["p"][ok] - P_true_all[idx[ok]], axis=1) * 1e3
+        errors[f], valid[f] = e, ok
+        gi = np.clip(np.searchsorted(grid_t, o["t_ns"], side="right") - 1, 0, len(grid_t) - 1)
+        out_labels[f] = labels[gi] if idx.size else np.zeros(0, np.int64)
+
+    methods = [m for m in METHODS if m in rep.outputs] + [m for m in rep.outputs if m not in METHODS]
+    per = {f: _stats(errors[f][valid[f]]) for f in methods}
+    common = None
+    for f in methods:
+        s = set(rep.outputs[f]["t_ns"][valid[f]].tolist())
+        common = s if common is None else common & s
+    common_t = np.array(sorted(common or ()), dtype=np.int64)
+    mae_common = {}
+    for f in methods:
+        sel = np.isin(rep.outputs[f]["t_ns"], common_t) & valid[f]
+        mae_common[f] = float(errors[f][sel].mean()) if sel.any() else None
+    by_region = {}
+    for lab, name in ((1, "BVV"), (2, "GVV"), (3, "PVV")):
+        by_region[name] = {f: (float(errors[f][valid[f] & (out_labels[f] == lab)].mean())
+                               if np.any(valid[f] & (out_labels[f] == lab)) else None) for f in methods}
+    segs = transition_segments(grid_t, labels)
+    seg_errors: list[dict[str, np.ndarray]] = []
+    for s in segs:
+        se = {}
+        for f in methods:
+            t = rep.outputs[f]["t_ns"]
+            sel = valid[f] & (t >= s["t0_ns"]) & (t <= s["t1_ns"])
+            se[f] = errors[f][sel]
+        seg_errors.append(se)
+        s["t0_s"] = (s["t0_ns"] - int(grid_t[0])) * 1e-9
+        s["t1_s"] = (s["t1_ns"] - int(grid_t[0])) * 1e-9
+        s["stats_mm"] = {f: _stats(se[f]) for f in methods}
+    b_to_p = None
+    bp_index = next((i for i, s in enumerate(segs) if s["from"] == "B" and s["to"] == "P"), None)
+    if bp_index is not None:
+        s = segs[bp_index]
+        b_to_p = {"t0_s": s["t0_s"], "t1_s": s["t1_s"],
+                  "n": {f: s["stats_mm"][f]["n"] for f in methods},
+                  "max_mm": {f: s["stats_mm"][f]["max"] for f in methods},
+                  "median_mm": {f: s["stats_mm"][f]["median"] for f in methods},
+                  "box_mm": {f: {k: s["stats_mm"][f][k] for k in ("min", "q1", "median", "q3", "max")}
+                             for f in methods}}
+    invalid = {f: int((~valid[f]).sum()) for f in methods}
+    if any(invalid.values()):
+        warnings.append(f"outputs without ground truth (outside the joint-state span or in a gap): {invalid}")
+    result = {
+        "task": rep.task,
+        "bag": str(rep.bag),
+        "mae_mm": {f: per[f]["mae"] for f in methods},
+        "b_to_p": b_to_p,
+        "mae_common_mm": mae_common,
+        "common_stamps": int(common_t.size),
+        "rmse_mm": {f: per[f]["rmse"] for f in methods},
+        "max_mm": {f: per[f]["max"] for f in methods},
+        "median_mm": {f: per[f]["median"] for f in methods},
+        "p95_mm": {f: per[f]["p95"] for f in methods},
+        "outputs": {f: per[f]["n"] for f in methods},
+        "mae_by_region_mm": by_region,
+        "regions": {"order": order,
+                    "fraction": {n: float(np.mean(labels == k)) for k, n in ((1, "BVV"), (2, "GVV"), (3, "PVV"))},
+                    "grid": "joint-state stamps", "T_omc_base": omc_base_source},
+        "segments": [{k: v for k, v in s.items() if k not in ("t0_ns", "t1_ns")} for s in segs],
+        "duration_s": float((grid_t[-1] - grid_t[0]) * 1e-9),
+        "messages": rep.messages,
+        "topic_counts": rep.counts,
+        "pipeline": rep.pipeline_stats,
+        "calibration_source": calibration.source,
+        "warnings": warnings,
+    }
+    series = {"grid_t_ns": grid_t, "grid_p": P_grid, "grid_ok": ok_grid, "labels": labels,
+              "margin_deg": np.asarray(margin.margin_deg), "outputs": rep.outputs, "errors": errors, "valid": valid,
+              "segments": segs, "seg_errors": seg_errors, "b_to_p_index": bp_index, "methods": methods}
+    return Evaluation(result, series)
+
+
+def evaluate_bag(bag: str | Path, *, calibration: str | Path | None = None, layout: str | Path | None = None,
+                 fusion_config: str | Path | None = None, target: str = "tool", progress: bool = True,
+                 config: TargetConfig | None = None, live: bool = False) -> Evaluation:
+    """Replay + metrics for one bag; ``config`` overrides the fusion config file (tests, benchmarks).
+
+    ``live``: evaluate the fused poses recorded from ``fusion_node`` (:func:`live_replay`) instead.
+    """
+    try:
+        load_metadata(Path(bag))          # the bag itself first: its problems are the likeliest
+    except BagError as e:
+        raise EvaluationError(str(e)) from None
+    flat: dict[str, Any] = {"idle_flush": 0.5}
+    if config is None:
+        config, flat = replay_config(fusion_config, target)
+    try:
+        cal = load_calibration(calibration if calibration is not None else bag)
+    except CalibrationError as e:
+        raise EvaluationError(str(e)) from None
+    try:
+        lay = load_layout(layout if layout is not None else default_layout_path())
+    except (LayoutError, FileNotFoundError) as e:
+        raise EvaluationError(f"layout: {e}") from None
+    if live:
+        rep = live_replay(bag, target=target, primary=str(flat.get("filter", "cbkf")))
+    else:
+        rep = replay(bag, config, idle_flush_s=float(flat.get("idle_flush", 0.5)), progress=progress)
+    ev = evaluate_replay(rep, cal, lay)
+    ev.result["config"] = {"fusion_config": flat.get("_source", "<given>"), "layout": str(lay.source),
+                           "filter_params": {k: v for k, v in vars(config.params).items()},
+                           "slop_s": config.slop_ns * 1e-9, "reorder_delay_s": config.delay_ns * 1e-9,
+                           "local_chain": config.chain.local_chain, "init_samples": config.chain.init_samples}
+    ev.result["config"]["filter_params"]["shrink_blocks"] = list(config.params.shrink_blocks)
+    return ev

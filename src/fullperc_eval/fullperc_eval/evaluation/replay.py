@@ -1,0 +1,256 @@
+"""Replay of one bag: the raw driver topics through the fusion pipeline the way ``fusion_node`` runs it.
+
+:func:`replay` reads the raw driver topics (``/omc/<body>/pose``, ``/ots/<tool>/pose``, ``/diana/joint_states``)
+with :class:`fullperc_eval.bag.reader.BagReader`, in bag (receive) order, and feeds them into one
+:class:`fullperc_fusion.pipeline.TargetPipeline` running every method side by side, pushing and polling like the
+node does in its default ``clock: stamps`` mode (including its idle flush, emulated on bag time), so offline and
+live give the same poses. :func:`live_replay` instead reads the fused poses ``fusion_node`` published live.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fullperc_eval.bag.errors import BagError
+from fullperc_eval.bag.reader import BagReader
+from fullperc_fusion.pipeline import TargetConfig, TargetPipeline
+
+from .config import METHODS, EvaluationError
+
+POSE_TYPE = "geometry_msgs/msg/PoseStamped"
+JOINT_TYPE = "sensor_msgs/msg/JointState"
+JOINT_TOPIC = "/diana/joint_states"
+PROGRESS_EVERY_S = 2.0
+
+
+@dataclass
+class Outputs:
+    """What one method output over the bag (base frame, SI)."""
+
+    t_ns: list[int] = field(default_factory=list)
+    p: list[np.ndarray] = field(default_factory=list)
+    sources: list[int] = field(default_factory=list)
+    hop: list[bool] = field(default_factory=list)
+    bias: list[np.ndarray] = field(default_factory=list)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        n = len(self.t_ns)
+        return {"t_ns": np.asarray(self.t_ns, dtype=np.int64),
+                "p": np.asarray(self.p, dtype=float).reshape(n, 3),
+                "sources": np.asarray(self.sources, dtype=np.int64),
+                "hop": np.asarray(self.hop, dtype=bool),
+                "bias": np.asarray(self.bias, dtype=float).reshape(n, 3)}
+
+
+@dataclass
+class Replay:
+    """Everything the replay of one bag produced (input to the metrics and the report)."""
+
+    bag: Path
+    task: str
+    start_ns: int
+    outputs: dict[str, dict[str, np.ndarray]]
+    joint_t_ns: np.ndarray
+    joint_q: np.ndarray
+    omc_base_poses: list[tuple[np.ndarray, np.ndarray]]   # raw (p, q) of the OMC base marker
+    counts: dict[str, int]
+    pipeline_stats: dict[str, Any]
+    warnings: list[str]
+    messages: int
+    seconds: float
+
+
+def _stamp_ns(header) -> int:
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
+def _task_name(reader: BagReader) -> str:
+    cd = reader.info.get("custom_data") or {}
+    if isinstance(cd, dict) and cd.get("task"):
+        return str(cd["task"])
+    return reader.path.name
+
+
+def replay(bag: str | Path, config: TargetConfig, idle_flush_s: float = 0.5, progress: bool = True) -> Replay:
+    """Run the pipeline over the raw measurements of ``bag`` the way fusion_node would have."""
+    t_start = time.perf_counter()
+    try:
+        reader = BagReader(bag)
+    except BagError as e:
+        raise EvaluationError(str(e)) from None
+    c = config.chain
+    omc_topics = {f"/omc/{b}/pose": b for b in dict.fromkeys((c.omc_target, c.omc_base, c.omc_rig))}
+    ots_topics = {f"/ots/{b}/pose": b for b in dict.fromkeys((c.ots_target, c.ots_base))}
+    wanted = {**{t: POSE_TYPE for t in (*omc_topics, *ots_topics)}, JOINT_TOPIC: JOINT_TYPE}
+    warnings: list[str] = []
+    for topic, typ in wanted.items():
+        info = reader.topics.get(topic)
+        if info is not None and info.msgtype != typ:
+            raise EvaluationError(f"bag {str(reader.path)!r}: topic {topic} has type {info.msgtype}, expected {typ}")
+    if JOINT_TOPIC not in reader.topics or reader.topics[JOINT_TOPIC].count == 0:
+        raise EvaluationError(f"bag {str(reader.path)!r} has no {JOINT_TOPIC} messages: no ground truth to compare "
+                              "with (record the diana_state node too)")
+    target_omc = f"/omc/{c.omc_target}/pose"
+    if target_omc not in reader.topics or reader.topics[target_omc].count == 0:
+        raise EvaluationError(f"bag {str(reader.path)!r} has no {target_omc} messages: nothing to evaluate")
+    for t in ots_topics:
+        if t not in reader.topics or reader.topics[t].count == 0:
+            warnings.append(f"no {t} messages in the bag")
+    present = [t for t in wanted if t in reader.topics]
+    total = sum(reader.topics[t].count for t in present)
+
+    pipe = TargetPipeline(config)
+    outs = {f: Outputs() for f in config.filters}
+    joint_t: list[int] = []
+    joint_q: list[np.ndarray] = []
+    base_poses: list[np.ndarray] = []
+    counts = {t: 0 for t in present}
+    frames = {"omc": None, "ots": None}
+    idle_ns = int(idle_flush_s * 1e9)
+    last_target_recv: int | None = None
+    joint_names: list[str] | None = None
+    n = 0
+    last_print = time.monotonic()
+
+    def take(items) -> None:
+        for o in items:
+            r = outs[o.filter]
+            r.t_ns.append(o.t_ns)
+            r.p.append(o.p)
+            r.sources.append(o.sources)
+            r.hop.append(o.hop)
+            r.bias.append(o.bias)
+
+    try:
+        reader.open()
+        for m in reader.messages(present):
+            n += 1
+            counts[m.topic] += 1
+            try:
+                msg = reader.deserialize(m.data, m.msgtype)
+            except Exception as e:  # noqa: BLE001 - rosbags raises many types for bad CDR
+                raise EvaluationError(f"bag {str(reader.path)!r}: message {counts[m.topic]} of {m.topic} cannot be "
+                                      f"decoded as {m.msgtype} ({type(e).__name__}: {e})") from None
+            if m.topic == JOINT_TOPIC:
+                names = list(msg.name)
+                if joint_names is None:
+                    joint_names = names
+                q = np.asarray(msg.position, dtype=float)
+                if names and names != joint_names:
+                    raise EvaluationError(f"{JOINT_TOPIC}: joint names changed from {joint_names} to {names}")
+                if q.shape != (7,):
+                    raise EvaluationError(f"{JOINT_TOPIC}: expected 7 joint positions, got {q.shape[0]}")
+                joint_t.append(_stamp_ns(msg.header))
+                joint_q.append(q)
+                continue
+            t_ns = _stamp_ns(msg.header)
+            pp = msg.pose.position
+            qq = msg.pose.orientation
+            pose = (np.array([pp.x, pp.y, pp.z]), np.array([qq.x, qq.y, qq.z, qq.w]))
+            dev = "omc" if m.topic in omc_topics else "ots"
+            if frames[dev] is None:
+                frames[dev] = msg.header.frame_id
+                if msg.header.frame_id != dev:
+                    warnings.append(f"{m.topic}: frame_id '{msg.header.frame_id}', expected '{dev}'")
+            is_target = m.topic == target_omc or m.topic == f"/ots/{c.ots_target}/pose"
+            if is_target:
+                # fusion_node's idle flush: no target sample for idle_flush seconds -> process everything pending
+                if last_target_recv is not None and pipe.sync.pending and m.timestamp - last_target_recv > idle_ns:
+                    take(pipe.flush())
+                last_target_recv = m.timestamp
+            if dev == "omc":
+                body = omc_topics[m.topic]
+                pipe.push_omc(body, t_ns, pose)
+                if body == c.omc_base:
+                    base_poses.append(pose)
+            else:
+                pipe.push_ots(ots_topics[m.topic], t_ns, pose)
+            take(pipe.poll())
+            if progress and time.monotonic() - last_print >= PROGRESS_EVERY_S:
+                last_print = time.monotonic()
+                print(f"  {reader.path.name}: {n}/{total} messages ({100.0 * n / max(total, 1):.0f} %)",
+                      file=sys.stderr, flush=True)
+        take(pipe.flush())
+    except BagError as e:
+        raise EvaluationError(str(e)) from None
+    finally:
+        reader.close()
+    if len(joint_t) < 2:
+        raise EvaluationError(f"bag {str(reader.path)!r}: fewer than 2 joint states; no ground truth")
+    if joint_names and len(joint_names) == 7:
+        from fullperc_drivers.diana_kinematics import JOINT_NAMES
+
+        if joint_names != list(JOINT_NAMES):
+            raise EvaluationError(f"{JOINT_TOPIC}: joint names {joint_names}, expected {list(JOINT_NAMES)}")
+    stats = pipe.stats()
+    stats = {k: (v if isinstance(v, int | float | str | bool) else str(v)) for k, v in stats.items()}
+    for key, why in pipe.problems.items():
+        warnings.append(f"pipeline {key} ({pipe.counts[key]}x): {why}")
+    return Replay(bag=reader.path, task=_task_name(reader), start_ns=reader.start_time,
+                  outputs={f: o.arrays() for f, o in outs.items()}, joint_t_ns=np.asarray(joint_t, np.int64),
+                  joint_q=np.asarray(joint_q, float), omc_base_poses=base_poses, counts=counts,
+                  pipeline_stats=stats, warnings=warnings, messages=n, seconds=time.perf_counter() - t_start)
+
+
+def live_replay(bag: str | Path, target: str = "tool", primary: str = "cbkf", base_body: str = "base") -> Replay:
+    """The fused poses that ``fusion_node`` published live and ``record`` stored, as a :class:`Replay`.
+
+    ``--live`` evaluates these instead of re-running the filters, so a recording of the live graph can be
+    compared with the offline replay of its own raw measurements (the demo and the system test do).
+    Method ``f`` is read from ``/fullperc/<target>/<f>/pose``; the primary filter also from
+    ``/fullperc/<target>/pose``. Sources, hop flags and biases are not in the pose topics (zeros here).
+    """
+    t_start = time.perf_counter()
+    try:
+        reader = BagReader(bag)
+    except BagError as e:
+        raise EvaluationError(str(e)) from None
+    topics = {f"/fullperc/{target}/{f}/pose": f for f in METHODS}
+    if f"/fullperc/{target}/{primary}/pose" not in reader.topics:
+        topics[f"/fullperc/{target}/pose"] = primary
+    present = [t for t in (*topics, JOINT_TOPIC, f"/omc/{base_body}/pose") if t in reader.topics]
+    if not any(t in reader.topics for t in topics):
+        raise EvaluationError(f"bag {str(reader.path)!r} holds no fused poses /fullperc/{target}/.../pose "
+                              "(was fusion_node recorded?)")
+    outs = {f: Outputs() for f in dict.fromkeys(topics[t] for t in topics if t in reader.topics)}
+    joint_t: list[int] = []
+    joint_q: list[np.ndarray] = []
+    base_poses: list[tuple[np.ndarray, np.ndarray]] = []
+    counts = {t: 0 for t in present}
+    try:
+        reader.open()
+        for m in reader.messages(present):
+            counts[m.topic] += 1
+            msg = reader.deserialize(m.data, m.msgtype)
+            if m.topic == JOINT_TOPIC:
+                joint_t.append(_stamp_ns(msg.header))
+                joint_q.append(np.asarray(msg.position, dtype=float))
+                continue
+            pp, qq = msg.pose.position, msg.pose.orientation
+            p = np.array([pp.x, pp.y, pp.z])
+            if m.topic in topics:
+                o = outs[topics[m.topic]]
+                o.t_ns.append(_stamp_ns(msg.header))
+                o.p.append(p)
+                o.sources.append(0)
+                o.hop.append(False)
+                o.bias.append(np.zeros(3))
+            else:
+                base_poses.append((p, np.array([qq.x, qq.y, qq.z, qq.w])))
+    except BagError as e:
+        raise EvaluationError(str(e)) from None
+    finally:
+        reader.close()
+    if len(joint_t) < 2:
+        raise EvaluationError(f"bag {str(reader.path)!r}: fewer than 2 joint states; no ground truth")
+    return Replay(bag=reader.path, task=_task_name(reader), start_ns=reader.start_time,
+                  outputs={f: o.arrays() for f, o in outs.items()}, joint_t_ns=np.asarray(joint_t, np.int64),
+                  joint_q=np.asarray(joint_q, float), omc_base_poses=base_poses, counts=counts,
+                  pipeline_stats={}, warnings=[], messages=sum(counts.values()),
+                  seconds=time.perf_counter() - t_start)

@@ -1,0 +1,30 @@
+"""Offline entry point: plan a task and simulate it (:func:`run_task`).
+
+It sits above both halves it joins -- :mod:`.tasks` (planning, which checks a candidate arc with the
+simulation's noise-free visibility) and :mod:`.run` (the simulation) -- so neither of them imports the other's
+caller.
+"""
+
+from __future__ import annotations
+
+from .run import SimRun, simulate
+from .scene import build_scene
+from .tasks import plan_task
+
+
+def run_task(task: str = "P-B-G-P", seed: int = 0, config=None, layout=None, noise: bool = True,
+             staff: bool = True, miscalibration: bool = True) -> SimRun:
+    """Plan ``task`` (one of :data:`~fullperc_eval.sim.tasks.TASKS`) and simulate it with ``seed``.
+
+    ``config``: scene.yaml path or dict (default: the installed one); ``layout``: a loaded layout (default:
+    the shared or_layout.yaml). ``noise``/``staff``/``miscalibration`` switch the error sources off for tests.
+    """
+    scene = build_scene(seed, config=config, layout=layout, miscalibration=miscalibration)
+    plan = plan_task(task, scene)
+    scene = scene.with_diana_base(plan.T_omc_diana_base)
+    run = simulate(scene, plan.arc, task=task, noise=noise, staff=staff)
+    run.info["plan_attempts"] = plan.attempts
+    run.info["region_path_m"] = plan.region_path_m
+    run.info["ots_fraction_b"] = plan.ots_fraction_b
+    run.info["omc_fraction"] = plan.omc_fraction
+    return run
