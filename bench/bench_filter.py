@@ -12,8 +12,8 @@ from benchlib import emit, median_time
 from scipy.spatial.transform import Rotation as Rot
 
 from fullperc_common.transforms import inv_T, make_T
-from fullperc_fusion.filters import FusionFilter
-from fullperc_fusion.pipeline import TargetConfig, TargetPipeline
+from fullperc_fusion.filters import FILTER_KINDS, FusionFilter
+from fullperc_fusion.pipeline import FILTER_NAMES, TargetConfig, TargetPipeline
 
 N = 2000
 
@@ -77,13 +77,13 @@ def main() -> None:
     zs = np.random.default_rng(1).normal(0, 1e-3, size=(N, 3)) + [0.5, 0.2, 0.3]
     base = median_time(lambda: bare_kf_steps(zs), repeats=5) / N
     emit("bare_numpy_kf6_step", base * 1e6, "us")
-    for kind in ("kf", "bkf", "ckf", "cbkf"):
+    for kind in FILTER_KINDS:
         for paired in (False, True):
             t = median_time(lambda kind=kind, paired=paired: filter_steps(kind, zs, paired), repeats=5) / N
             emit(f"{kind}_step_{'paired' if paired else 'global'}", t * 1e6, "us", baseline=base * 1e6)
     ev = pipeline_events()
     n_in = sum(1 for e in ev if e[1] == "tool")
-    for filters in (("cbkf",), ("cbkf", "ckf", "bkf", "kf", "omc")):
+    for filters in (("cbkf",), FILTER_NAMES):
         dt = median_time(lambda filters=filters: run_pipeline(ev, filters), repeats=3)
         emit(f"pipeline_samples_per_s_{'+'.join(filters)}", n_in / dt, "samples/s",
              note="target samples (OMC 120 Hz + OTS 60 Hz) pushed, synchronised, fused; real time needs 180/s")
