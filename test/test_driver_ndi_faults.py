@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fullperc_common.diagnostics import as_level
 from fullperc_common.testing import installed_exe, wait_for
 from fullperc_drivers.ndi import replies as R
 from fullperc_drivers.ndi.protocol import FrameReader, decode_command, encode_ascii_reply, encode_binary_reply
@@ -165,7 +166,7 @@ class Listener:
     def _diag(self, arr) -> None:
         for st in arr.status:
             if st.name == "ndi_driver: link":
-                lvl = st.level[0] if isinstance(st.level, bytes) else int(st.level)
+                lvl = as_level(st.level)
                 with self.lock:
                     self.history.append((lvl, st.message, {kv.key: kv.value for kv in st.values}))
 
@@ -205,8 +206,11 @@ def start_emulator(procs, tmp_path, *extra) -> int:
     return int(port_file.read_text())
 
 
-def start_driver(procs, port: int, *params: str, name: str = "ndi_driver"):
-    args = [installed_exe("fullperc_drivers", "ndi_driver"), "--ros-args", "-p", f"port:={port}"]
+def start_driver(procs, port: int, *params: str, name: str = "ndi_driver", params_file: Path | None = None):
+    args = [installed_exe("fullperc_drivers", "ndi_driver"), "--ros-args"]
+    if params_file is not None:
+        args += ["--params-file", str(params_file)]
+    args += ["-p", f"port:={port}"]
     for p in params:
         args += ["-p", p]
     return procs.start(args, name=name)
@@ -295,7 +299,8 @@ def test_a_garbage_rom_file_stops_the_driver_naming_the_file(procs, tmp_path, co
 
 def test_an_unreachable_device_is_explained_on_the_console(procs, tmp_path):
     port = free_tcp_port()  # nothing listens there
-    tcp = start_driver(procs, port, name="ndi_tcp")
+    shipped = ROOT / "install/fullperc_drivers/share/fullperc_drivers/config/ndi_vega.yaml"  # also: it parses
+    tcp = start_driver(procs, port, name="ndi_tcp", params_file=shipped)
     missing = tmp_path / "no_such_serial_device"
     ser = start_driver(procs, port, "transport:=serial", f"serial_device:={missing}", name="ndi_serial")
     wait_for(lambda: "Connection refused" in procs.log(tcp), timeout=40, what="the TCP reason on the console")

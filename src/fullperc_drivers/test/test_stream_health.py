@@ -43,17 +43,14 @@ class Sender(threading.Thread):
         self.join(2)
 
 
-def _level(st) -> int:
-    return st.level[0] if isinstance(st.level, bytes) else int(st.level)
-
-
 def _wait_level(lis: Listener, name: str, level: int, *needles: str, timeout: float = 30.0) -> str:
+    from fullperc_common.diagnostics import as_level
     from fullperc_common.testing import wait_for
 
     def ok():
         lis.spin()
         st, _ = lis.last_status(name)
-        return st is not None and _level(st) == level and all(n in st.message for n in needles)
+        return st is not None and as_level(st.level) == level and all(n in st.message for n in needles)
     wait_for(ok, timeout=timeout, what=f"{name} level {level} with {needles} (last: "
                                        f"{getattr(lis.last_status(name)[0], 'message', None)})")
     return lis.last_status(name)[0].message
