@@ -82,11 +82,6 @@ class ConsoleThrottle:
         self._last[key] = now
         return True
 
-    def reset(self, key: str) -> None:
-        """Forget ``key``: its next line is logged at once (e.g. after the condition cleared)."""
-        self._last.pop(key, None)
-        self._suppressed.pop(key, None)
-
 
 _LEVEL_WORD = {0: "OK", 1: "WARN", 2: "ERROR", 3: "STALE"}
 
