@@ -19,10 +19,11 @@ The rule (``stale_after_s`` = S, ``frames_stale_after_s`` = F, default S; ``reco
     ``no good <output> for t s: every <output> refused (<item>: <reason>)``;
   - no item had a good output for more than S s, none refused: ``unseen_level`` (WARN for trackers, whose
     tools may all be out of view; ERROR for the arm) ``no <item> seen for t s (<names>)``;
-  - otherwise each item without a good output for more than S s: WARN ``<item> <name> not seen for t s``,
-    or ``<item> <name>: every <output> refused for t s (<reason>)`` if it was refused within S s; an item
-    with good outputs but also refusals within S s: WARN ``<item> <name>: k <output>s refused in the last S s``.
-* An item the device refused for good (e.g. a tool ROM at PINIT): WARN ``<item> <name>: <reason>``; ERROR
+  - otherwise each item without a good output for more than S s: WARN ``<item> '<name>' not seen for t s``,
+    or ``<item> '<name>': every <output> refused for t s (<reason>)`` if it was refused within S s; an item
+    with good outputs but also refusals within S s: WARN ``<item> '<name>': k <output>s refused in the last
+    S s (<reason>)``. (A single item named like its kind, the arm, is just ``arm``.)
+* An item the device refused for good (e.g. a tool ROM at PINIT): WARN ``<item> '<name>': <reason>``; ERROR
   ``every <item> refused by the device`` when no item is left.
 * WARN ``N reconnects in the last W s (last error: <reason>)`` when at least ``max_reconnects`` successful
   reconnects fell in the last W s, even while outputs flow.
