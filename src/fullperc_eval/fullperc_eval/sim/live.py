@@ -57,7 +57,11 @@ def _roms() -> dict[str, bytes]:
 
 
 class LiveServer:
-    """Plays a :class:`SimRun` out on the device streams in (scaled) real time."""
+    """Plays a :class:`SimRun` out on the device streams in (scaled) real time.
+
+    ``frustum``: the Vega emulator's measurement volume (the layout's, in the ``ots`` frame); None: the emulator's
+    default pyramid.
+    """
 
     def __init__(self, run: SimRun, speed: float = 1.0, omc_addr: tuple[str, int] = ("127.0.0.1", 3883),
                  diana_addr: tuple[str, int] = ("127.0.0.1", 3884), vega_port: int | None = 8765,
