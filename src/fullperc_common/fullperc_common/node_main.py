@@ -219,9 +219,18 @@ def run_node(factory: Callable[[], object], name: str, fatal: tuple[type[BaseExc
     finally:
         stop.requested = True  # from here on a signal only sets the flag again; thread errors are one line
         close_ok = _release(name, held)
-        for s, h in old_handlers.items():
-            signal.signal(s, h)
-        threading.excepthook = old_hook
+        # As a process's main (args None: a console script) the process ends next: ignore SIGINT/SIGTERM from
+        # here on (the interpreter resets Python-level handlers to SIG_DFL while it finalises, so a second
+        # Ctrl-C there would kill the process with -SIGINT; SIG_IGN survives that), and keep the thread hook
+        # while device threads may still be ending. Called in-process with explicit args (tests): restore both.
+        if args is None:
+            for s in old_handlers:
+                signal.signal(s, signal.SIG_IGN)
+        else:
+            for s, h in old_handlers.items():
+                signal.signal(s, h)
+            if threading.active_count() == 1:
+                threading.excepthook = old_hook
     return status if close_ok else 1
 
 

@@ -45,6 +45,22 @@ class Procs:
         self.procs.append(p)
         return p
 
+    def start_split(self, args: list[str], name: str, **kw) -> subprocess.Popen:
+        """Like :meth:`start`, with stdout and stderr in separate files (read with :meth:`out` / :meth:`err`)."""
+        out = open(self.tmp / f"{name}.out", "wb")  # noqa: SIM115 - closed with the process
+        err = open(self.tmp / f"{name}.err", "wb")  # noqa: SIM115
+        p = self.start(args, name=name, stdout=out, stderr=err, **kw)
+        p.out_path, p.err_path = self.tmp / f"{name}.out", self.tmp / f"{name}.err"  # type: ignore[attr-defined]
+        return p
+
+    @staticmethod
+    def out(p: subprocess.Popen) -> str:
+        return Path(p.out_path).read_text(errors="replace")  # type: ignore[attr-defined]
+
+    @staticmethod
+    def err(p: subprocess.Popen) -> str:
+        return Path(p.err_path).read_text(errors="replace")  # type: ignore[attr-defined]
+
     def stop(self, p: subprocess.Popen, sig: int = signal.SIGINT, timeout: float = 10.0) -> int:
         if p.poll() is None:
             try:
@@ -80,3 +96,68 @@ def wait_for(pred, timeout: float = 20.0, interval: float = 0.05, what: str = "c
             return v
         time.sleep(interval)
     pytest.fail(f"timed out after {timeout:.0f} s waiting for {what}")
+
+
+def poll_until(pred, timeout: float, interval: float = 0.05):
+    """Like :func:`wait_for` but returns None on timeout instead of failing (for scripts outside pytest)."""
+    end = time.monotonic() + timeout
+    while True:
+        v = pred()
+        if v or time.monotonic() >= end:
+            return v or None
+        time.sleep(interval)
+
+
+class TopicCounter:
+    """Counts messages on topics in this process (own node, spun in a background thread).
+
+    Subscribes best effort, which matches reliable and best-effort publishers alike: for tests that only
+    need to know that data flows (and how much), not every message.
+    """
+
+    def __init__(self, context, topics: dict[str, type], node_name: str = "fullperc_topic_counter") -> None:
+        import threading
+
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+        from rclpy.qos import qos_profile_sensor_data
+
+        self.node = Node(node_name, context=context)
+        self.counts = dict.fromkeys(topics, 0)
+        self._lock = threading.Lock()
+        for topic, msg_type in topics.items():
+            self.node.create_subscription(msg_type, topic, lambda _m, t=topic: self._count(t), qos_profile_sensor_data)
+        self.ex = SingleThreadedExecutor(context=context)
+        self.ex.add_node(self.node)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._spin, daemon=True, name="topic_counter")
+        self._thread.start()
+
+    def _count(self, topic: str) -> None:
+        with self._lock:
+            self.counts[topic] += 1
+
+    def _spin(self) -> None:
+        while not self._stop.is_set():
+            self.ex.spin_once(timeout_sec=0.05)
+
+    def count(self, topic: str) -> int:
+        with self._lock:
+            return self.counts[topic]
+
+    def call(self, srv_type, name: str, request, timeout: float = 20.0):
+        """Call a service from this node; the response, or None when it did not answer within ``timeout``."""
+        cli = self.node.create_client(srv_type, name)
+        try:
+            if not poll_until(cli.service_is_ready, timeout):
+                return None
+            fut = cli.call_async(request)
+            return fut.result() if poll_until(fut.done, timeout) else None
+        finally:
+            self.node.destroy_client(cli)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+        self.ex.shutdown()
+        self.node.destroy_node()

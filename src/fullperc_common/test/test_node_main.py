@@ -1,0 +1,125 @@
+"""run_node: ``--help`` without rclpy, bad configuration -> exit 2 with one line, a signal in any phase -> exit 0.
+
+The help and configuration cases call run_node in this process (it initialises and shuts down rclpy's default
+context); the signal cases run run_node_child.py, a real process that signals itself at a chosen moment.
+"""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from fullperc_common import node_main
+from fullperc_common.node_main import run_node, wants_help
+from fullperc_common.params import ParameterError, declare
+
+CHILD = Path(__file__).resolve().parent / "run_node_child.py"
+
+
+def _never():
+    raise AssertionError("the factory must not be called")
+
+
+def test_wants_help_only_before_ros_args():
+    assert wants_help(["prog", "--help"]) and wants_help(["-h"]) and wants_help(["x", "-h", "--ros-args"])
+    assert not wants_help(["prog", "--ros-args", "-p", "a:=1", "--help"])
+    assert not wants_help(["prog", "--ros-args", "--params-file", "-h"])
+    assert not wants_help([])
+
+
+@pytest.mark.parametrize("argv", [["prog", "--help"], ["prog", "-h", "--ros-args", "-p", "gain:=0"]])
+def test_help_prints_usage_and_parameter_file_without_rclpy(argv, monkeypatch, tmp_path, capsys):
+    import rclpy
+
+    ref = tmp_path / "demo.yaml"
+    ref.write_text("demo_node:\n  ros__parameters:\n    gain: 1.5   # [1/s] loop gain\n")
+    looked_up = []
+    monkeypatch.setattr(node_main, "share_path", lambda *parts: (looked_up.append(parts), ref)[1])
+    monkeypatch.setattr(rclpy, "init", lambda *a, **k: pytest.fail("rclpy.init was called"))
+
+    assert run_node(_never, "demo_node", (), argv, params_file=("demo_pkg", "demo.yaml")) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("usage: ros2 run demo_pkg demo_node ")
+    assert "--params-file" in out and ref.read_text() in out
+    assert looked_up == [("demo_pkg", "config", "demo.yaml")]
+    assert not rclpy.ok()
+
+
+class _Boom(RuntimeError):
+    pass
+
+
+def _direct_declare():
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+
+    node = Node("unit_node")
+    node.declare_parameter("T", Parameter.Type.DOUBLE_ARRAY)  # rclpy's own exception on a wrong type
+    return node
+
+
+def _with_declare():
+    from rclpy.node import Node
+
+    node = Node("unit_node")
+    declare(node, "gain", 1.5)
+    return node
+
+
+def _raises(exc):
+    def factory():
+        raise exc
+    return factory
+
+
+def _cases(tmp: Path) -> dict:
+    broken = tmp / "broken.yaml"
+    if tmp.is_dir():
+        broken.write_text("unit_node:\n  ros__parameters:\n    gain: [1.0, 2.0\n")
+    missing = tmp / "missing" / "params.yaml"
+    return {
+        "direct_declare_wrong_type": (["--ros-args", "-p", "T:=abc"], _direct_declare,
+                                      ["'T'", "list of floats", "abc"]),
+        "declare_int_for_float": (["--ros-args", "-p", "gain:=0"], _with_declare, ["'gain'", "float", "0.0"]),
+        "declare_string_for_float": (["--ros-args", "-p", "gain:=abc"], _with_declare, ["'gain'", "float", "abc"]),
+        "missing_params_file": (["--ros-args", "--params-file", str(missing)], _never, [str(missing)]),
+        "broken_params_file": (["--ros-args", "--params-file", str(broken)], _never, [str(broken), "line"]),
+        "malformed_override": (["--ros-args", "-p", "gain"], _never, ["-p gain"]),
+        "unknown_ros_argument": (["--ros-args", "--no-such-flag"], _never, ["--no-such-flag"]),
+        "parameter_error": ([], _raises(ParameterError("parameter 'gain' = -1 is invalid: > 0")), ["'gain'"]),
+        "node_fatal_type": ([], _raises(_Boom("layout file x.yaml: field 'cameras' missing")), ["x.yaml"]),
+    }
+
+
+CASES = list(_cases(Path("/nonexistent-dir")))
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_bad_configuration_exits_2_with_one_line(case, ros_env, tmp_path, capfd):
+    import rclpy
+
+    args, factory, words = _cases(tmp_path)[case]
+    handlers = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    assert run_node(factory, "unit_node", (_Boom,), ["prog", *args]) == 2
+    err = capfd.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1, err
+    assert lines[0].startswith("[unit_node] fatal: ") and all(w in lines[0] for w in words), lines[0]
+    assert not rclpy.ok()  # shut down again
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == handlers  # restored
+
+
+@pytest.mark.parametrize("phase, sig", [("startup", "SIGINT"), ("spin", "SIGTERM"), ("shutdown", "SIGINT"),
+                                        ("thread", "SIGINT")])
+def test_signal_in_any_phase_exits_0_after_close(phase, sig, ros_env):
+    p = subprocess.run([sys.executable, str(CHILD), phase, sig], env=ros_env, capture_output=True, text=True,
+                       timeout=120)  # liveness bound
+    out = p.stdout + p.stderr
+    assert p.returncode == 0, out
+    assert "Traceback" not in out, out
+    ticks = int(p.stdout.split("close after ", 1)[1].split()[0])
+    assert (ticks == 0) if phase == "startup" else (ticks >= 50), out

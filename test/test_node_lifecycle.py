@@ -1,0 +1,130 @@
+"""Start-up and shut-down of the five installed nodes (issue 14 items 3, 4, 6), each in its own process.
+
+* ``--help`` / ``-h`` prints a usage line and the node's parameter file and exits 0 without initialising
+  rclpy: it runs with ``ROS_DOMAIN_ID=not-a-number``, under which the same executable without ``--help``
+  fails in rclpy.init (checked as the control: exit 2, one line naming ROS_DOMAIN_ID).
+* A float parameter given as ``0`` or ``abc``, a missing and a broken ``--params-file``: exit 2 and exactly one
+  line on stderr that names the parameter or the file, no traceback.
+* SIGINT (3 runs, the third sends a second SIGINT 20 ms after the first, during shutdown) and SIGTERM (1 run)
+  while data flows through the node (its output topic is counted in this process; the signal goes only after
+  new messages arrived): exit 0, no traceback. While the first run's data
+  flows, the node's declared parameters are listed over its ``list_parameters`` service and each must appear
+  in the parameter file that ``--help`` prints. soak/soak_signals.py repeats the SIGINT run 20 times per node.
+
+Timeouts are liveness bounds only. Data sources: test/lifecycle_nodes.py (UDP for the OMC and Diana drivers,
+synthetic poses for fusion and margin) and the installed vega_emulator for ndi_driver.
+"""
+
+from __future__ import annotations
+
+import re
+import signal
+import sys
+from pathlib import Path
+
+import pytest
+
+from fullperc_common.testing import Procs, TopicCounter, installed_exe, poll_until, workspace_root
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from lifecycle_nodes import NODES, msg_type, signal_cycle, start_feed  # noqa: E402
+
+pytestmark = pytest.mark.system
+NAMES = list(NODES)
+LIVENESS_S = 90.0
+# (signal, seconds until the same signal again during shutdown or None); the third SIGINT run sends it twice
+SIGNALS = [(signal.SIGINT, None), (signal.SIGINT, None), (signal.SIGINT, 0.02), (signal.SIGTERM, None)]
+RCLPY_BUILTIN = {"use_sim_time", "start_type_description_service"}  # declared by rclpy in every node
+
+
+def reference_text(name: str) -> str:
+    spec = NODES[name]
+    return (workspace_root() / "install" / spec.pkg / "share" / spec.pkg / "config" / spec.params_file).read_text()
+
+
+def _finish(procs: Procs, p) -> tuple[int | None, str, str]:
+    if poll_until(lambda: p.poll() is not None, LIVENESS_S) is None:
+        procs.stop(p, signal.SIGKILL)
+        return None, procs.out(p), procs.err(p)
+    return p.returncode, procs.out(p), procs.err(p)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_help_and_bad_configuration(name, procs, ros_env, tmp_path):
+    spec = NODES[name]
+    exe = installed_exe(spec.pkg, spec.name)
+    fp = spec.float_param
+    broken = tmp_path / "broken.yaml"
+    broken.write_text(f"{name}:\n  ros__parameters:\n    {fp}: [1.0, 2.0\n")
+    missing = str(tmp_path / "no_such_dir" / "params.yaml")
+    no_init = {**ros_env, "ROS_DOMAIN_ID": "not-a-number"}
+    cases = {
+        "help": ([exe, "--help"], no_init),
+        "h": ([exe, "-h", "--ros-args", "-p", f"{fp}:=0"], no_init),
+        "control": ([exe], no_init),
+        "int_for_float": ([exe, "--ros-args", "-p", f"{fp}:=0"], ros_env),
+        "string_for_float": ([exe, "--ros-args", "-p", f"{fp}:=abc"], ros_env),
+        "missing_file": ([exe, "--ros-args", "--params-file", missing], ros_env),
+        "broken_yaml": ([exe, "--ros-args", "--params-file", str(broken)], ros_env),
+    }
+    started = {case: procs.start_split(args, name=case, env=env) for case, (args, env) in cases.items()}
+    reference = reference_text(name)
+    problems = []
+
+    def expect_fatal(case: str, rc, out: str, err: str, *words: str) -> None:
+        lines = [ln for ln in err.splitlines() if ln.strip()]
+        ok = (rc == 2 and len(lines) == 1 and lines[0].startswith(f"[{name}] fatal: ")
+              and all(w in lines[0] for w in words) and "Traceback" not in out + err)
+        if not ok:
+            problems.append(f"{case}: exit {rc}, expected 2 and one stderr line with {words}; "
+                            f"stderr:\n{err[-2000:]}\nstdout:\n{out[-1000:]}")
+
+    for case, p in started.items():
+        rc, out, err = _finish(procs, p)
+        if case in ("help", "h"):
+            if not (rc == 0 and out.startswith(f"usage: ros2 run {spec.pkg} {name} ") and reference in out
+                    and re.search(rf"^\s*{re.escape(fp)}:", out, re.M) and "Traceback" not in out + err):
+                problems.append(f"{case}: exit {rc}, expected 0 with usage and {spec.params_file}; "
+                                f"stdout:\n{out[-2000:]}\nstderr:\n{err[-2000:]}")
+        elif case == "control":
+            expect_fatal(case, rc, out, err, "ROS_DOMAIN_ID")
+        elif case == "int_for_float":
+            expect_fatal(case, rc, out, err, f"'{fp}'", "float", "0.0")
+        elif case == "string_for_float":
+            expect_fatal(case, rc, out, err, f"'{fp}'", "float", "abc")
+        elif case == "missing_file":
+            expect_fatal(case, rc, out, err, missing)
+        else:
+            expect_fatal(case, rc, out, err, str(broken))
+    assert not problems, "\n\n".join(problems)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_signals_with_data_flowing(name, procs, rclpy_context, tmp_path):
+    from rcl_interfaces.srv import ListParameters
+
+    spec = NODES[name]
+    installed_exe(spec.pkg, spec.name)
+    ros_args = start_feed(procs, spec, tmp_path)
+    counter = TopicCounter(rclpy_context, {spec.output: msg_type(spec.output_type)})
+    declared: list[str] = []
+
+    def list_parameters(_p) -> None:
+        resp = counter.call(ListParameters, f"/{name}/list_parameters", ListParameters.Request(), LIVENESS_S)
+        declared.extend(resp.result.names if resp is not None else ["<list_parameters did not answer>"])
+
+    try:
+        results = [signal_cycle(procs, spec, ros_args, counter, sig, k, liveness_s=LIVENESS_S,
+                                on_flowing=list_parameters if k == 0 else None, again_after_s=again)
+                   for k, (sig, again) in enumerate(SIGNALS)]
+    finally:
+        counter.close()
+    bad = [f"run {k + 1} ({r.sig}, {r.flowed} messages flowed): {r.problem}\n{r.log[-3000:]}"
+           for k, r in enumerate(results) if not r.clean]
+    assert not bad, "\n\n".join(bad)
+
+    reference = reference_text(name)
+    unlisted = [n for n in declared if n not in RCLPY_BUILTIN and not n.startswith("qos_overrides.")
+                and not re.search(rf"^[\s#]*{re.escape(n.rsplit('.', 1)[-1])}\s*:", reference, re.M)]
+    assert declared and not unlisted, (f"parameters of {name} missing from config/{spec.params_file} "
+                                       f"(what --help prints): {unlisted}")
