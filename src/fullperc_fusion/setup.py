@@ -26,6 +26,7 @@ setup(
         "console_scripts": [
             'fusion_node = fullperc_fusion.fusion_node:main',
             'margin_node = fullperc_fusion.margin_node:main',
+            'calibrate = fullperc_fusion.calibrate:main',
         ],
     },
 )

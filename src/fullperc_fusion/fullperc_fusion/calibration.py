@@ -54,7 +54,7 @@ from scipy.stats import chi2
 from scipy.stats import f as f_dist
 
 from fullperc_common.transforms import T_to_pq, inv_T, make_T, mean_T
-from fullperc_fusion.frame_chain import BadSample, pose_to_T
+from fullperc_fusion.poses import BadSample, pose_to_T
 
 CALIBRATION_VERSION = 1
 LINK_NAMES = ("T_omc_base", "T_base_ots", "T_rig_ots")
@@ -503,15 +503,16 @@ class Collector:
     def counts(self) -> dict[str, int]:
         return {f"{d}:{b}": len(v) for (d, b), v in self._buf.items()}
 
-    def add(self, device: str, body: str, stamp_ns: int, position, quat_xyzw) -> bool:
-        """One sighting; True when it was collected (a needed body, valid pose, inside the window)."""
+    def add(self, device: str, body: str, stamp_ns: int, position, quat_xyzw=None) -> bool:
+        """One sighting (position [m] + quaternion x y z w, or a 4x4 as ``position`` with ``quat_xyzw`` None);
+        True when it was collected (a needed body, valid pose, inside the window)."""
         key = (device, body)
         if key not in self._buf:
             return False
         stamp_ns = int(stamp_ns)
         self.last_ns = stamp_ns if self.last_ns is None else max(self.last_ns, stamp_ns)
         try:
-            T = pose_to_T((position, quat_xyzw))
+            T = pose_to_T(position if quat_xyzw is None else (position, quat_xyzw))
         except BadSample:
             self.n_bad[key] += 1
             return False
@@ -522,8 +523,9 @@ class Collector:
         self._buf[key].append((stamp_ns, T))
         return True
 
-    def _arrays(self, key):
-        v = sorted(self._buf[key], key=lambda x: x[0])
+    def samples(self, device: str, body: str) -> tuple[np.ndarray, np.ndarray]:
+        """(stamps [ns] (N,), poses (N, 4, 4)) collected of one body, in stamp order."""
+        v = sorted(self._buf[(device, body)], key=lambda x: x[0])
         return np.array([s for s, _ in v], dtype=np.int64), np.array([T for _, T in v]).reshape(-1, 4, 4)
 
     def finish(self, stamp_ns: int | None = None, source: str = "") -> Calibration:
@@ -533,7 +535,7 @@ class Collector:
         data = {}
         for key in self._buf:
             lab = self.label(*key)
-            t, Ts = self._arrays(key)
+            t, Ts = self.samples(*key)
             data[key] = (t, Ts)
             if len(t) < s.min_samples:
                 bad = f", {self.n_bad[key]} invalid poses dropped" if self.n_bad[key] else ""

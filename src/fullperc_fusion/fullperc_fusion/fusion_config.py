@@ -28,9 +28,12 @@ import numpy as np
 
 from fullperc_common.params import ParameterError
 
+from .calibration import CalibrationError, CalibrationSettings, StaticThresholds
+from .calibration_io import load_calibration
 from .filters import FilterParams
-from .frame_chain import LOCAL_CHAINS, BadSample, ChainConfig, pose_to_T
+from .frame_chain import LOCAL_CHAINS, STATIC_LINK_MODES, BadSample, ChainConfig, pose_to_T
 from .fusion_health import HealthParams
+from .link_monitor import MonitorParams
 from .pipeline import FILTER_NAMES, TargetConfig
 
 PAPER_ORDER = ("omc", "kf", "bkf", "ckf", "cbkf")   # every method, in the column order of the paper's Table 1
@@ -72,6 +75,8 @@ _F = FilterParams()
 _C = ChainConfig()
 _T = TargetConfig()
 _H = HealthParams()
+_S = CalibrationSettings()
+_M = MonitorParams()
 
 PARAMS: tuple[Param, ...] = (
     Param("targets", ["tool"], "str_list", lambda v: len(v) > 0 and all(v), "at least one non-empty name", "",
@@ -90,6 +95,32 @@ PARAMS: tuple[Param, ...] = (
           "optional hand-eye calibration rig -> ots [x y z qx qy qz qw]"),
     Param("T_base_ots", None, "pose7", None, "", "m, quaternion x y z w",
           "optional fixed calibration of a stationary OTS [x y z qx qy qz qw]"),
+    Param("calibration_file", "", "str", None, "", "",
+          "calibration YAML (calibrate executable, ~/calibrate) whose links are used from the start; '' = none"),
+    Param("static_links", _C.static_links, "str", lambda v: v in STATIC_LINK_MODES, f"one of {STATIC_LINK_MODES}",
+          "", "links not in calibration_file: average of init_samples | calibrate over calibration.duration"),
+    Param("calibration.duration", _C.calibration_duration_s, "float", _pos, "must be finite and > 0", "s",
+          "sightings collected per calibration (static_links calibrate, ~/calibrate, re-calibration)"),
+    Param("calibration.min_samples", _S.min_samples, "int", lambda v: v >= 2, "must be >= 2", "samples",
+          "fewer sightings of a body in a collection: refused"),
+    Param("calibration.max_drift", _S.static.max_drift_m, "float", _pos, "must be finite and > 0", "m",
+          "a body whose mean moved more than this (and significantly) during a collection: refused"),
+    Param("calibration.max_rot_drift", _S.static.max_drift_rad, "float", _pos, "must be finite and > 0", "rad",
+          "the same for the rotation"),
+    Param("calibration.output", "", "str", None, "", "",
+          "~/calibrate writes its calibration YAML here; '' = not written"),
+    Param("calibration.timeout", 10.0, "float", _pos, "must be finite and > 0", "s",
+          "~/calibrate ends this long after calibration.duration even without enough sightings (then refused)"),
+    Param("link_monitor.enabled", _M.enabled, "bool", None, "", "",
+          "compare the OTS's live view of the base marker with the calibrated T_base_ots"),
+    Param("link_monitor.trans_max", _M.trans_max_m, "float", _pos, "must be finite and > 0", "m",
+          "window mean farther than this from the calibrated link: bumped"),
+    Param("link_monitor.rot_max", _M.rot_max_rad, "float", _pos, "must be finite and > 0", "rad",
+          "window mean turned more than this: bumped"),
+    Param("link_monitor.window", _M.window_s, "float", _pos, "must be finite and > 0", "s",
+          "sightings averaged per comparison (evaluated every half window)"),
+    Param("link_monitor.recalibrate", _M.recalibrate, "bool", None, "", "",
+          "a bump starts a re-calibration over calibration.duration (old links in use meanwhile)"),
     Param("filter", "cbkf", "str", lambda v: v in FILTER_NAMES, f"one of {FILTER_NAMES}", "",
           "primary filter (omc = raw OMC pass-through)"),
     Param("filters", None, "str_list", lambda v: all(f in FILTER_NAMES for f in v),
@@ -234,6 +265,17 @@ def health_params(vals: dict[str, Any]) -> HealthParams:
                         hold_s=vals["problem_hold"]).validate()
 
 
+def calibration_settings(vals: dict[str, Any]) -> CalibrationSettings:
+    return CalibrationSettings(min_samples=vals["calibration.min_samples"], static=StaticThresholds(
+        max_drift_m=vals["calibration.max_drift"], max_drift_rad=vals["calibration.max_rot_drift"]))
+
+
+def monitor_params(vals: dict[str, Any]) -> MonitorParams:
+    return MonitorParams(enabled=vals["link_monitor.enabled"], trans_max_m=vals["link_monitor.trans_max"],
+                         rot_max_rad=vals["link_monitor.rot_max"], window_s=vals["link_monitor.window"],
+                         recalibrate=vals["link_monitor.recalibrate"]).validate()
+
+
 def primary_and_extra(vals: dict[str, Any]) -> tuple[str, list[str]]:
     """The primary filter and the side-by-side ones (without duplicates, the primary may be among them)."""
     return vals["filter"], list(dict.fromkeys(vals["filters"]))
@@ -254,14 +296,23 @@ def target_config(get: Get | dict[str, Any], target: str, filters: tuple[str, ..
     if filters is None:
         primary, extra = primary_and_extra(vals)
         filters = tuple(dict.fromkeys([primary, *extra]))
+    path = vals["calibration_file"]
+    try:
+        cal = load_calibration(path) if path else None
+    except CalibrationError as e:
+        raise ParameterError(f"parameter 'calibration_file' = {path!r}: {e}") from None
     try:
         chain = ChainConfig(omc_target=vals[f"{target}.omc_body"], ots_target=vals[f"{target}.ots_tool"],
                             omc_base=vals["omc_base_body"], omc_rig=vals["omc_rig_body"],
                             ots_base=vals["ots_base_tool"], local_chain=vals["local_chain"],
                             init_samples=vals["init_samples"], T_rig_ots=_pose(vals["T_rig_ots"]),
-                            T_base_ots=_pose(vals["T_base_ots"]))
+                            T_base_ots=_pose(vals["T_base_ots"]), static_links=vals["static_links"],
+                            calibration_duration_s=vals["calibration.duration"],
+                            calibration_settings=calibration_settings(vals), calibration=cal,
+                            calibration_file=path)
         return TargetConfig(name=target, chain=chain, filters=tuple(filters), params=filter_params(vals),
-                            slop_ns=int(vals["slop"] * 1e9), delay_ns=int(vals["reorder_delay"] * 1e9))
+                            slop_ns=int(vals["slop"] * 1e9), delay_ns=int(vals["reorder_delay"] * 1e9),
+                            monitor=monitor_params(vals))
     except ParameterError:
         raise
     except ValueError as e:   # checks of the dataclasses beyond the table's

@@ -11,9 +11,16 @@ Publishes:
   /fullperc/<target>/<filter>/pose and .../status  for every filter listed in ``filters`` (side by side)
   /diagnostics                 one status per target: initialization, rejected input and why, silent sources,
                                and the alarms of fusion_health (WARN: hop rate, implausible bias of the global
-                               source; ERROR: every sample of a source rejected), naming target and source
-Service:
-  ~/initialize (std_srvs/Trigger) re-estimates the static links of every target from the next samples.
+                               source; ERROR: every sample of a source rejected), naming target and source;
+                               WARN when the link monitor sees a bump of the static link (link and size named)
+Services:
+  ~/initialize (std_srvs/Trigger) re-estimates the static links of every target from the next samples
+               (``static_links``: average of init_samples, or calibrate over calibration.duration).
+  ~/calibrate  (std_srvs/Trigger) collects calibration.duration s of sightings (keep the setup still), estimates
+               the links the chain needs (frame_chain.links_needed) with the robust calibration, and answers when
+               done: on success the links of every target are swapped in one step, calibration.output is written
+               first (if set), and the answer is success + a summary; a refusal (a body moved, too few sightings)
+               answers success=false + the reason and keeps the old links. The node keeps fusing meanwhile.
 
 Parameters: the table of :mod:`fullperc_fusion.fusion_config` (names, defaults, checks, units; the same
 mapping the offline evaluator uses), documented in config/fusion.yaml; names of nested ones use dots:
@@ -26,6 +33,11 @@ mapping the offline evaluator uses), documented in config/fusion.yaml; names of 
   slop [s], reorder_delay [s], clock stamps|host, idle_flush [s], stale_timeout [s], problem_hold [s]
   qos_reliability reliable|best_effort, qos_depth
   alarm.hop_window [s] 2.0, alarm.hop_max 5, alarm.bias_max [m] 0.02, alarm.reject_timeout [s] 1.0
+  calibration_file '' (calibration YAML loaded at start; a bad file stops the node naming file and field),
+  static_links average|calibrate, calibration.duration [s] 10, calibration.min_samples 30, calibration.max_drift
+  [m] 0.001, calibration.max_rot_drift [rad] 0.003, calibration.output '', calibration.timeout [s] 10,
+  link_monitor.enabled true, link_monitor.trans_max [m] 0.002, link_monitor.rot_max [rad] 0.005,
+  link_monitor.window [s] 1.0, link_monitor.recalibrate false
 
 ``clock``: with ``stamps`` (default) the synchronizer's notion of "now" is the newest stamp received,
 so output depends only on the data (live, replayed bags, simulated time alike); after ``idle_flush``
@@ -40,9 +52,11 @@ import time
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.task import Future
 from std_srvs.srv import Trigger
 
 from fullperc_common import diagnostics as diag
@@ -52,14 +66,18 @@ from fullperc_common.params import ParameterError, declare
 from fullperc_common.ros_conv import ns_to_stamp, pose_msg, pose_to_pq, stamp_to_ns, vector3
 from fullperc_msgs.msg import FusionStatus, Region
 
-from .fusion_config import health_params, primary_and_extra, read_values, spec, target_config
+from .calibration import CalibrationBodies
+from .calibration_io import save_calibration
+from .calibration_run import CalibrationRun, summary
+from .frame_chain import links_needed
+from .fusion_config import calibration_settings, health_params, primary_and_extra, read_values, spec, target_config
 from .fusion_health import GLOBAL, LOCAL, TargetHealth
 from .pipeline import FusedOutput, TargetPipeline
 
 # Diagnostics.set takes an int level (the diagnostic_msgs constants are bytes in rclpy).
 OK, WARN, ERROR = (diag.as_level(v) for v in (diag.OK, diag.WARN, diag.ERROR))
 _PROBLEM_KEYS = ("rejected_nonfinite", "rejected_nonunit", "rejected_pose", "rejected_stamp", "late", "duplicate",
-                 "local_skipped", "filter_error", "nonfinite_output", "publish_error")
+                 "local_skipped", "filter_error", "nonfinite_output", "publish_error", "calibration_refused")
 # ROS type of a parameter declared without a default value (optional ones, empty lists)
 _ROS_TYPES = {"str_list": Parameter.Type.STRING_ARRAY, "pose7": Parameter.Type.DOUBLE_ARRAY}
 
@@ -75,6 +93,11 @@ class FusionNode(Node):
         self._idle_flush = vals["idle_flush"]
         self._stale = vals["stale_timeout"]
         self._problem_hold = vals["problem_hold"]
+        self._cal_duration = vals["calibration.duration"]
+        self._cal_output = vals["calibration.output"]
+        self._cal_timeout = vals["calibration.timeout"]
+        self._cal_settings = calibration_settings(vals)
+        self._cal_run: tuple[CalibrationRun, Future] | None = None
         health = health_params(vals)
         qos = QoSProfile(depth=vals["qos_depth"], reliability=ReliabilityPolicy.RELIABLE
                          if vals["qos_reliability"] == "reliable" else ReliabilityPolicy.BEST_EFFORT)
@@ -89,6 +112,8 @@ class FusionNode(Node):
         self._last_rx: dict[str, dict[str, float]] = {}
         self._problem_seen: dict[str, dict[str, tuple[int, float]]] = {}
         self.health: dict[str, TargetHealth] = {}
+        self._bump_seen: dict[str, tuple[float, str] | None] = {}   # when the link monitor last saw a bump, what
+        self._link_state: dict[str, tuple[int | None, int]] = {}    # logged (bump start, recalibrations)
         self._skipped_seen: dict[str, int] = {}
         self._last_target_rx = time.monotonic()
         routes_omc: dict[str, list[str]] = {}
@@ -99,6 +124,8 @@ class FusionNode(Node):
             self.health[t] = TargetHealth(t, {GLOBAL: f"OMC body '{c.omc_target}'",
                                               LOCAL: f"OTS tool '{c.ots_target}'"}, health)
             self._skipped_seen[t] = 0
+            self._bump_seen[t] = None
+            self._link_state[t] = (None, 0)
             for b in (c.omc_target, c.omc_base, c.omc_rig):
                 routes_omc.setdefault(b, []).append(t)
             for b in (c.ots_target, c.ots_base):
@@ -124,12 +151,20 @@ class FusionNode(Node):
                                                lambda m, d=dev, b=b: self._on_input(d, b, m), qos)
                 self._input_subs.append((dev, b, sub))
         self.create_service(Trigger, "~/initialize", self._on_initialize)
+        # own (reentrant) group: the answer waits for the collection, and the default group's callbacks (the data)
+        # must run meanwhile; a second call is answered at once
+        self.create_service(Trigger, "~/calibrate", self._on_calibrate, callback_group=ReentrantCallbackGroup())
         self.create_timer(0.01, self._on_timer)
         self.create_timer(0.5, self._update_diagnostics)
         self._update_diagnostics()
+        links = next(iter(self.pipes.values())).chain.links
+        given = "".join(f"{k} from {v}; " for k, v in links.sources.items())
+        rest = (f"average of the first {vals['init_samples']} samples" if vals["static_links"] == "average"
+                else f"calibrated over the first {self._cal_duration:g} s")
         self.get_logger().info(
             f"fusing targets {targets} with {filters[0]} (side by side: {self._extra or 'none'}), "
-            f"local chain '{local_chain}', clock '{self._clock_mode}'")
+            f"local chain '{local_chain}', clock '{self._clock_mode}', static links: {given}"
+            + (f"others: {rest}" if links.collecting else "all given"))
 
     def _declare(self, name: str, default):
         """fusion_config's getter: declare ``name`` (once, via params.declare) and return its value."""
@@ -152,12 +187,15 @@ class FusionNode(Node):
             touched.update(self._on_pose(d, b, m))
         for t in touched:
             self._publish(t, self.pipes[t].poll(self._now_ns()))
+            self._watch_links(t)
 
     def _on_pose(self, dev: str, body: str, msg: PoseStamped) -> list[str]:
         """Push one pose into the pipelines of the targets it feeds; returns those targets."""
         t_ns = stamp_to_ns(msg.header.stamp)
         p, q = pose_to_pq(msg.pose)
         now = time.monotonic()
+        if self._cal_run is not None:
+            self._cal_run[0].add(dev, body, t_ns, p, q)
         targets = self._targets_of_omc[body] if dev == "omc" else self._targets_of_ots[body]
         for t in targets:
             pipe = self.pipes[t]
@@ -187,6 +225,8 @@ class FusionNode(Node):
         return self.get_clock().now().nanoseconds if self._clock_mode == "host" else None
 
     def _on_timer(self) -> None:
+        if self._cal_run is not None:
+            self._finish_calibration()
         idle = time.monotonic() - self._last_target_rx > self._idle_flush
         for t, pipe in self.pipes.items():
             if pipe.sync.pending == 0:
@@ -196,13 +236,82 @@ class FusionNode(Node):
     def _on_initialize(self, _req, resp):
         for pipe in self.pipes.values():
             pipe.request_initialize()
-        n = next(iter(self.pipes.values())).config.chain.init_samples
+        c = next(iter(self.pipes.values())).config.chain
+        how = (f"from the next {c.init_samples} samples per body" if c.static_links == "average" else
+               f"by calibrating over the next {c.calibration_duration_s:g} s of sightings")
         resp.success = True
-        resp.message = (f"re-estimating static links of {list(self.pipes)} from the next {n} samples per body; "
-                        "the previous links stay in use until then")
+        resp.message = (f"re-estimating static links of {list(self.pipes)} {how}; the previous links stay in use "
+                        "until then")
         self.get_logger().info(resp.message)
         self._update_diagnostics()
         return resp
+
+    async def _on_calibrate(self, _req, resp):
+        """~/calibrate: answered when the collection is done (the executor keeps running every other callback)."""
+        if self._cal_run is not None:
+            resp.success = False
+            resp.message = "a calibration is already running; call again when it has answered"
+            return resp
+        c = next(iter(self.pipes.values())).config.chain
+        links = links_needed(c)
+        run = CalibrationRun(links, CalibrationBodies.from_chain_config(c), self._cal_duration, self._cal_settings,
+                             now=time.monotonic(), timeout_s=self._cal_timeout, source="fusion_node ~/calibrate")
+        fut = Future()
+        self._cal_run = (run, fut)
+        self.get_logger().info(f"~/calibrate: collecting {self._cal_duration:g} s of sightings for {list(links)}; "
+                               "keep the OTS and the reference marker still")
+        ok, message = await fut
+        resp.success = ok
+        resp.message = message
+        return resp
+
+    def _finish_calibration(self) -> None:
+        """Poll the ~/calibrate run; when done: write the file, swap the links of every target, answer."""
+        assert self._cal_run is not None
+        run, fut = self._cal_run
+        if not run.poll(time.monotonic()):
+            return
+        self._cal_run = None
+        log = self.get_logger()
+        if run.result is None:
+            message = f"calibration refused, links unchanged: {run.error}"
+            log.warning(message)
+            fut.set_result((False, message))
+            return
+        cal = run.result
+        written = ""
+        if self._cal_output:
+            try:
+                save_calibration(self._cal_output, cal)
+            except (OSError, ValueError) as e:
+                message = f"calibration not applied, links unchanged: cannot write {self._cal_output}: {e}"
+                log.error(message)
+                fut.set_result((False, message))
+                return
+            written = f"; written to {self._cal_output}"
+        for pipe in self.pipes.values():
+            pipe.apply_calibration(cal, "~/calibrate")
+        message = f"{summary(cal)}; links of {list(self.pipes)} swapped{written}"
+        log.info(message)
+        self._update_diagnostics()
+        fut.set_result((True, message))
+
+    def _watch_links(self, target: str) -> None:
+        """Log the start of a link bump and every re-calibration the monitor started; remember the bump."""
+        pipe = self.pipes[target]
+        m = pipe.monitor
+        start, n_recal = self._link_state[target]
+        if m.bumped:
+            self._bump_seen[target] = (time.monotonic(), m.message(target))
+            if m.first_bump_ns != start:
+                self.get_logger().warning(m.message(target))
+        elif start is not None and m.last is not None:
+            self.get_logger().info(m.message(target))
+        if pipe.counts["recalibrations"] > n_recal:
+            self.get_logger().warning(f"target '{target}': re-calibrating the static links over "
+                                      f"{pipe.config.chain.calibration_duration_s:g} s after the bump; the old "
+                                      "links stay in use meanwhile")
+        self._link_state[target] = (m.first_bump_ns if m.bumped else None, pipe.counts["recalibrations"])
 
     # ---- output -----------------------------------------------------------------------------
     def _publish(self, target: str, outs: list[FusedOutput]) -> None:
@@ -246,6 +355,7 @@ class FusionNode(Node):
                 st.hop = bool(o.hop)
                 st.time_since_local = float(o.time_since_local)
                 st.region = self._region.get(target, 0)
+                st.link_bumped = bool(o.link_bumped)
                 status_pub.publish(st)
 
     def _update_diagnostics(self) -> None:
@@ -259,13 +369,18 @@ class FusionNode(Node):
                 level = max(level, a.level)
                 msgs.append(a.message)
             values.update(self.health[t].values(now))
+            links = pipe.chain.links
             if s["global_link"] != "ready":
                 level = WARN
-                msgs.append(f"initializing: waiting for {pipe.config.chain.init_samples} samples of the base "
-                            f"marker (have {s['init_progress']})")
+                msgs.append(f"initializing: {links.describe()}")
             elif s["local_link"] != "ready":
                 level = WARN
-                msgs.append("local link not calibrated yet (the OTS must see the base marker, or give T_rig_ots)")
+                msgs.append("local link not calibrated yet (the OTS must see the base marker, or give T_rig_ots)"
+                            + (f": {links.describe()}" if links.collecting else ""))
+            bump = self._bump_seen[t]
+            if bump is not None and (pipe.monitor.bumped or now - bump[0] < self._problem_hold):
+                level = max(level, WARN)
+                msgs.append(bump[1] if pipe.monitor.bumped else f"{bump[1]} (cleared {now - bump[0]:.1f} s ago)")
             seen = self._problem_seen[t]
             for key in _PROBLEM_KEYS:
                 n = pipe.counts[key]

@@ -18,6 +18,11 @@ samples go through the :class:`~synchronizer.ApproxSync` as raw device poses and
 ``base`` only when they come out (so a base-marker sample of the same OTS frame that arrived a little
 later can still be used for eq. 2); each item then steps every configured filter once.
 
+Once the local link is set (``static`` / ``direct`` chains), the OTS's sightings of the base marker also feed a
+:class:`~link_monitor.LinkMonitor`: a bump of the Vega or of the reference marker sets ``link_bumped`` in every
+output and, with ``monitor.recalibrate``, re-estimates the static links in calibrate mode (the old links stay in
+use meanwhile). A refused calibrate-mode collection is counted as ``calibration_refused`` with its reason.
+
 The fused orientation is not filtered (the paper fuses position): it is the orientation of the best
 source in the item -- the local (OTS) one when present, else the global one -- mapped into ``base``,
 and ``orientation_source`` says which. The ``omc`` pass-through always carries the global one.
@@ -30,10 +35,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fullperc_common.transforms import T_to_pq
+from fullperc_common.transforms import T_to_pq, inv_T
 
+from .calibration import Calibration
 from .filters import SOURCE_GLOBAL, SOURCE_LOCAL, FilterParams, Step, make_filter
 from .frame_chain import BadSample, ChainConfig, FrameChain, pose_to_T
+from .link_monitor import LinkMonitor, MonitorParams
 from .synchronizer import GLOBAL, LOCAL, ApproxSync, SyncItem
 
 FILTER_NAMES = ("cbkf", "ckf", "bkf", "kf", "omc")
@@ -51,6 +58,7 @@ class TargetConfig:
     delay_ns: int = 50_000_000      # reorder / transport delay the synchronizer waits for
     orientation_std_local: float = 0.002   # [rad] reported in pose_cov when the OTS orientation is used
     orientation_std_global: float = 0.01   # [rad] when the OMC orientation is used
+    monitor: MonitorParams = field(default_factory=MonitorParams)   # link monitoring (link_monitor)
 
     def __post_init__(self) -> None:
         self.filters = tuple(self.filters)
@@ -62,6 +70,7 @@ class TargetConfig:
         if len(set(self.filters)) != len(self.filters):
             raise ValueError(f"target '{self.name}': duplicate filter in {self.filters}")
         self.params.validate()
+        self.monitor.validate()
 
 
 @dataclass
@@ -85,6 +94,7 @@ class FusedOutput:
     t_global: int | None = None    # stamps of the samples used
     t_local: int | None = None
     local_equation: str = ""       # 'eq1' | 'eq2' | 'static' for the local measurement used
+    link_bumped: bool = False      # the link monitor sees the OTS's view of the base off its calibration
 
 
 class TargetPipeline:
@@ -102,6 +112,10 @@ class TargetPipeline:
         self.last_local_ns: int | None = None
         self.last_global_ns: int | None = None
         self.last_output: dict[str, FusedOutput] = {}
+        c = config.chain
+        self.monitor = LinkMonitor(config.monitor, "T_base_ots", f"OTS tool '{c.ots_base}'")
+        self._monitor_src: np.ndarray | None = None   # the T_base_ots the monitor's reference was made from
+        self._refusals_seen = 0
 
     # ---- input ------------------------------------------------------------------------------
     def _problem(self, key: str, msg: str, t_ns: int | None) -> None:
@@ -138,6 +152,8 @@ class TargetPipeline:
             return False
         t, T = v
         self.chain.observe_omc(body, t, T)
+        if body in (c.omc_base, c.omc_rig):
+            self._links_changed(t)
         if body == c.omc_target:
             return self._enqueue(GLOBAL, f"OMC body '{body}'", t, T)
         return True
@@ -152,6 +168,9 @@ class TargetPipeline:
             return False
         t, T = v
         self.chain.observe_ots(tool, t, T)
+        if tool == c.ots_base:
+            self._links_changed(t)
+            self._watch_link(t, T)
         if tool == c.ots_target:
             return self._enqueue(LOCAL, f"OTS tool '{tool}'", t, T)
         return True
@@ -165,9 +184,35 @@ class TargetPipeline:
             self._problem("duplicate", f"{what}: duplicate stamp {t} ns; dropped", t)
         return r == "ok"
 
-    def request_initialize(self) -> None:
-        """Re-estimate the static links from the next samples (the old ones stay in use meanwhile)."""
-        self.chain.reinitialize()
+    def request_initialize(self, mode: str | None = None) -> None:
+        """Re-estimate the static links from the next samples (the old ones stay in use meanwhile); ``mode``
+        average | calibrate, default the configured ``static_links``."""
+        self.chain.reinitialize(mode)
+
+    def apply_calibration(self, cal: Calibration, source: str) -> None:
+        """Use the links of a finished calibration from now on (``fusion_node``'s ``~/calibrate``)."""
+        self.chain.links.apply(cal, source)
+
+    # ---- static links: refusals and the link monitor -------------------------------------------
+    def _links_changed(self, t: int) -> None:
+        L = self.chain.links
+        if L.refusals > self._refusals_seen:
+            self._refusals_seen = L.refusals
+            self._problem("calibration_refused", f"static links: {L.last_refusal}", t)
+
+    def _watch_link(self, t: int, T_ots_base: np.ndarray) -> None:
+        """Feed the monitor one OTS sighting of the base marker (reference: the T_base_ots in use)."""
+        L = self.chain.links
+        if L.T_base_ots is not self._monitor_src:
+            self._monitor_src = L.T_base_ots
+            watch = L.T_base_ots is not None and self.config.chain.local_chain != "tracked"
+            self.monitor.set_reference(inv_T(L.T_base_ots) if watch else None)
+        chk = self.monitor.add(t, T_ots_base)
+        if chk is not None and chk.bumped:
+            self.counts["link_bumped_checks"] += 1
+            if self.config.monitor.recalibrate and not L.collecting:
+                self.chain.reinitialize("calibrate")
+                self.counts["recalibrations"] += 1
 
     # ---- output -----------------------------------------------------------------------------
     def poll(self, now_ns: int | None = None) -> list[FusedOutput]:
@@ -236,7 +281,7 @@ class TargetPipeline:
                 orientation_source=osrc, time_since_local=since, reset=st.reset,
                 t_global=tg if st.sources & SOURCE_GLOBAL else None,
                 t_local=tl if st.sources & SOURCE_LOCAL else None,
-                local_equation=eq if st.sources & SOURCE_LOCAL else "")
+                local_equation=eq if st.sources & SOURCE_LOCAL else "", link_bumped=self.monitor.bumped)
             self.last_output[name] = o
             outs.append(o)
         self.counts["items"] += 1
@@ -251,7 +296,13 @@ class TargetPipeline:
             "collecting": L.collecting,
             "init_progress": L.progress(),
             "pending": self.sync.pending,
+            "static_links": L.mode,
+            "links_source": "; ".join(f"{k}: {v}" for k, v in L.sources.items()),
+            "link_bumped": self.monitor.bumped,
         }
+        chk = self.monitor.last
+        if chk is not None:
+            d.update(link_dtrans_mm=round(chk.dtrans_m * 1e3, 3), link_drot_mrad=round(chk.drot_rad * 1e3, 3))
         d.update({f"sync_{k}": v for k, v in self.sync.counts.items()})
         d.update(dict(self.counts))
         return d

@@ -11,6 +11,12 @@ Faults for the /diagnostics alarms (each option repeatable; BODY is ``tool`` or 
 further OMC bodies that follow the same path, seen by the OMC only):
   --omc-jump BODY:AT:DX   from AT seconds on, the OMC pose of BODY is DX metres off along omc x (a hop or jump)
   --omc-nan BODY:FROM     from FROM seconds on, every OMC pose of BODY has a NaN position
+Static links (calibration, link monitoring):
+  --static-only           publish only /omc/base, /omc/ots_rig and /ots/base (what `calibrate` subscribes to)
+  --link-noise            sensor noise on those three (OMC 0.1 mm / 1 mrad, Vega 0.05 mm / 0.5 mrad per frame)
+  --move-base AT:DX       from AT s on the reference marker is DX m further along omc x (OMC and Vega see it)
+  --bump-ots AT:DX        from AT s on the Vega stands DX m further along its own x axis (its views of the base
+                          and of the tool both change; the OMC's view of the rig too)
 
 Run: python synthetic_driver_pub.py --log out.jsonl [--duration 4] [--bad] [--extra-bodies probe,broken]
      [--omc-jump tool:2.0:1.0] [--omc-nan broken:1.0]
@@ -64,7 +70,13 @@ def main() -> int:
     ap.add_argument("--extra-bodies", default="", help="comma-separated further OMC bodies (OMC only)")
     ap.add_argument("--omc-jump", action="append", default=[], metavar="BODY:AT:DX")
     ap.add_argument("--omc-nan", action="append", default=[], metavar="BODY:FROM")
+    ap.add_argument("--static-only", action="store_true")
+    ap.add_argument("--link-noise", action="store_true")
+    ap.add_argument("--move-base", default=None, metavar="AT:DX")
+    ap.add_argument("--bump-ots", default=None, metavar="AT:DX")
     a = ap.parse_args()
+    move_base = tuple(float(x) for x in a.move_base.split(":")) if a.move_base else None
+    bump_ots = tuple(float(x) for x in a.bump_ots.split(":")) if a.bump_ots else None
     extra = [b for b in a.extra_bodies.split(",") if b]
     jumps = {b: (float(at), float(dx)) for b, at, dx in (j.split(":") for j in a.omc_jump)}
     nans = {b: float(at) for b, at in (j.split(":") for j in a.omc_nan)}
@@ -72,9 +84,10 @@ def main() -> int:
     rclpy.init()
     node = rclpy.create_node("synthetic_driver_pub")
     qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-    pubs = {k: node.create_publisher(PoseStamped, k, qos) for k in
-            ("/omc/base/pose", "/omc/ots_rig/pose", "/omc/tool/pose", "/ots/base/pose", "/ots/tool/pose",
-             *(f"/omc/{b}/pose" for b in extra))}
+    topics = ("/omc/base/pose", "/omc/ots_rig/pose", "/ots/base/pose") if a.static_only else \
+        ("/omc/base/pose", "/omc/ots_rig/pose", "/omc/tool/pose", "/ots/base/pose", "/ots/tool/pose",
+         *(f"/omc/{b}/pose" for b in extra))
+    pubs = {k: node.create_publisher(PoseStamped, k, qos) for k in topics}
     end = time.monotonic() + a.wait
     while time.monotonic() < end and any(p.get_subscription_count() == 0 for p in pubs.values()):
         rclpy.spin_once(node, timeout_sec=0.05)
@@ -84,15 +97,24 @@ def main() -> int:
     time.sleep(0.5)  # let the other direction of discovery settle too
 
     rng = np.random.default_rng(0)
+    link_rng = np.random.default_rng(1)   # its own stream: without --link-noise the other samples are unchanged
     log = open(a.log, "w")  # noqa: SIM115 - closed below
 
     def pub(topic, kind, body, ns, frame, p, q, **flags):
+        if topic not in pubs:
+            return
         pubs[topic].publish(msg(ns, frame, p, q))
         log.write(json.dumps({"kind": kind, "body": body, "t_ns": ns, "p": [float(v) for v in p], **flags}) + "\n")
 
+    def seen(T, sig_p, sig_r):
+        """T with sensor noise when --link-noise (position sig_p [m], rotation sig_r [rad] per axis)."""
+        if not a.link_noise:
+            return T_to_pq(T)
+        d = make_T(link_rng.normal(0, sig_p, 3), Rot.from_rotvec(link_rng.normal(0, sig_r, 3)).as_quat())
+        return T_to_pq(T @ d)
+
     t0_ns = time.time_ns()
     t0 = time.monotonic()
-    T_ots_base = inv_T(T_OMC_OTS) @ T_OMC_BASE
     k = 0
     bad_done = set()
     while True:
@@ -102,6 +124,14 @@ def main() -> int:
         while time.monotonic() - t0 < t:
             time.sleep(0.0005)
         ns = t0_ns + round(t * 1e9)
+        T_omc_base, T_omc_ots, flags_links = T_OMC_BASE, T_OMC_OTS, {}
+        if move_base is not None and t >= move_base[0]:
+            T_omc_base = make_T([move_base[1], 0.0, 0.0]) @ T_OMC_BASE
+            flags_links["moved"] = move_base[1]
+        if bump_ots is not None and t >= bump_ots[0]:
+            T_omc_ots = T_OMC_OTS @ make_T([bump_ots[1], 0.0, 0.0])
+            flags_links["bumped"] = bump_ots[1]
+        T_ots_base = inv_T(T_omc_ots) @ T_omc_base
         Tt = T_OMC_BASE @ truth(t)
         p0, q = T_to_pq(Tt)
         p = p0 + OMC_OFFSET + rng.normal(0, 2e-4, 3)
@@ -119,8 +149,8 @@ def main() -> int:
                 tool_flags = flags
             else:
                 pub(f"/omc/{b}/pose", "omc", b, ns, "omc", pb, q, **flags)
-        pub("/omc/base/pose", "omc", "base", ns, "omc", *T_to_pq(T_OMC_BASE))
-        pub("/omc/ots_rig/pose", "omc", "ots_rig", ns, "omc", *T_to_pq(T_OMC_OTS))
+        pub("/omc/base/pose", "omc", "base", ns, "omc", *seen(T_omc_base, 1e-4, 1e-3), **flags_links)
+        pub("/omc/ots_rig/pose", "omc", "ots_rig", ns, "omc", *seen(T_omc_ots, 1e-4, 1e-3), **flags_links)
         if a.bad and t >= 1.5 and "nan" not in bad_done:
             bad_done.add("nan")
             pub("/omc/tool/pose", "omc", "tool", ns, "omc", [math.nan, p[1], p[2]], q, bad="nan")
@@ -132,8 +162,8 @@ def main() -> int:
             pub("/omc/tool/pose", "omc", "tool", ns, "omc", p, q, **tool_flags)
         if k % 2 == 0:
             ns_l = ns + 3_000_000
-            pub("/ots/base/pose", "ots", "base", ns_l, "ots", *T_to_pq(T_ots_base))
-            if a.ots_from <= t < a.ots_to:
+            pub("/ots/base/pose", "ots", "base", ns_l, "ots", *seen(T_ots_base, 5e-5, 5e-4), **flags_links)
+            if a.ots_from <= t < a.ots_to and not a.static_only:
                 Tl = T_ots_base @ truth(t + 0.003)
                 pl, ql = T_to_pq(Tl)
                 pl = pl + rng.normal(0, 1e-4, 3)

@@ -15,12 +15,14 @@ from fullperc_fusion import fusion_config as fc
 from fullperc_fusion.filters import FilterParams
 from fullperc_fusion.frame_chain import ChainConfig
 from fullperc_fusion.fusion_health import HealthParams
+from fullperc_fusion.link_monitor import MonitorParams
 from fullperc_fusion.pipeline import TargetConfig
 
 
 def _same_config(a: TargetConfig, b: TargetConfig) -> None:
     assert (a.name, a.filters, a.params, a.slop_ns, a.delay_ns) == (b.name, b.filters, b.params, b.slop_ns, b.delay_ns)
     assert (a.orientation_std_local, a.orientation_std_global) == (b.orientation_std_local, b.orientation_std_global)
+    assert a.monitor == b.monitor
     for f in dataclasses.fields(ChainConfig):
         x, y = getattr(a.chain, f.name), getattr(b.chain, f.name)
         assert (x is None and y is None) or np.array_equal(x, y), f.name
@@ -108,6 +110,19 @@ def test_values_are_mapped(tmp_path):
     ({"alarm": {"bias_max": -0.02}}, "alarm.bias_max"),
     ({"alarm": {"reject_timeout": float("inf")}}, "alarm.reject_timeout"),
     ({"problem_hold": 0}, "problem_hold"),
+    ({"static_links": "median"}, "static_links"),
+    ({"calibration": {"duration": 0.0}}, "calibration.duration"),
+    ({"calibration": {"min_samples": 1}}, "calibration.min_samples"),
+    ({"calibration": {"max_drift": -1e-3}}, "calibration.max_drift"),
+    ({"calibration": {"max_rot_drift": float("nan")}}, "calibration.max_rot_drift"),
+    ({"calibration": {"timeout": 0}}, "calibration.timeout"),
+    ({"calibration": {"output": 3}}, "calibration.output"),
+    ({"link_monitor": {"trans_max": 0.0}}, "link_monitor.trans_max"),
+    ({"link_monitor": {"rot_max": -0.003}}, "link_monitor.rot_max"),
+    ({"link_monitor": {"window": float("inf")}}, "link_monitor.window"),
+    ({"link_monitor": {"recalibrate": "yes"}}, "link_monitor.recalibrate"),
+    ({"link_monitor": {"enabled": 1}}, "link_monitor.enabled"),
+    ({"calibration_file": "/nonexistent/cal.yaml"}, "calibration_file"),
 ])
 def test_bad_values_name_the_parameter_and_the_file(tmp_path, params, name):
     p = _write(tmp_path, params)
@@ -167,3 +182,61 @@ def test_same_result_as_the_evaluators_former_loader(tmp_path):
         b, vb = old(path)
         _same_config(a, b)
         assert {k: v for k, v in vb.items() if k in va} == {k: va[k] for k in vb}   # old values, same keys
+
+
+def test_calibration_and_link_monitor_rows_are_mapped(tmp_path):
+    p = _write(tmp_path, {"static_links": "calibrate", "calibration": {
+        "duration": 4.0, "min_samples": 12, "max_drift": 2e-3, "max_rot_drift": 5e-3, "output": "out.yaml",
+        "timeout": 3.0}, "link_monitor": {"enabled": False, "trans_max": 0.004, "rot_max": 0.006, "window": 2.0,
+                                         "recalibrate": True}})
+    cfg, values = fc.load_fusion_config(p)
+    c = cfg.chain
+    assert c.static_links == "calibrate" and c.calibration_duration_s == 4.0 and c.calibration is None
+    assert c.calibration_settings.min_samples == 12
+    assert (c.calibration_settings.static.max_drift_m, c.calibration_settings.static.max_drift_rad) == (2e-3, 5e-3)
+    assert cfg.monitor == MonitorParams(enabled=False, trans_max_m=0.004, rot_max_rad=0.006, window_s=2.0,
+                                        recalibrate=True)
+    assert values["calibration.output"] == "out.yaml" and values["calibration.timeout"] == 3.0
+    # the defaults: average of init_samples, monitoring on without re-calibration
+    d = fc.load_fusion_config().config
+    assert d.chain.static_links == "average" and d.monitor == MonitorParams() and d.chain.calibration is None
+
+
+def _calibration_file(tmp_path):
+    from fullperc_common.transforms import make_T
+    from fullperc_fusion.calibration import Collector
+    from fullperc_fusion.calibration_io import save_calibration
+
+    rng = np.random.default_rng(0)
+    col = Collector(("T_omc_base", "T_base_ots"), duration_s=1.0)
+    for k in range(130):
+        t = 10**18 + k * 8_333_333
+        col.add("omc", "base", t, make_T([1.0, 0.5, 0.8] + rng.normal(0, 1e-4, 3)))
+        col.add("ots", "base", t, make_T([0.1, 0.2, -1.9] + rng.normal(0, 1e-4, 3)))
+    path = tmp_path / "cal.yaml"
+    save_calibration(path, col.finish(source="test"))
+    return path
+
+
+def test_calibration_file_is_loaded_into_the_chain(tmp_path):
+    cal = _calibration_file(tmp_path)
+    cfg, _ = fc.load_fusion_config(_write(tmp_path, {"calibration_file": str(cal)}))
+    c = cfg.chain
+    assert c.calibration is not None and set(c.calibration.links) == {"T_omc_base", "T_base_ots"}
+    assert c.calibration_file == str(cal)
+    np.testing.assert_allclose(c.calibration.T("T_omc_base")[:3, 3], [1.0, 0.5, 0.8], atol=1e-4)
+    # given twice: as a parameter and in the file
+    with pytest.raises(fc.FusionConfigError, match="T_base_ots is given both"):
+        fc.load_fusion_config(_write(tmp_path, {"calibration_file": str(cal), "T_base_ots": [1, 2, 3, 0, 0, 0, 1]}))
+
+
+def test_a_bad_calibration_file_names_the_parameter_the_file_and_the_field(tmp_path):
+    cal = _calibration_file(tmp_path)
+    data = yaml.safe_load(cal.read_text())
+    data["links"]["T_base_ots"]["quaternion_xyzw"] = [0, 0, 0, 2.0]
+    cal.write_text(yaml.safe_dump(data))
+    with pytest.raises(fc.FusionConfigError) as e:
+        fc.load_fusion_config(_write(tmp_path, {"calibration_file": str(cal)}))
+    msg = str(e.value)
+    assert "'calibration_file'" in msg and str(cal) in msg and "links.T_base_ots.quaternion_xyzw" in msg
+    assert isinstance(e.value, ParameterError)
