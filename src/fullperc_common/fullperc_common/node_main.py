@@ -11,17 +11,20 @@ Exit status, for every node:
   ``declare_parameter`` itself), :class:`~fullperc_common.params.ParameterError`, and the node's own ``fatal``
   exception types (missing library, layout error, port in use ...).
 * SIGINT / SIGTERM: status 0 in every phase (during rclpy init and construction, while data flows, during
-  shutdown), after the node's own ``close()`` (when it has one) has stopped its device threads.
+  shutdown), after the node's own ``close()`` (when it has one) has stopped its device threads. A signal
+  during construction does not interrupt the constructor: the node is closed as soon as it returns.
+  ``close()`` raising gives status 1 with its traceback (a bug in the node, not a way to stop).
 
 Why our own signal handling: rclpy's default handlers shut the context down asynchronously, from the signal,
 while callbacks may be running; a callback (or a device thread) that then publishes raises ``RCLError: context
 not valid`` and the node dies with status 1 and a traceback. Here rclpy is initialised with
 ``SignalHandlerOptions.NO``; our handler only sets a flag (and wakes the executor), the executor spins in short
 slices until the flag is set, and then, outside any callback, the node is closed, destroyed and rclpy shut
-down, in that order. Further signals during shutdown only set the flag again. Exceptions that threads raise
-after the stop was requested (a device thread publishing into the closing node) are reported in one line, not
-as a traceback. A signal that arrives while Python is still importing the node's module (before ``main()``
-runs) is outside this function.
+down, in that order. Further signals during shutdown only set the flag again, and once run_node returns as a
+process's main (``args`` None) SIGINT/SIGTERM are ignored while the interpreter finalises. Exceptions that
+threads raise after the stop was requested (a device thread publishing into the closing node) are reported in
+one line, not as a traceback. A signal that arrives while Python is still importing the node's module (before
+``main()`` runs) is outside this function: there Python's defaults apply.
 """
 
 from __future__ import annotations
