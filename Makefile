@@ -16,8 +16,9 @@ setup:
 	@scripts/setup.sh
 
 # flock: parallel `make build` calls (several terminals, helpers) must not share build/ at once.
+# colcon_skip.sh: with a system ROS, src/tf2_msgs (the wheels' missing tf2_msgs) is skipped for the system's.
 build: setup
-	@$(ENV) flock .build.lock colcon build $(COLCON_FLAGS) \
+	@$(ENV) flock .build.lock colcon build $(COLCON_FLAGS) $$(scripts/colcon_skip.sh) \
 	    --cmake-args -DPython3_EXECUTABLE=$$Python3_EXECUTABLE
 
 lint: setup

@@ -170,6 +170,21 @@ class DianaKinematics:
         pin.forwardKinematics(self.model, self.data, self._q(q))
         return np.array([self.data.oMi[j].translation for j in range(1, N_JOINTS + 1)])
 
+    def link_transforms(self, q, root: str = "diana_base", tool: bool = False) -> list[tuple[str, str, np.ndarray]]:
+        """The arm's TF tree for joint angles q: (parent, child, T_parent_child) for ``diana_link1..7`` (each in
+        its parent link, ``diana_link1`` in ``root``), ``diana_flange`` (in ``diana_link7``) and, with ``tool``,
+        ``diana_tool`` (the tool offset, in ``diana_flange``). Chained, they give :meth:`fk` / :meth:`fk_tool`."""
+        pin.forwardKinematics(self.model, self.data, self._q(q))
+        out, parent = [], root
+        for j in range(1, N_JOINTS + 1):
+            child = f"diana_link{j}"
+            out.append((parent, child, self.data.liMi[j].homogeneous.copy()))
+            parent = child
+        out.append((parent, "diana_flange", self.model.frames[self._flange_id].placement.homogeneous.copy()))
+        if tool:
+            out.append(("diana_flange", "diana_tool", self.tool_offset.copy()))
+        return out
+
     def within_limits(self, q) -> bool:
         q = self._q(q)
         return bool(np.all(q >= self.lower) and np.all(q <= self.upper))

@@ -8,6 +8,11 @@ the DH table from ``dh_source``: ``nominal`` (reference table), ``parameters`` (
 e.g. a real robot's ``getDH`` output copied into the yaml) or ``controller`` (``getDH`` read at connect,
 ``diana_api`` only). Joint names ``joint1..joint7``; poses in frame ``diana_base``.
 
+TF (``tf`` true by default): every joint state also goes to ``/tf`` (tf2_msgs/TFMessage, stamp = the joint
+state's stamp) as the arm's tree from FK: ``<frame_id>`` -> ``diana_link1`` -> ... -> ``diana_link7`` ->
+``diana_flange`` (-> ``diana_tool`` with ``publish_tool``). Where the arm stands in ``base`` (``base`` ->
+``diana_base``) is fusion_node's ``tf.diana_base``.
+
 Health (``/diagnostics``, status ``diana_state: diana``; the rule is in :mod:`fullperc_common.health`, one item
 ``arm``): ERROR when no new joint state arrived for ``stale_timeout_s`` (not connected / sequence frozen / stream
 stopped) or when no good joint state was published for ``health.stale_after_s`` because every sample was
@@ -30,6 +35,7 @@ from fullperc_common.health import ERROR, WARN, Health
 from fullperc_common.node_main import run_node
 from fullperc_common.params import ParameterError, declare
 from fullperc_common.ros_conv import ns_to_stamp, pose_stamped
+from fullperc_common.tf import Broadcaster, transform_stamped
 from fullperc_common.transforms import T_to_pq
 
 from .clock_sync import ClockSync
@@ -53,6 +59,7 @@ class DianaStateNode(Node):
         rate = declare(self, "rate_hz", 100.0, lambda v: 0 < v <= 1000, "0 < rate <= 1000")
         self.frame_id = declare(self, "frame_id", "diana_base", lambda v: bool(v), "non-empty")
         self.publish_tool = declare(self, "publish_tool", False)
+        publish_tf = declare(self, "tf", True, description="the arm's links from FK on /tf")
         tool = declare(self, "tool_offset", [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
                        lambda v: len(v) == 7 and np.linalg.norm(v[3:]) > 0.5, "x y z qx qy qz qw (unit quaternion)")
         self.dh_source = declare(self, "dh_source", "nominal", lambda v: v in ("nominal", "parameters", "controller"),
@@ -83,6 +90,7 @@ class DianaStateNode(Node):
         self.pub_js = self.create_publisher(JointState, "/diana/joint_states", q)
         self.pub_flange = self.create_publisher(PoseStamped, "/diana/flange_pose", q)
         self.pub_tool = self.create_publisher(PoseStamped, "/diana/tool_pose", q) if self.publish_tool else None
+        self.tf = Broadcaster(self) if publish_tf else None
         self.diag = Diagnostics(self, hardware_id=f"diana7:{backend}", period_s=diag_period)
         self.health = Health(["arm"], health_cfg, item_kind="arm", output="joint state", frame="joint state",
                              unseen_level=ERROR)
@@ -156,6 +164,9 @@ class DianaStateNode(Node):
             if self.pub_tool is not None:
                 p, q = T_to_pq(T @ self.kin.tool_offset)
                 self.pub_tool.publish(pose_stamped(s.stamp_ns, self.frame_id, p, q))
+            if self.tf is not None:
+                self.tf.send([transform_stamped(s.stamp_ns, a, b, T_ab) for a, b, T_ab
+                              in self.kin.link_transforms(s.q, self.frame_id, tool=self.publish_tool)])
             if s.vendor_tcp is not None:
                 # Cross-check against the controller's own FK (its default TCP = flange unless reconfigured).
                 dp = np.linalg.norm(s.vendor_tcp[:3] - T[:3, 3]) * 1e3

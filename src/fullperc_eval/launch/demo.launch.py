@@ -20,7 +20,7 @@ RECORD_TOPICS = [
     "/omc/tool/quality", "/ots/tool/pose", "/ots/base/pose", "/ots/tool/quality", "/ots/base/quality",
     "/diana/joint_states", "/diana/flange_pose", "/fullperc/tool/pose", "/fullperc/tool/pose_cov",
     "/fullperc/tool/status", "/fullperc/tool/ckf/pose", "/fullperc/tool/bkf/pose", "/fullperc/tool/kf/pose",
-    "/fullperc/tool/omc/pose", "/fullperc/tool/region", "/diagnostics",
+    "/fullperc/tool/omc/pose", "/fullperc/tool/region", "/diagnostics", "/tf", "/tf_static",
 ]
 
 

@@ -163,6 +163,10 @@ PARAMS: tuple[Param, ...] = (
           "|bias| of the global source above this -> WARN"),
     Param("alarm.reject_timeout", _H.reject_timeout_s, "float", _pos, "must be finite and > 0", "s",
           "every sample of a source rejected for this long -> ERROR"),
+    Param("tf.enabled", True, "bool", None, "", "",
+          "broadcast /tf (base -> <target>) and /tf_static (omc -> base, base -> ots, base -> diana_base)"),
+    Param("tf.diana_base", None, "pose7", None, "", "m, quaternion x y z w",
+          "optional T_base_diana_base (the arm's base in base) for /tf_static [x y z qx qy qz qw]"),
 )
 """Every node-wide parameter of fusion_node."""
 

@@ -9,6 +9,12 @@ Publishes:
   /fullperc/<target>/pose_cov  PoseWithCovarianceStamped (same stamp/frame)
   /fullperc/<target>/status    fullperc_msgs/FusionStatus
   /fullperc/<target>/<filter>/pose and .../status  for every filter listed in ``filters`` (side by side)
+  /tf                          tf2_msgs/TFMessage ``base`` -> ``<target>`` per fused output of the primary filter
+                               (stamp = fused stamp); with ``tf.enabled`` (default true)
+  /tf_static                   (transient local) ``omc`` -> ``base`` (T_omc_base) and ``base`` -> ``ots``
+                               (T_base_ots; not with ``local_chain: tracked``, where the OTS moves) once known, sent
+                               again when they change (~/initialize, ~/calibrate, re-calibration); ``base`` ->
+                               ``diana_base`` when ``tf.diana_base`` is given (fusion_node has no other source of it)
   /diagnostics                 one status per target: initialization, rejected input and why, silent sources,
                                and the alarms of fusion_health (WARN: hop rate, implausible bias of the global
                                source; ERROR: every sample of a source rejected), naming target and source;
@@ -38,6 +44,7 @@ mapping the offline evaluator uses), documented in config/fusion.yaml; names of 
   [m] 0.001, calibration.max_rot_drift [rad] 0.003, calibration.output '', calibration.timeout [s] 10,
   link_monitor.enabled true, link_monitor.trans_max [m] 0.002, link_monitor.rot_max [rad] 0.005,
   link_monitor.window [s] 1.0, link_monitor.recalibrate false
+  tf.enabled true, tf.diana_base [x y z qx qy qz qw] (optional)
 
 ``clock``: with ``stamps`` (default) the synchronizer's notion of "now" is the newest stamp received,
 so output depends only on the data (live, replayed bags, simulated time alike); after ``idle_flush``
@@ -64,12 +71,13 @@ from fullperc_common.drain import take_queued
 from fullperc_common.node_main import run_node
 from fullperc_common.params import ParameterError, declare
 from fullperc_common.ros_conv import ns_to_stamp, pose_msg, pose_to_pq, stamp_to_ns, vector3
+from fullperc_common.tf import Broadcaster, StaticBroadcaster, transform_stamped
 from fullperc_msgs.msg import FusionStatus, Region
 
 from .calibration import CalibrationBodies
 from .calibration_io import save_calibration
 from .calibration_run import CalibrationRun, summary
-from .frame_chain import links_needed
+from .frame_chain import links_needed, pose_to_T
 from .fusion_config import calibration_settings, health_params, primary_and_extra, read_values, spec, target_config
 from .fusion_health import GLOBAL, LOCAL, TargetHealth
 from .pipeline import FusedOutput, TargetPipeline
@@ -154,6 +162,12 @@ class FusionNode(Node):
         # own (reentrant) group: the answer waits for the collection, and the default group's callbacks (the data)
         # must run meanwhile; a second call is answered at once
         self.create_service(Trigger, "~/calibrate", self._on_calibrate, callback_group=ReentrantCallbackGroup())
+        self._tf = Broadcaster(self) if vals["tf.enabled"] else None
+        self._tf_static = StaticBroadcaster(self) if vals["tf.enabled"] else None
+        d = vals["tf.diana_base"]
+        self._T_base_diana = None if d is None else pose_to_T((np.asarray(d[:3]), np.asarray(d[3:])))
+        self._static_key: tuple | None = None
+        self._send_static()
         self.create_timer(0.01, self._on_timer)
         self.create_timer(0.5, self._update_diagnostics)
         self._update_diagnostics()
@@ -291,6 +305,7 @@ class FusionNode(Node):
             written = f"; written to {self._cal_output}"
         for pipe in self.pipes.values():
             pipe.apply_calibration(cal, "~/calibrate")
+        self._send_static()
         message = f"{summary(cal)}; links of {list(self.pipes)} swapped{written}"
         log.info(message)
         self._update_diagnostics()
@@ -314,8 +329,38 @@ class FusionNode(Node):
         self._link_state[target] = (m.first_bump_ns if m.bumped else None, pipe.counts["recalibrations"])
 
     # ---- output -----------------------------------------------------------------------------
+    def _static_links(self) -> list[tuple[str, str, np.ndarray]]:
+        """(parent, child, T_parent_child) of the static links known now (the first target whose links are set)."""
+        out: dict[str, tuple[str, str, np.ndarray]] = {}
+        for pipe in self.pipes.values():
+            L = pipe.chain.links
+            if L.T_omc_base is not None:
+                out.setdefault("base", ("omc", "base", L.T_omc_base))
+            if L.T_base_ots is not None and pipe.config.chain.local_chain != "tracked":
+                out.setdefault("ots", ("base", "ots", L.T_base_ots))
+        if self._T_base_diana is not None:
+            out["diana_base"] = ("base", "diana_base", self._T_base_diana)
+        return list(out.values())
+
+    def _send_static(self) -> None:
+        """/tf_static: the static links, sent when they are first known and again whenever one changes."""
+        if self._tf_static is None:
+            return
+        links = self._static_links()
+        key = tuple((p, c, T.tobytes()) for p, c, T in links)
+        if not links or key == self._static_key:
+            return
+        self._static_key = key
+        now = self.get_clock().now().nanoseconds
+        try:
+            self._tf_static.send([transform_stamped(now, p, c, T) for p, c, T in links])
+        except ValueError as e:
+            self.get_logger().error(f"/tf_static not sent: {e}")
+
     def _publish(self, target: str, outs: list[FusedOutput]) -> None:
+        self._send_static()
         now = time.monotonic()
+        tfs = []
         pipe, h = self.pipes[target], self.health[target]
         skipped = pipe.counts["local_skipped"]
         if skipped > self._skipped_seen[target]:     # local samples the chain could not map: rejected too
@@ -337,6 +382,8 @@ class FusionNode(Node):
                 ps.header.frame_id = "base"
                 ps.pose = pose
                 pose_pub.publish(ps)
+                if key == "" and self._tf is not None:
+                    tfs.append(transform_stamped(o.t_ns, "base", target, p=o.p, q_xyzw=o.q))
                 if cov_pub is not None:
                     pc = PoseWithCovarianceStamped()
                     pc.header = ps.header
@@ -357,6 +404,8 @@ class FusionNode(Node):
                 st.region = self._region.get(target, 0)
                 st.link_bumped = bool(o.link_bumped)
                 status_pub.publish(st)
+        if tfs:
+            self._tf.send(tfs)
 
     def _update_diagnostics(self) -> None:
         now = time.monotonic()

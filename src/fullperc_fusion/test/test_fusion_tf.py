@@ -1,0 +1,140 @@
+"""fusion_node's TF across processes (issue 17 item 1): synthetic driver topics from one process, the installed
+fusion_node in another; this test subscribes to /tf and /tf_static (a late, transient-local subscriber too)."""
+
+from __future__ import annotations
+
+import importlib.util
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fullperc_common.testing import installed_exe, wait_for
+
+HERE = Path(__file__).resolve().parent
+PUB = HERE / "synthetic_driver_pub.py"
+pytestmark = pytest.mark.system
+DIANA_BASE = [0.4, -0.3, 0.0, 0.0, 0.0, 0.7071067811865476, 0.7071067811865476]
+
+
+def _pub_module():
+    spec = importlib.util.spec_from_file_location("synthetic_driver_pub", PUB)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _ns(stamp) -> int:
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+class TfListener:
+    def __init__(self, ctx):
+        import rclpy
+        from geometry_msgs.msg import PoseStamped
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+        from fullperc_common.tf import dynamic_qos, static_qos
+        from tf2_msgs.msg import TFMessage
+
+        self.TFMessage, self.static_qos = TFMessage, static_qos
+        self.node = rclpy.create_node("fusion_tf_listener", context=ctx)
+        self.tf, self.static, self.late_static, self.poses = [], [], [], []
+        self.node.create_subscription(TFMessage, "/tf", self.tf.append, dynamic_qos())
+        self.node.create_subscription(TFMessage, "/tf_static", self.static.append, static_qos())
+        self.node.create_subscription(PoseStamped, "/fullperc/tool/pose", self.poses.append,
+                                      QoSProfile(depth=2000, reliability=ReliabilityPolicy.RELIABLE))
+        self.ex = SingleThreadedExecutor(context=ctx)
+        self.ex.add_node(self.node)
+        self._stop = threading.Event()
+        self.th = threading.Thread(target=self._spin, daemon=True)
+        self.th.start()
+
+    def _spin(self):
+        while not self._stop.is_set():
+            self.ex.spin_once(timeout_sec=0.05)
+
+    def subscribe_late(self):
+        self.node.create_subscription(self.TFMessage, "/tf_static", self.late_static.append, self.static_qos())
+
+    def close(self):
+        self._stop.set()
+        self.th.join(5)
+        self.node.destroy_node()
+
+
+def _static_map(msg) -> dict:
+    from fullperc_common.tf import transform_to_T
+    return {t.child_frame_id: (t.header.frame_id, transform_to_T(t)) for t in msg.transforms}
+
+
+def test_fusion_node_broadcasts_tf_and_tf_static(procs, rclpy_context, python_exe, tmp_path):
+    mod = _pub_module()
+    lis = TfListener(rclpy_context)
+    try:
+        pose7 = "[" + ", ".join(repr(v) for v in DIANA_BASE) + "]"
+        node = procs.start([installed_exe("fullperc_fusion", "fusion_node"), "--ros-args", "-p", "init_samples:=20",
+                            "-p", f"tf.diana_base:={pose7}"], name="fusion_node")
+        wait_for(lambda: all(lis.node.count_publishers(t) > 0 for t in ("/tf", "/tf_static",
+                                                                         "/fullperc/tool/pose")),
+                 60, what="fusion_node's publishers")
+        wait_for(lambda: all(s.get_publisher_count() > 0 for s in lis.node.subscriptions), 60,
+                 what="subscriptions matched")
+        # before any data only the given link: base -> diana_base (transient local: delivered although late)
+        wait_for(lambda: lis.static, 60, what="/tf_static with tf.diana_base")
+        assert set(_static_map(lis.static[0])) == {"diana_base"}
+        pub = procs.start([python_exe, str(PUB), "--log", str(tmp_path / "pub.jsonl"), "--duration", "4.0"],
+                          name="pub")
+        wait_for(lambda: pub.poll() is not None, 90, what="publisher to finish")
+        assert pub.returncode == 0, procs.log(pub)
+        last = [-1]
+
+        def settled():
+            n = len(lis.tf)
+            done = n == last[0] and n > 0
+            last[0] = n
+            return done
+        wait_for(settled, 30, interval=1.0, what="/tf to settle")
+        wait_for(lambda: len(lis.poses) == sum(len(m.transforms) for m in lis.tf), 30, what="poses and /tf agree")
+        lis.subscribe_late()   # a subscriber that joins now gets the whole static tree from one message
+        wait_for(lambda: lis.late_static, 60, what="late /tf_static")
+        assert node.poll() is None, procs.log(node)
+    finally:
+        lis.close()
+
+    # /tf: base -> tool, one per fused output of the primary filter, same stamp and pose as /fullperc/tool/pose
+    trs = [t for m in lis.tf for t in m.transforms]
+    assert trs and all((t.header.frame_id, t.child_frame_id) == ("base", "tool") for t in trs)
+    by_stamp = {_ns(p.header.stamp): p.pose for p in lis.poses}
+    for t in trs:
+        p = by_stamp[_ns(t.header.stamp)]
+        assert np.allclose([t.transform.translation.x, t.transform.translation.y, t.transform.translation.z],
+                           [p.position.x, p.position.y, p.position.z], atol=1e-12)
+        assert np.allclose([t.transform.rotation.x, t.transform.rotation.y, t.transform.rotation.z,
+                            t.transform.rotation.w],
+                           [p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w], atol=1e-9)
+    # /tf_static: the union, with the links the synthetic drivers were built from (averaged, noise-free input)
+    for msg in (lis.static[-1], lis.late_static[0]):
+        links = _static_map(msg)
+        assert set(links) == {"base", "ots", "diana_base"}
+        assert links["base"][0] == "omc" and links["ots"][0] == "base" and links["diana_base"][0] == "base"
+        np.testing.assert_allclose(links["base"][1], mod.T_OMC_BASE, atol=1e-6)
+        T_base_ots = np.linalg.inv(mod.T_OMC_BASE) @ mod.T_OMC_OTS
+        np.testing.assert_allclose(links["ots"][1], T_base_ots, atol=1e-6)
+        np.testing.assert_allclose(links["diana_base"][1][:3, 3], DIANA_BASE[:3], atol=1e-12)
+    assert len(lis.late_static) == 1
+
+
+def test_tf_disabled_publishes_no_tf(procs, rclpy_context):
+    lis = TfListener(rclpy_context)
+    try:
+        p = procs.start([installed_exe("fullperc_fusion", "fusion_node"), "--ros-args", "-p", "tf.enabled:=false"],
+                        name="fusion_node")
+        wait_for(lambda: lis.node.count_publishers("/fullperc/tool/pose") > 0 or p.poll() is not None, 60,
+                 what="fusion_node's publishers")
+        assert p.poll() is None, procs.log(p)
+        assert lis.node.count_publishers("/tf") == 0 and lis.node.count_publishers("/tf_static") == 0
+    finally:
+        lis.close()
