@@ -48,9 +48,9 @@ class TfListener(_OmcListener):
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.node import Node
         from rclpy.qos import QoSProfile, ReliabilityPolicy
-        from tf2_msgs.msg import TFMessage
 
         from fullperc_common.tf import dynamic_qos
+        from tf2_msgs.msg import TFMessage
 
         self.node = Node("diana_tf_listener", context=ctx)
         self.ex = SingleThreadedExecutor(context=ctx)
