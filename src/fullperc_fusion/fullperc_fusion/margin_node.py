@@ -4,7 +4,10 @@ Subscribes ``pose_topic`` (default ``/fullperc/<target>/pose``) for each name in
 ``/fullperc/<target>/region`` (fullperc_msgs/Region) for every pose received, with the header (stamp = acquisition
 time of the labelled pose, frame_id) and the position of that pose. ``/fullperc/margin_map``
 (visualization_msgs/MarkerArray, reliable + transient local, so late RViz instances get it) is published at start
-and again whenever a parameter changes. ``/diagnostics`` reports the layout and, per target, the last label.
+and again whenever a parameter changes. ``/fullperc/<target>/region_marker`` (visualization_msgs/Marker, a sphere at
+the labelled position in the pose's frame, coloured by the published label: BVV green, GVV blue, PVV red, UNKNOWN
+grey; the colours of the margin map) goes out with every Region, for RViz (README "Seeing it").
+``/diagnostics`` reports the layout and, per target, the last label.
 
 Frames. The layout (cameras, OTS volume) is in ``omc``; fused poses are in ``base``. A pose whose frame_id is the
 layout frame is labelled directly; a pose in ``base`` needs T_omc_base, which we take (decision) from the
@@ -108,6 +111,19 @@ def map_markers(mmap: MarginMap, layout: Layout, stamp) -> MarkerArray:
     return out
 
 
+UNKNOWN_COLOR = (0.6, 0.6, 0.6)
+
+
+def region_marker(region: Region) -> Marker:
+    """A sphere at ``region.position`` (in ``region.header.frame_id``), coloured by ``region.label``."""
+    m = _marker(region.header.frame_id, region.header.stamp, f"region/{region.target}", 0, Marker.SPHERE)
+    m.pose.position = region.position
+    m.scale.x = m.scale.y = m.scale.z = 0.04
+    r, g, b = REGION_COLORS.get(region.label, UNKNOWN_COLOR)
+    m.color = ColorRGBA(r=r, g=g, b=b, a=0.9)
+    return m
+
+
 def _marker(frame_id: str, stamp, ns: str, mid: int, kind: int) -> Marker:
     m = Marker()
     m.header.frame_id = frame_id
@@ -167,12 +183,15 @@ class MarginNode(Node):
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self.map_pub = self.create_publisher(MarkerArray, MAP_TOPIC, map_qos)
         self.region_pubs = {}
+        self.marker_pubs = {}
         self.counts: dict[str, int] = {}
         self.region_filters: dict[str, RegionFilter] = {}
         for target in self.targets:
             self.region_filters[target] = RegionFilter(self.hysteresis)
             self.region_pubs[target] = self.create_publisher(
                 Region, self.region_topic.format(target=target), self.qos_depth)
+            self.marker_pubs[target] = self.create_publisher(Marker, f"/fullperc/{target}/region_marker",
+                                                             self.qos_depth)
             self.counts[target] = 0
             self.create_subscription(PoseStamped, self.pose_topic.format(target=target),
                                      lambda msg, t=target: self.on_pose(t, msg), self.qos_depth)
@@ -329,6 +348,7 @@ class MarginNode(Node):
                            "cameras_seeing": lab.cameras_seeing, "label_changes": rf.changes,
                            "model_label_changes": rf.raw_changes})
         self.region_pubs[target].publish(out)
+        self.marker_pubs[target].publish(region_marker(out))
 
 
 def main(args=None) -> int:

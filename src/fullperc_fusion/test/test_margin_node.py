@@ -131,6 +131,8 @@ def test_labels_latched_map_and_parameter_change(procs, rclpy_context, tmp_path,
     got: dict[str, list] = {"tool": [], "probe": [], "stray": [], "flicker": []}
     for t in got:
         node.create_subscription(Region, f"/fullperc/{t}/region", lambda m, t=t: got[t].append(m), 50)
+    markers: list = []
+    node.create_subscription(Marker, "/fullperc/tool/region_marker", markers.append, 50)
 
     def labels(target, threshold=None):
         out = {}
@@ -154,6 +156,22 @@ def test_labels_latched_map_and_parameter_change(procs, rclpy_context, tmp_path,
         for name, m in lab.items():
             assert m.target == target and m.header.frame_id == frame
             assert (m.position.x, m.position.y, m.position.z) == pytest.approx(pts[name])
+    # the region marker of every label (issue 17 item 2): at the labelled position, coloured by the label
+    from fullperc_fusion.margin_node import UNKNOWN_COLOR
+    colors = {Region.BVV: (0.10, 0.65, 0.20), Region.GVV: (0.20, 0.45, 0.85), Region.PVV: (0.85, 0.20, 0.15),
+              Region.UNKNOWN: UNKNOWN_COLOR}
+    _spin_until(ex, lambda: len({m.header.stamp.sec for m in markers if 100 <= m.header.stamp.sec < 103}) == 3, 30,
+                "region markers of tool")
+    by_key = {(m.header.stamp.sec, m.label) for m in got["tool"]}
+    for mk in markers:
+        if not 100 <= mk.header.stamp.sec < 103:
+            continue
+        assert mk.type == Marker.SPHERE and mk.header.frame_id == "base" and mk.ns == "region/tool"
+        assert (mk.pose.position.x, mk.pose.position.y, mk.pose.position.z) == pytest.approx(
+            POINTS_BASE[ORDER[mk.header.stamp.sec - 100]])
+        color = next(lbl for lbl, c in colors.items()
+                     if (mk.color.r, mk.color.g, mk.color.b) == pytest.approx(c, abs=1e-6))
+        assert (mk.header.stamp.sec, color) in by_key
     # a pose in a frame the node cannot place is answered with UNKNOWN, never a guessed label
     assert all(m.label == Region.UNKNOWN for m in got["stray"])
 
