@@ -61,7 +61,7 @@ def test_wheel_path_builds_tf2_msgs_with_upstreams_type_hash():
 
     import tf2_msgs.msg
 
-    assert Path(tf2_msgs.msg.__file__).resolve().is_relative_to((ROOT / "install" / "tf2_msgs").resolve())
+    assert Path(tf2_msgs.msg.__file__).is_relative_to(ROOT / "install" / "tf2_msgs")   # symlink install
     desc = json.loads((ROOT / "install/tf2_msgs/share/tf2_msgs/msg/TFMessage.json").read_text())
     own = next(h["hash_string"] for h in desc["type_hashes"] if h["type_name"] == "tf2_msgs/msg/TFMessage")
     assert own == get_typestore(Stores.ROS2_JAZZY).hash_rihs01("tf2_msgs/msg/TFMessage")
