@@ -65,13 +65,16 @@ Decisions where the paper leaves room (each pinned by a test in test_filters.py)
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
+from .filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement, Step, StepCompat
+
+__all__ = ["FILTER_KINDS", "SOURCE_GLOBAL", "SOURCE_LOCAL", "FilterParams", "FusionFilter", "PassThrough", "Step",
+           "biased_factors", "kalman_update", "measurement_matrix", "process_noise", "transition"]
+
 FILTER_KINDS = ("kf", "bkf", "ckf", "cbkf")
-SOURCE_GLOBAL = 1  # bit values as in fullperc_msgs/FusionStatus
-SOURCE_LOCAL = 2
 
 _I3 = np.eye(3)
 
@@ -178,34 +181,18 @@ def kalman_update(x: np.ndarray, P: np.ndarray, z: np.ndarray, H: np.ndarray, R:
 
 # ---------------------------------------------------------------------------------------------
 
-@dataclass
-class Step:
-    """Result of one filter step (one synchronizer item)."""
+class FusionFilter(StepCompat):
+    """The configurable filter; ``kind`` is one of :data:`FILTER_KINDS`. Implements :class:`filter_api.Filter`.
 
-    t_ns: int
-    p: np.ndarray
-    v: np.ndarray
-    b: np.ndarray                  # zeros for kinds without a bias state
-    P: np.ndarray                  # full state covariance after the step
-    sources: int                   # SOURCE_GLOBAL | SOURCE_LOCAL bits used
-    innovation: np.ndarray = field(default_factory=lambda: np.zeros(3))  # global rows if any, else local
-    nis: float = 0.0               # NIS of the whole (stacked) update, dof = rows of H
-    nis_global: float = 0.0        # NIS of the global rows alone (the hop test)
-    hop: bool = False
-    reset: bool = False            # this sample (re-)initialised the state; no update was made
-    m: np.ndarray | None = None    # diagonal of M (biased kinds)
+    :meth:`predict` moves the state to a stamp (eq. 9-10); :meth:`update` fuses one
+    :class:`~filter_api.Measurement` or a synchronised (global, local) pair in one stacked update (eq. 11-14).
+    R of a measurement is the position block ``cov[:3, :3]`` of its covariance, or ``global_std**2 I`` /
+    ``local_std**2 I`` when it has none. ``step(z_global, t_global, z_local, t_local)`` is predict + update.
+    Stamps must be non-decreasing; the synchronizer guarantees it, a direct caller gets ValueError otherwise.
 
-    @property
-    def pos_cov(self) -> np.ndarray:
-        return self.P[0:3, 0:3]
-
-
-class FusionFilter:
-    """The configurable filter; ``kind`` is one of :data:`FILTER_KINDS`.
-
-    Call :meth:`step` once per synchronised item with the global and/or the local position sample
-    (metres, in ``base``) and their acquisition stamps (int ns). Steps must come in non-decreasing
-    time; the synchronizer guarantees it, a direct caller gets ValueError otherwise.
+    Before the first measurement, and after a gap longer than ``max_gap_s``, :meth:`predict` only records the
+    stamp and the next :meth:`update` (re-)initialises the state there (see the module docstring). A refused
+    update (ValueError, LinAlgError) leaves the state as predicted; a non-finite result resets the filter.
     """
 
     def __init__(self, kind: str = "cbkf", params: FilterParams | None = None) -> None:
@@ -225,10 +212,16 @@ class FusionFilter:
         self.x = np.zeros(self.n)
         self.P = np.eye(self.n)
         self.t_ns: int | None = None
+        self._pending_ns: int | None = None   # stamp of a (re-)initialisation the next update makes
 
     @property
     def initialized(self) -> bool:
         return self.t_ns is not None
+
+    @property
+    def time_ns(self) -> int | None:
+        """The stamp the next update is made at: the state's, or that of a pending (re-)initialisation."""
+        return self._pending_ns if self._pending_ns is not None else self.t_ns
 
     @property
     def bias(self) -> np.ndarray:
@@ -249,48 +242,71 @@ class FusionFilter:
             self.x[6:9] = b
             self.P[6:9, 6:9] = Pbb
         self.t_ns = int(t_ns)
+        self._pending_ns = None
         src = (SOURCE_GLOBAL if z_global is not None else 0) | (SOURCE_LOCAL if z_local is not None else 0)
         return Step(self.t_ns, p.copy(), np.zeros(3), self.bias, self.P.copy(), src, reset=True)
 
-    def step(self, z_global=None, t_global: int | None = None, z_local=None, t_local: int | None = None) -> Step:
-        """Predict to the newest stamp given and update with the sample(s) given."""
-        if z_global is None and z_local is None:
-            raise ValueError("step needs a global or a local sample")
-        if z_global is not None and t_global is None or z_local is not None and t_local is None:
-            raise ValueError("every sample needs its stamp")
-        zg = None if z_global is None else np.asarray(z_global, dtype=float).reshape(3)
-        zl = None if z_local is None else np.asarray(z_local, dtype=float).reshape(3)
-        for z in (zg, zl):
-            if z is not None and not np.all(np.isfinite(z)):
-                raise ValueError("non-finite measurement")
-        t = max(int(s) for s in (t_global, t_local) if s is not None)
-        pr = self.params
-        if self.t_ns is None:
-            return self._init_state(t, zg, zl, keep_bias=False, dt=0.0)
+    def predict(self, t_ns: int) -> None:
+        """Eq. (9)-(10): x' = F x, P' = F P F^T + Q with dt from the state's stamp to ``t_ns``."""
+        t = int(t_ns)
+        now = self.time_ns
+        if now is None:
+            self._pending_ns = t
+            return
+        if t < now:
+            raise ValueError(f"time went backwards by {(now - t) * 1e-9:.6f} s (filter at {now}, sample at {t})")
         dt = (t - self.t_ns) * 1e-9
-        if dt < 0:
-            raise ValueError(f"time went backwards by {-dt:.6f} s (filter at {self.t_ns}, sample at {t})")
-        if dt > pr.max_gap_s:
-            return self._init_state(t, zg, zl, keep_bias=True, dt=dt)
-
-        # prediction, eq. (9)-(10)
+        if self._pending_ns is not None or dt > self.params.max_gap_s:
+            self._pending_ns = t
+            return
+        pr = self.params
         F = transition(dt, self.has_bias)
-        x_pred = F @ self.x
-        P_pred = F @ self.P @ F.T + process_noise(dt, pr.accel_noise, pr.bias_walk, self.has_bias)
+        self.x = F @ self.x
+        self.P = F @ self.P @ F.T + process_noise(dt, pr.accel_noise, pr.bias_walk, self.has_bias)
+        self.t_ns = t
 
-        # measurement rows, eq. (11), global first
+    def update(self, *measurements: Measurement) -> Step:
+        """Eq. (11)-(14) for one measurement or a (global, local) pair, at the filter's time (predicted to the
+        newest stamp first if that is ahead); an older measurement gets its lag in H (module docstring)."""
+        mg = ml = None
+        for m in measurements:
+            if m.source == SOURCE_GLOBAL and mg is None:
+                mg = m
+            elif m.source == SOURCE_LOCAL and ml is None:
+                ml = m
+            else:
+                raise ValueError(f"filter {self.kind} takes at most one global and one local measurement per update")
+        if mg is None and ml is None:
+            raise ValueError("update needs a global or a local measurement")
+        t_new = max(m.t_ns for m in measurements)
+        if self.time_ns is None or t_new > self.time_ns:
+            self.predict(t_new)
+        t = self.time_ns
+        pr = self.params
+        zg = None if mg is None else mg.p
+        zl = None if ml is None else ml.p
+        if self._pending_ns is not None:
+            keep = self.t_ns is not None
+            return self._init_state(t, zg, zl, keep_bias=keep, dt=(t - self.t_ns) * 1e-9 if keep else 0.0)
+        x_pred, P_pred = self.x, self.P
+
+        # measurement rows, eq. (11), global first; R from the measurement's covariance or the fixed noise
         Hs, zs, Rs = [], [], []
-        if zg is not None:
-            Hs.append(measurement_matrix(SOURCE_GLOBAL, self.has_bias, (t - int(t_global)) * 1e-9))
-            zs.append(zg)
-            Rs.append(pr.global_std**2)
-        if zl is not None:
-            Hs.append(measurement_matrix(SOURCE_LOCAL, self.has_bias, (t - int(t_local)) * 1e-9))
-            zs.append(zl)
-            Rs.append(pr.local_std**2)
-        H = np.vstack(Hs)
-        z = np.concatenate(zs)
-        R = np.diag(np.repeat(Rs, 3))
+        for m, std in ((mg, pr.global_std), (ml, pr.local_std)):
+            if m is None:
+                continue
+            lag = (t - m.t_ns) * 1e-9
+            if lag > pr.max_gap_s:
+                raise ValueError(f"measurement {lag:.3f} s older than the filter time (max_gap_s {pr.max_gap_s})")
+            Hs.append(measurement_matrix(m.source, self.has_bias, lag))
+            zs.append(m.p)
+            Rs.append(std**2 * _I3 if m.cov is None else m.cov[0:3, 0:3])
+        if len(Hs) == 1:
+            H, z, R = Hs[0], zs[0], Rs[0]
+        else:
+            H, z = np.vstack(Hs), np.concatenate(zs)
+            R = np.zeros((6, 6))
+            R[0:3, 0:3], R[3:6, 3:6] = Rs
 
         y = z - H @ x_pred
         S = H @ P_pred @ H.T + R
@@ -309,14 +325,14 @@ class FusionFilter:
         x_upd, P_upd, _G, y, _S = kalman_update(x_pred, P_pred, z, H, R)
 
         # biased estimator, eq. (14) -- see the module docstring for the covariance decision
-        m = None
+        m_diag = None
         if self.biased:
-            m = np.ones(self.n)
+            m_diag = np.ones(self.n)
             idx = self._shrink_idx
-            m[idx] = biased_factors(x_upd[idx], np.diag(P_upd)[idx])
-            x_upd = m * x_upd
+            m_diag[idx] = biased_factors(x_upd[idx], np.diag(P_upd)[idx])
+            x_upd = m_diag * x_upd
             P_base = P_upd if pr.eq14_covariance == "posterior" else P_pred
-            P_upd = P_base * np.outer(m, m)
+            P_upd = P_base * np.outer(m_diag, m_diag)
 
         if not (np.all(np.isfinite(x_upd)) and np.all(np.isfinite(P_upd))):
             self.reset()
@@ -324,11 +340,14 @@ class FusionFilter:
         self.x, self.P, self.t_ns = x_upd, P_upd, t
         src = (SOURCE_GLOBAL if zg is not None else 0) | (SOURCE_LOCAL if zl is not None else 0)
         return Step(t, self.x[0:3].copy(), self.x[3:6].copy(), self.bias, self.P.copy(), src,
-                    innovation=y[0:3].copy(), nis=nis, nis_global=nis_g, hop=hop, m=m)
+                    innovation=y[0:3].copy(), nis=nis, nis_global=nis_g, hop=hop, m=m_diag)
 
 
-class PassThrough:
-    """The ``omc`` "filter": the raw global measurement, for comparison (no state, no local data)."""
+class PassThrough(StepCompat):
+    """The ``omc`` "filter": the raw global measurement, for comparison (no state, no local data).
+
+    Its position covariance is the measurement's ``cov[:3, :3]``, or ``global_std**2 I`` without one.
+    """
 
     kind = "omc"
 
@@ -339,20 +358,14 @@ class PassThrough:
     def reset(self) -> None:
         self.t_ns = None
 
-    def step(self, z_global=None, t_global=None, z_local=None, t_local=None) -> Step | None:
-        if z_global is None:
+    def predict(self, t_ns: int) -> None:
+        """Nothing to predict: the output is the newest global measurement."""
+
+    def update(self, *measurements: Measurement) -> Step | None:
+        mg = next((m for m in measurements if m.source == SOURCE_GLOBAL), None)
+        if mg is None:
             return None
-        zg = np.asarray(z_global, dtype=float).reshape(3)
-        if not np.all(np.isfinite(zg)):
-            raise ValueError("non-finite measurement")
-        self.t_ns = int(t_global)
+        self.t_ns = mg.t_ns
         P = np.zeros((6, 6))
-        P[0:3, 0:3] = np.eye(3) * self.params.global_std**2
-        return Step(self.t_ns, zg.copy(), np.zeros(3), np.zeros(3), P, SOURCE_GLOBAL)
-
-
-def make_filter(kind: str, params: FilterParams | None = None):
-    """A filter by name: one of :data:`FILTER_KINDS` or 'omc' (pass-through)."""
-    if kind == "omc":
-        return PassThrough(params)
-    return FusionFilter(kind, params)
+        P[0:3, 0:3] = np.eye(3) * self.params.global_std**2 if mg.cov is None else mg.cov[0:3, 0:3]
+        return Step(self.t_ns, mg.p.copy(), np.zeros(3), np.zeros(3), P, SOURCE_GLOBAL)

@@ -6,17 +6,27 @@ through :class:`TargetPipeline` gives exactly what the node published::
     pipe = TargetPipeline(TargetConfig(name="tool", filters=("cbkf", "kf")))
     for each device sample, in arrival order:
         pipe.push_omc(body, t_ns, T_omc_body)      # 4x4 array or (p, q_xyzw); metres, stamps int ns
-        pipe.push_ots(tool, t_ns, T_ots_tool)
+        pipe.push_ots(tool, t_ns, T_ots_tool, cov) # optional 6x6 pose covariance (see below)
         for out in pipe.poll():                    # or poll(now_ns) with a live host clock
             ...                                    # FusedOutput: one per filter per processed item
     outputs = pipe.flush()                         # end of data
 
 Data flow: every pose is validated (:func:`frame_chain.pose_to_T`; NaN/inf, non-unit quaternions
 and bad stamps are rejected, counted and described in :attr:`TargetPipeline.last_problem`, never
-raised); base / rig samples feed the static links of the :class:`~frame_chain.FrameChain`; target
+raised), and so is its covariance when one is given (:func:`filter_api.check_covariance`: non-finite,
+non-symmetric or not positive definite -> ``rejected_cov``, the sample is dropped, never fused); base / rig
+samples feed the static links of the :class:`~frame_chain.FrameChain`; target
 samples go through the :class:`~synchronizer.ApproxSync` as raw device poses and are mapped into
 ``base`` only when they come out (so a base-marker sample of the same OTS frame that arrived a little
-later can still be used for eq. 2); each item then steps every configured filter once.
+later can still be used for eq. 2); each item then becomes one :class:`~filter_api.Measurement` per
+source and every configured filter (:mod:`filter_registry`) is predicted to the item and updated with them.
+
+A device covariance is given in the device frame (``omc`` / ``ots``), ROS order [x y z, rx ry rz], the
+rotation part about the device frame's axes (the :mod:`filter_api` convention with that frame as parent).
+It is mapped into ``base`` with the rotation R_A of the chain, T_base_tool = A T_dev_tool:
+C_base = J C J^T, J = diag(R_A, R_A) (the links are taken as exact here). Without one the filters use their
+fixed noise, as the paper does. The output's orientation covariance is the rotation block of the
+orientation source's measurement when it has one, else ``orientation_std_*``.
 
 Once the local link is set (``static`` / ``direct`` chains), the OTS's sightings of the base marker also feed a
 :class:`~link_monitor.LinkMonitor`: a bump of the Vega or of the reference marker sets ``link_bumped`` in every
@@ -38,12 +48,14 @@ import numpy as np
 from fullperc_common.transforms import T_to_pq, inv_T
 
 from .calibration import Calibration
-from .filters import SOURCE_GLOBAL, SOURCE_LOCAL, FilterParams, Step, make_filter
+from .filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, BadMeasurement, Measurement, Step, check_covariance
+from .filter_registry import FILTERS, make_filter
+from .filters import FilterParams
 from .frame_chain import BadSample, ChainConfig, FrameChain, pose_to_T
 from .link_monitor import LinkMonitor, MonitorParams
 from .synchronizer import GLOBAL, LOCAL, ApproxSync, SyncItem
 
-FILTER_NAMES = ("cbkf", "ckf", "bkf", "kf", "omc")
+FILTER_NAMES: tuple[str, ...] = tuple(FILTERS)   # ("cbkf", "ckf", "bkf", "kf", "omc"): filter_registry.FILTERS
 
 
 @dataclass
@@ -65,8 +77,8 @@ class TargetConfig:
         if not self.filters:
             raise ValueError(f"target '{self.name}': at least one filter is needed")
         for f in self.filters:
-            if f not in FILTER_NAMES:
-                raise ValueError(f"target '{self.name}': filter '{f}' is not one of {FILTER_NAMES}")
+            if f not in FILTERS:
+                raise ValueError(f"target '{self.name}': filter '{f}' is not one of {tuple(FILTERS)}")
         if len(set(self.filters)) != len(self.filters):
             raise ValueError(f"target '{self.name}': duplicate filter in {self.filters}")
         self.params.validate()
@@ -124,7 +136,7 @@ class TargetPipeline:
         self.problems[key] = msg
         self.last_problem_t_ns = t_ns
 
-    def _validate(self, what: str, t_ns, pose) -> tuple[int, np.ndarray] | None:
+    def _validate(self, what: str, t_ns, pose, cov=None) -> tuple[int, np.ndarray, np.ndarray | None] | None:
         try:
             t = int(t_ns)
         except (TypeError, ValueError, OverflowError):
@@ -134,49 +146,58 @@ class TargetPipeline:
             self._problem("rejected_stamp", f"{what}: invalid stamp {t}", None)
             return None
         try:
-            return t, pose_to_T(pose)
+            T = pose_to_T(pose)
         except BadSample as e:
             why = str(e)
             key = "rejected_nonfinite" if "non-finite" in why else "rejected_nonunit" if "non-unit" in why \
                 else "rejected_pose"
             self._problem(key, f"{what}: {why}", t)
             return None
+        if cov is None:
+            return t, T, None
+        try:
+            return t, T, check_covariance(cov)
+        except BadMeasurement as e:
+            self._problem("rejected_cov", f"{what}: {e}", t)
+            return None
 
-    def push_omc(self, body: str, t_ns: int, pose) -> bool:
-        """One OMC sample of ``body`` (pose of the body in ``omc``). False if rejected or unused."""
+    def push_omc(self, body: str, t_ns: int, pose, cov=None) -> bool:
+        """One OMC sample of ``body`` (pose of the body in ``omc``, optional 6x6 covariance in ``omc``).
+        False if rejected or unused."""
         c = self.config.chain
         if body not in (c.omc_target, c.omc_base, c.omc_rig):
             return False
-        v = self._validate(f"OMC body '{body}'", t_ns, pose)
+        v = self._validate(f"OMC body '{body}'", t_ns, pose, cov)
         if v is None:
             return False
-        t, T = v
+        t, T, C = v
         self.chain.observe_omc(body, t, T)
         if body in (c.omc_base, c.omc_rig):
             self._links_changed(t)
         if body == c.omc_target:
-            return self._enqueue(GLOBAL, f"OMC body '{body}'", t, T)
+            return self._enqueue(GLOBAL, f"OMC body '{body}'", t, (T, C))
         return True
 
-    def push_ots(self, tool: str, t_ns: int, pose) -> bool:
-        """One OTS sample of ``tool`` (pose of the tool in ``ots``). False if rejected or unused."""
+    def push_ots(self, tool: str, t_ns: int, pose, cov=None) -> bool:
+        """One OTS sample of ``tool`` (pose of the tool in ``ots``, optional 6x6 covariance in ``ots``).
+        False if rejected or unused."""
         c = self.config.chain
         if tool not in (c.ots_target, c.ots_base):
             return False
-        v = self._validate(f"OTS tool '{tool}'", t_ns, pose)
+        v = self._validate(f"OTS tool '{tool}'", t_ns, pose, cov)
         if v is None:
             return False
-        t, T = v
+        t, T, C = v
         self.chain.observe_ots(tool, t, T)
         if tool == c.ots_base:
             self._links_changed(t)
             self._watch_link(t, T)
         if tool == c.ots_target:
-            return self._enqueue(LOCAL, f"OTS tool '{tool}'", t, T)
+            return self._enqueue(LOCAL, f"OTS tool '{tool}'", t, (T, C))
         return True
 
-    def _enqueue(self, stream: int, what: str, t: int, T: np.ndarray) -> bool:
-        r = self.sync.push(stream, t, T)
+    def _enqueue(self, stream: int, what: str, t: int, payload: tuple[np.ndarray, np.ndarray | None]) -> bool:
+        r = self.sync.push(stream, t, payload)
         if r == "late":
             self._problem("late", f"{what}: sample at {t} ns is older than the processed horizon "
                                   f"{self.sync.horizon_ns} ns (time went backwards or arrived too late); dropped", t)
@@ -234,11 +255,11 @@ class TargetPipeline:
         eq = ""
         links = self.chain.links
         if item.glob is not None:
-            Tg = self.chain.global_T(item.glob.payload)
+            Tg = self.chain.global_T(item.glob.payload[0])
             if Tg is None:   # only possible before T_omc_base is known
                 self.counts["waiting_for_links"] += 1
         if item.local is not None:
-            Tl, eq = self.chain.local_T(item.local.t_ns, item.local.payload)
+            Tl, eq = self.chain.local_T(item.local.t_ns, item.local.payload[0])
             if Tl is None:
                 if links.local_ready:   # e.g. no rig pose near this stamp (tracked mode)
                     self._problem("local_skipped", f"local sample skipped: {self.chain.why_not}", item.local.t_ns)
@@ -246,10 +267,16 @@ class TargetPipeline:
                     self.counts["waiting_for_links"] += 1
         if Tg is None and Tl is None:
             return []
-        tg = item.glob.t_ns if Tg is not None else None
-        tl = item.local.t_ns if Tl is not None else None
-        pg, qg = T_to_pq(Tg) if Tg is not None else (None, None)
-        pl, ql = T_to_pq(Tl) if Tl is not None else (None, None)
+        try:
+            mg = None if Tg is None else _measurement(SOURCE_GLOBAL, item.glob.t_ns, Tg, *item.glob.payload)
+            ml = None if Tl is None else _measurement(SOURCE_LOCAL, item.local.t_ns, Tl, *item.local.payload)
+        except BadMeasurement as e:   # a valid device covariance that mapping into base made invalid
+            self._problem("rejected_cov", f"item at {item.t_ns} ns: covariance in base: {e}", item.t_ns)
+            return []
+        ms = [m for m in (mg, ml) if m is not None]
+        t_item = max(m.t_ns for m in ms)
+        tg = None if mg is None else mg.t_ns
+        tl = None if ml is None else ml.t_ns
         if tl is not None:
             self.last_local_ns = tl
         if tg is not None:
@@ -257,26 +284,28 @@ class TargetPipeline:
         outs = []
         for name, f in self.filters.items():
             try:
-                st: Step | None = f.step(z_global=pg, t_global=tg, z_local=pl, t_local=tl)
+                f.predict(t_item)
+                st: Step | None = f.update(*ms)
             except (ValueError, FloatingPointError, np.linalg.LinAlgError) as e:
                 self._problem("filter_error", f"filter {name}: {e}", item.t_ns)
                 continue
             if st is None:
                 continue
-            if name == "omc" or ql is None:
-                q, osrc, ostd = qg, SOURCE_GLOBAL, self.config.orientation_std_global
+            if name == "omc" or ml is None:
+                mq, osrc, ostd = mg, SOURCE_GLOBAL, self.config.orientation_std_global
             else:
-                q, osrc, ostd = ql, SOURCE_LOCAL, self.config.orientation_std_local
+                mq, osrc, ostd = ml, SOURCE_LOCAL, self.config.orientation_std_local
             cov = np.zeros((6, 6))
             cov[0:3, 0:3] = st.pos_cov
-            cov[3:6, 3:6] = np.eye(3) * ostd**2
+            cov[3:6, 3:6] = np.eye(3) * ostd**2 if mq.cov is None else mq.cov[3:6, 3:6]
+            q = mq.q
             if not (np.all(np.isfinite(st.p)) and np.all(np.isfinite(cov)) and np.all(np.isfinite(q))):
                 f.reset()
                 self._problem("nonfinite_output", f"filter {name}: non-finite estimate; filter reset", st.t_ns)
                 continue
             since = -1.0 if self.last_local_ns is None else (st.t_ns - self.last_local_ns) * 1e-9
             o = FusedOutput(
-                target=self.config.name, filter=name, t_ns=st.t_ns, p=st.p, q=np.asarray(q), cov=cov,
+                target=self.config.name, filter=name, t_ns=st.t_ns, p=st.p, q=q, cov=cov,
                 bias=st.b, innovation=st.innovation, nis=st.nis, hop=st.hop, sources=st.sources,
                 orientation_source=osrc, time_since_local=since, reset=st.reset,
                 t_global=tg if st.sources & SOURCE_GLOBAL else None,
@@ -306,3 +335,17 @@ class TargetPipeline:
         d.update({f"sync_{k}": v for k, v in self.sync.counts.items()})
         d.update(dict(self.counts))
         return d
+
+
+def _measurement(source: int, t_ns: int, T_base: np.ndarray, T_dev: np.ndarray,
+                 C_dev: np.ndarray | None) -> Measurement:
+    """The filter's measurement of one sample mapped into base; the covariance rotated by the chain's R_A."""
+    p, q = T_to_pq(T_base)
+    C = None
+    if C_dev is not None:
+        RA = T_base[:3, :3] @ T_dev[:3, :3].T   # T_base = A T_dev -> R_A = R_base R_dev^T
+        J = np.zeros((6, 6))
+        J[0:3, 0:3] = J[3:6, 3:6] = RA
+        C = J @ C_dev @ J.T
+        C = 0.5 * (C + C.T)
+    return Measurement(t_ns, source, p, q, C)

@@ -1,0 +1,161 @@
+"""The filter seam: what every fusion filter implements, and the measurement it is fed (issue 18, fusion-v2).
+
+A filter is anything that satisfies :class:`Filter` -- ``predict(t_ns)`` to move its state to a stamp and
+``update(*measurements)`` to fuse one or more :class:`Measurement` taken at or before that stamp -- and is
+registered by name in :mod:`filter_registry`. ``TargetPipeline`` drives every filter through exactly these
+calls; nothing else of a filter is used but :attr:`Filter.kind` and :meth:`Filter.reset`.
+
+Measurement contract (SI units, integer-nanosecond stamps, everything in ``base``):
+
+* ``p`` position [m], ``q`` orientation quaternion x y z w (optional; the paper's filters fuse position only).
+* ``cov`` the 6x6 pose covariance in ROS order [x y z, rx ry rz]: the position block in ``base`` axes [m^2];
+  the rotation part is a small rotation vector [rad] about the axes of ``base`` (the parent frame of the pose),
+  i.e. R_true = exp([dtheta]x) R_est -- the convention of geometry_msgs/PoseWithCovariance, whose rotation
+  entries are "about the fixed X, Y, Z axes" of header.frame_id. ``None``: the filter's fixed noise applies.
+* ``cov`` must be finite, symmetric (to 1e-9 of its largest entry) and positive definite, all six dimensions --
+  "unknown orientation" is a large rotation variance, not a zero one. :func:`check_covariance` is the one check;
+  the pipeline runs it at the input so a bad covariance is rejected and counted like any other bad sample, and
+  :class:`Measurement` runs it again so a direct caller cannot feed one either (:class:`BadMeasurement`).
+* ``extras`` free-form per-source quality numbers (e.g. OMC fit error, marker count) for filters that model
+  them; the paper's filters ignore them.
+
+The paper's KF / BKF / CKF / CBKF (:mod:`filters`) use the position block only: their R for a measurement is
+``cov[:3, :3]``, or ``FilterParams.global_std**2 I`` / ``local_std**2 I`` when ``cov`` is None, which is what
+they did before the seam existed, so default results are bit-identical.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+SOURCE_GLOBAL = 1  # bit values as in fullperc_msgs/FusionStatus
+SOURCE_LOCAL = 2
+
+SYMMETRY_RTOL = 1e-9   # |C - C^T| allowed, relative to the largest |C_ij|
+
+
+class BadMeasurement(ValueError):
+    """A measurement that must not be fused; the message says why (used as the rejection reason)."""
+
+
+def check_covariance(cov) -> np.ndarray:
+    """The covariance as a (6, 6) float array, or BadMeasurement naming what is wrong with it."""
+    try:
+        C = np.array(cov, dtype=float)
+    except (TypeError, ValueError) as e:
+        raise BadMeasurement(f"covariance is not a numeric array ({e})") from None
+    if C.shape != (6, 6):
+        if C.size == 36:
+            C = C.reshape(6, 6)   # the row-major 36-vector of geometry_msgs/PoseWithCovariance
+        else:
+            raise BadMeasurement(f"covariance must be 6x6 (or 36 values), got shape {C.shape}")
+    if not np.all(np.isfinite(C)):
+        raise BadMeasurement("non-finite covariance")
+    scale = float(np.max(np.abs(C)))
+    if float(np.max(np.abs(C - C.T))) > SYMMETRY_RTOL * scale:
+        raise BadMeasurement("covariance not symmetric")
+    try:
+        np.linalg.cholesky(0.5 * (C + C.T))
+    except np.linalg.LinAlgError:
+        raise BadMeasurement("covariance not positive definite") from None
+    return C
+
+
+@dataclass
+class Step:
+    """Result of one filter update (one synchronizer item), in ``base``, SI units."""
+
+    t_ns: int
+    p: np.ndarray
+    v: np.ndarray
+    b: np.ndarray                  # zeros for kinds without a bias state
+    P: np.ndarray                  # full state covariance after the step (its [0:3, 0:3] is the position block)
+    sources: int                   # SOURCE_GLOBAL | SOURCE_LOCAL bits used
+    innovation: np.ndarray = field(default_factory=lambda: np.zeros(3))  # global rows if any, else local
+    nis: float = 0.0               # NIS of the whole (stacked) update, dof = rows of H
+    nis_global: float = 0.0        # NIS of the global rows alone (the hop test)
+    hop: bool = False
+    reset: bool = False            # this sample (re-)initialised the state; no update was made
+    m: np.ndarray | None = None    # diagonal of M (biased kinds)
+
+    @property
+    def pos_cov(self) -> np.ndarray:
+        return self.P[0:3, 0:3]
+
+
+@dataclass(slots=True)
+class Measurement:
+    """One sample for a filter, in ``base``; see the module docstring for units and the covariance convention."""
+
+    t_ns: int                          # acquisition stamp [ns]
+    source: int                        # SOURCE_GLOBAL or SOURCE_LOCAL
+    p: np.ndarray                      # (3,) position [m]
+    q: np.ndarray | None = None        # (4,) orientation x y z w
+    cov: np.ndarray | None = None      # (6, 6) pose covariance [m^2, rad^2], or None: the filter's fixed noise
+    extras: dict[str, float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.source not in (SOURCE_GLOBAL, SOURCE_LOCAL):
+            raise BadMeasurement(f"source must be SOURCE_GLOBAL (1) or SOURCE_LOCAL (2), got {self.source!r}")
+        if self.t_ns is None:
+            raise BadMeasurement("every sample needs its stamp")
+        self.t_ns = int(self.t_ns)
+        p = np.asarray(self.p, dtype=float).reshape(3)
+        if not np.all(np.isfinite(p)):
+            raise BadMeasurement("non-finite measurement")
+        self.p = p
+        if self.q is not None:
+            self.q = np.asarray(self.q, dtype=float).reshape(4)
+        if self.cov is not None:
+            self.cov = check_covariance(self.cov)
+
+
+def measurements_from_samples(z_global=None, t_global=None, z_local=None, t_local=None,
+                              cov_global=None, cov_local=None) -> list[Measurement]:
+    """The measurements of one synchronised item, global first (the row order of the stacked update)."""
+    if z_global is None and z_local is None:
+        raise ValueError("step needs a global or a local sample")
+    if z_global is not None and t_global is None or z_local is not None and t_local is None:
+        raise ValueError("every sample needs its stamp")
+    ms = []
+    if z_global is not None:
+        ms.append(Measurement(t_global, SOURCE_GLOBAL, z_global, cov=cov_global))
+    if z_local is not None:
+        ms.append(Measurement(t_local, SOURCE_LOCAL, z_local, cov=cov_local))
+    return ms
+
+
+@runtime_checkable
+class Filter(Protocol):
+    """What the pipeline needs of a filter. Register an implementation in :mod:`filter_registry`.
+
+    * ``predict(t_ns)``: move the state to ``t_ns`` (non-decreasing; ValueError when time goes backwards).
+      On a filter that has no state yet, or after a gap it does not bridge, it only records the stamp.
+    * ``update(*measurements)``: fuse the measurements -- one, or a synchronised pair, global first -- in one
+      step at the filter's time (each stamp <= it; an older one is a lagged measurement). It predicts to the
+      newest stamp first if that is ahead. Returns the :class:`Step`, or None when the filter has
+      nothing to say about these measurements (``omc`` given a local sample only). Raises ValueError
+      (BadMeasurement included) for input it refuses, without fusing it.
+    * ``reset()``: forget the state.
+    """
+
+    kind: str
+
+    def reset(self) -> None: ...
+
+    def predict(self, t_ns: int) -> None: ...
+
+    def update(self, *measurements: Measurement) -> Step | None: ...
+
+
+class StepCompat:
+    """``step(z_global, t_global, z_local, t_local)`` -- the pre-seam call -- as predict + update."""
+
+    def step(self, z_global=None, t_global: int | None = None, z_local=None, t_local: int | None = None,
+             cov_global=None, cov_local=None) -> Step | None:
+        ms = measurements_from_samples(z_global, t_global, z_local, t_local, cov_global, cov_local)
+        self.predict(max(m.t_ns for m in ms))   # type: ignore[attr-defined]
+        return self.update(*ms)                  # type: ignore[attr-defined]
