@@ -22,6 +22,9 @@ Equations, with dt from the sample stamps:
   When the two samples of a pair were taken at different stamps, the filter is predicted to the newer
   one and the older sample, taken ``lag`` seconds earlier, is modelled exactly under constant velocity
   as p(t - lag) = p(t) - lag v(t): its H row gets -lag I in the velocity block (lag = 0 gives eq. 11).
+* R (block-diagonal, one 3x3 block per measurement): the position block ``cov[:3, :3]`` of the measurement's
+  covariance (:class:`filter_api.Measurement`), or the paper's fixed noise ``global_std^2 I`` / ``local_std^2 I``
+  when it has none (the default; bit-identical to the filters before the seam).
 * gain and update (eq. 12, 13): G = P' H^T (H P' H^T + R)^-1, x'' = x' + G (y - H x'), and
   P = (I - G H) P' (I - G H)^T + G R G^T (Joseph form: equal to eq. 12's (I - G H) P' for the optimal
   gain, but stays symmetric positive semi-definite in floating point).
