@@ -10,7 +10,7 @@ COLCON_FLAGS ?= --symlink-install --event-handlers console_direct- summary+
 PYTEST_ARGS ?=
 TASK ?= P-B-G-P
 
-.PHONY: setup build test unit system lint clean demo bench dataset eval lock
+.PHONY: setup build test unit system lint clean demo bench dataset eval accuracy twin-report lock
 
 setup:
 	@scripts/setup.sh
@@ -39,11 +39,31 @@ demo: build
 bench: build
 	@$(ENV) python bench/run_all.py
 
+# Twin profile (paper | spec) and seed of `make dataset`; OUT defaults to bags/<profile>. `make eval` reads BAGS and
+# writes JSON (default: the committed sample bags of PROFILE).
+PROFILE ?= paper
+SEED ?= 0
+OUT ?= bags/$(PROFILE)
+BAGS ?= bags/$(PROFILE)
+JSON ?= $(BAGS)/eval.json
 dataset: build
-	@$(ENV) python -m fullperc_eval.sim.dataset --out bags
+	@$(ENV) python -m fullperc_eval.sim.dataset --out $(OUT) --seed $(SEED) --profile $(PROFILE)
 
 eval: build
-	@$(ENV) python -m fullperc_eval.evaluation.evaluate_all --bags bags --json bags/eval.json
+	@$(ENV) python -m fullperc_eval.evaluation.evaluate_all --bags $(BAGS) --json $(JSON)
+
+# Six tasks x SEEDS per profile (PROFILE=paper|spec|both), Table 1 as mean +- sd; FUSION=<fusion yaml> evaluates
+# with another fusion configuration (e.g. static_links: calibrate).
+SEEDS ?= 0-9
+FUSION ?=
+accuracy: build
+	@$(ENV) python -m fullperc_eval.evaluation.accuracy --seeds $(SEEDS) --profile $(PROFILE) \
+	    $(if $(FUSION),--fusion-config $(FUSION)) --json bags/accuracy.json
+
+# Raw-sensor statistics of a twin profile next to its targets (PROFILE=paper|spec|both, SEEDS default 0-1 here).
+twin-report: build
+	@$(ENV) python -m fullperc_eval.evaluation.twin_report --profile $(PROFILE) \
+	    --seeds $(if $(filter command line environment,$(origin SEEDS)),$(SEEDS),0-1)
 
 # Re-pin requirements/lock-cpXY.txt from what is installed in the venv.
 lock: setup

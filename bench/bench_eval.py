@@ -7,7 +7,7 @@ target, base or rig, or a joint state):
   eval_read_only           BagReader.messages + CDR decode of the same topics (the floor)
 ratio = value / baseline (< 1: the share of the reading-only rate that the evaluation reaches).
 
-Bag: bags/G-B-P (the committed sample) when present, else a 20 s synthetic recording (same rates).
+Bag: bags/paper/G-B-P (the committed sample) when present, else a 20 s synthetic recording (same rates).
 Run: python bench/bench_eval.py
 """
 
@@ -34,7 +34,7 @@ def main() -> None:
     from fullperc_fusion.fusion_config import load_fusion_config
 
     tmp = None
-    bag = ROOT / "bags" / "G-B-P"
+    bag = ROOT / "bags" / "paper" / "G-B-P"
     if not (bag / "metadata.yaml").is_file():
         tmp = Path(tempfile.mkdtemp(prefix="bench_eval_"))
         bag = write_bag(tmp / "synthetic", synthetic_content(20.0)[0])

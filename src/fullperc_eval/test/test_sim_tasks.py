@@ -15,7 +15,7 @@ import yaml
 
 from fullperc_eval.sim import tasks as T
 from fullperc_eval.sim.run import simulate_ideal_visibility
-from fullperc_eval.sim.scene import build_scene, load_scene_config
+from fullperc_eval.sim.scene import PROFILES, build_scene, load_scene_config
 from fullperc_eval.sim.tasks import (
     TASKS,
     StalePlanWarning,
@@ -116,6 +116,20 @@ def test_shipped_plans_cover_every_task_and_realise_it(scene):
         assert check_arc_order(sc, plan.arc, parse_task(task), rate_hz=120.0) == "", task
 
 
+@pytest.mark.parametrize("profile", PROFILES)
+def test_profile_plans_realise_every_task_near_the_operating_site(profile):
+    """The twin profiles' shipped plans (task_plans_site.yaml): the order, no collision, the B part within the
+    profile's Vega range and the tool clear of the moved reference marker (check_arc_order checks all four)."""
+    sc0 = build_scene(0, profile=profile)
+    shipped = load_shipped_plans(T.default_plans_path(T.plans_file_of(sc0)))
+    assert list(shipped) == list(TASKS)
+    assert sc0.config["tasks"]["max_b_range_m"] and sc0.config["tasks"]["base_marker_clearance_m"]
+    for task in TASKS:
+        plan = plan_from_dict(shipped[task])
+        sc = sc0.with_diana_base(plan.T_omc_diana_base)
+        assert check_arc_order(sc, plan.arc, parse_task(task), rate_hz=120.0) == "", task
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("task", TASKS)
 def test_vega_sees_most_of_the_b_part(scene, task):
@@ -134,7 +148,7 @@ def test_cold_planning_reproduces_the_shipped_plan_and_replaces_a_stale_one(scen
     stale = plan_to_dict(plan_from_dict(good))
     a = stale["arc"]
     a["end"] = a["start"] + 0.1 * (a["end"] - a["start"])  # a tenth of the arc cannot cross all three regions
-    monkeypatch.setattr(T, "_SHIPPED", {CHEAPEST: stale})
+    monkeypatch.setattr(T, "_SHIPPED", {T.PLANS_FILE: {CHEAPEST: stale}})
     with pytest.warns(StalePlanWarning, match=f"{CHEAPEST}.*stale"):
         plan = plan_task(CHEAPEST, scene)
     # the deterministic search found the committed plan again (arc, cart pose, attempts, fractions)

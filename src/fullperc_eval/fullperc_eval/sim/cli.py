@@ -28,7 +28,7 @@ from fullperc_fusion.layout import load_layout
 from .dataset import sim_calibration
 from .live import LiveServer
 from .run import simulate
-from .scene import build_scene
+from .scene import DEFAULT_PROFILE, PROFILES, build_scene
 from .tasks import TASKS, TaskPlanningError, plan_task
 
 
@@ -66,6 +66,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="sim", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--task", default="P-B-G-P", choices=TASKS)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--profile", default=DEFAULT_PROFILE, choices=(*PROFILES, "base"),
+                    help=f"twin profile (default {DEFAULT_PROFILE}; base = scene.yaml alone)")
     ap.add_argument("--speed", type=float, default=1.0, help="1.0 = real time, 2.0 = twice as fast")
     ap.add_argument("--omc-addr", type=_addr, default=("127.0.0.1", 3883))
     ap.add_argument("--diana-addr", type=_addr, default=("127.0.0.1", 3884))
@@ -117,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     t0 = time.perf_counter()
     layout = load_layout(args.layout) if args.layout else None
-    scene = build_scene(args.seed, config=args.scene, layout=layout)
+    scene = build_scene(args.seed, config=args.scene, layout=layout, profile=args.profile)
     try:
         plan = plan_task(args.task, scene)
     except TaskPlanningError as e:
@@ -125,7 +127,9 @@ def main(argv: list[str] | None = None) -> int:
         return 3
     scene = scene.with_diana_base(plan.T_omc_diana_base)
     run = simulate(scene, plan.arc, task=args.task)
-    print(json.dumps({"event": "plan", "task": args.task, "seed": args.seed, "joint": plan.arc.joint,
+    run.info["profile"] = scene.config.get("_profile", "base")
+    print(json.dumps({"event": "plan", "task": args.task, "seed": args.seed, "profile": args.profile,
+                      "joint": plan.arc.joint,
                       "arc_deg": [round(float(np.degrees(a)), 2) for a in (plan.arc.start, plan.arc.end)],
                       "duration_s": run.duration_s, "ots_fraction_b": round(plan.ots_fraction_b, 3),
                       "compute_s": round(time.perf_counter() - t0, 2)}), flush=True)

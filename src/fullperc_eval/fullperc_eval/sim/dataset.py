@@ -1,6 +1,6 @@
 """``make dataset``: the six evaluation tasks simulated offline and written as rosbag2 (MCAP) bags.
 
-    python -m fullperc_eval.sim.dataset --out bags [--tasks G-B-P P-G-B ...] [--seed 0]
+    python -m fullperc_eval.sim.dataset --out bags [--tasks G-B-P P-G-B ...] [--seed 0] [--profile paper]
 
 Each task becomes ``<out>/<task>/`` holding what a ``record`` of the live system would hold -- the driver
 topics with the drivers' types, frames, units and stamps -- plus the calibration the evaluator needs:
@@ -12,7 +12,7 @@ topics with the drivers' types, frames, units and stamps -- plus the calibration
   (PoseStamped, FK of the nominal DH table, frame ``diana_base``);
 * ``calibration.yaml``: T_base_diana_base, T_flange_tool, T_omc_base -- the simulator's true values
   (see :mod:`fullperc_eval.evaluation.ground_truth` for why the evaluator does not estimate them);
-* ``metadata.yaml`` ``custom_data``: generator, task, seed (the evaluator takes the task name from here).
+* ``metadata.yaml`` ``custom_data``: generator, task, seed, profile (the evaluator takes the task name from here).
 
 Stamps: ``header.stamp`` is the acquisition time on the host clock (simulator time + a fixed epoch, so the
 bags are reproducible bit for bit); the bag (receive) time is the stamp plus the device's latency (OMC and
@@ -44,6 +44,7 @@ from fullperc_eval.bag.writer import BagWriter
 from fullperc_fusion.layout import default_layout_path, load_layout
 
 from .runner import run_task
+from .scene import DEFAULT_PROFILE, PROFILES
 from .tasks import TASKS
 
 EPOCH_NS = 1_700_000_000_000_000_000   # 2023-11-14T22:13:20Z: fixed "host clock" start of every bag
@@ -287,7 +288,8 @@ def content_from_sim(run, epoch_ns: int = EPOCH_NS, wire_precision: bool = True)
                        port_status=PORT_STATUS_OK, qos_depth=50)
     diana = JointStream(np.asarray(run.diana.t_ns, np.int64) + epoch_ns, run.diana.q, run.diana.dq)
     return BagContent(omc, ots, diana, sim_calibration(run),
-                      {"generator": GENERATOR, "task": str(run.task), "seed": str(run.seed)})
+                      {"generator": GENERATOR, "task": str(run.task), "seed": str(run.seed),
+                       "profile": str(run.info.get("profile", "base"))})
 
 
 def sim_calibration(run) -> Calibration:
@@ -296,7 +298,8 @@ def sim_calibration(run) -> Calibration:
     return Calibration(T_base_diana_base=inv_T(s["T_omc_base"]) @ s["T_omc_diana_base"],
                        T_flange_tool=np.asarray(s["T_flange_tool"], float),
                        T_omc_base=np.asarray(s["T_omc_base"], float),
-                       source=f"simulator truth ({GENERATOR}, task {run.task}, seed {run.seed})")
+                       source=f"simulator truth ({GENERATOR}, task {run.task}, seed {run.seed}, "
+                              f"profile {run.info.get('profile', 'base')})")
 
 
 def _is_ours(bagdir: Path) -> bool:
@@ -307,7 +310,7 @@ def _is_ours(bagdir: Path) -> bool:
     return (info.get("custom_data") or {}).get("generator") == GENERATOR
 
 
-def generate(out: str | Path, tasks, seed: int = 0, log=print) -> list[Path]:
+def generate(out: str | Path, tasks, seed: int = 0, log=print, profile: str | None = DEFAULT_PROFILE) -> list[Path]:
     """Simulate ``tasks`` and write one bag per task into ``out``; replaces bags this generator wrote before."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -317,7 +320,7 @@ def generate(out: str | Path, tasks, seed: int = 0, log=print) -> list[Path]:
         if dest.exists() and not _is_ours(dest):
             raise BagError(f"{dest} exists and was not written by {GENERATOR}; refusing to overwrite it")
         t0 = time.monotonic()
-        run = run_task(task, seed=seed)
+        run = run_task(task, seed=seed, profile=profile)
         t1 = time.monotonic()
         tmp_parent = out / f".{task}.partial"
         if tmp_parent.exists():
@@ -339,6 +342,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default="bags", help="directory for the bags (default: bags)")
     ap.add_argument("--tasks", nargs="+", default=list(TASKS), help=f"tasks to generate (default: {' '.join(TASKS)})")
     ap.add_argument("--seed", type=int, default=0, help="simulator seed (default 0)")
+    ap.add_argument("--profile", default=DEFAULT_PROFILE, choices=(*PROFILES, "base"),
+                    help=f"twin profile (default {DEFAULT_PROFILE}; base = scene.yaml alone)")
     args = ap.parse_args(argv)
     for t in args.tasks:
         if t not in TASKS:
@@ -346,12 +351,13 @@ def main(argv: list[str] | None = None) -> int:
             return 2
     t0 = time.monotonic()
     try:
-        paths = generate(args.out, args.tasks, args.seed)
+        paths = generate(args.out, args.tasks, args.seed, profile=args.profile)
     except (BagError, OSError, ValueError, RuntimeError) as e:
         print(f"error: {type(e).__name__}: {e}", file=sys.stderr)
         return 1
     total = sum(f.stat().st_size for p in paths for f in p.iterdir())
-    print(f"dataset: {len(paths)} bags, {total / 1e6:.2f} MB in total, {time.monotonic() - t0:.1f} s")
+    print(f"dataset: {len(paths)} bags (profile {args.profile}, seed {args.seed}), {total / 1e6:.2f} MB in total, "
+          f"{time.monotonic() - t0:.1f} s")
     return 0
 
 

@@ -13,13 +13,14 @@ from .tasks import plan_task
 
 
 def run_task(task: str = "P-B-G-P", seed: int = 0, config=None, layout=None, noise: bool = True,
-             staff: bool = True, miscalibration: bool = True) -> SimRun:
+             staff: bool = True, miscalibration: bool = True, profile: str | None = None) -> SimRun:
     """Plan ``task`` (one of :data:`~fullperc_eval.sim.tasks.TASKS`) and simulate it with ``seed``.
 
     ``config``: scene.yaml path or dict (default: the installed one); ``layout``: a loaded layout (default:
     the shared or_layout.yaml). ``noise``/``staff``/``miscalibration`` switch the error sources off for tests.
+    ``profile``: twin profile (``paper``, ``spec``; None or ``base``: scene.yaml alone).
     """
-    scene = build_scene(seed, config=config, layout=layout, miscalibration=miscalibration)
+    scene = build_scene(seed, config=config, layout=layout, miscalibration=miscalibration, profile=profile)
     plan = plan_task(task, scene)
     scene = scene.with_diana_base(plan.T_omc_diana_base)
     run = simulate(scene, plan.arc, task=task, noise=noise, staff=staff)
@@ -27,4 +28,5 @@ def run_task(task: str = "P-B-G-P", seed: int = 0, config=None, layout=None, noi
     run.info["region_path_m"] = plan.region_path_m
     run.info["ots_fraction_b"] = plan.ots_fraction_b
     run.info["omc_fraction"] = plan.omc_fraction
+    run.info["profile"] = scene.config.get("_profile", "base")
     return run

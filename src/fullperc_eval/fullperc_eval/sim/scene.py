@@ -33,6 +33,8 @@ from .occluders import PlacedBox, StaffWalker
 from .omc_model import CameraSet, NoiseModel
 from .ots_model import OtsModel
 
+PROFILES = ("paper", "spec")  # twin profiles (config/profile_<name>.yaml); "base" = scene.yaml alone
+DEFAULT_PROFILE = "paper"  # what the command-line tools use when no --profile is given
 OMC_BODIES = ("base", "ots_rig", "tool")  # bodies the OMC tracks (README: default OMC bodies)
 OTS_TOOLS = ("tool", "base")  # NDI tools the Vega tracks (README: default NDI tools)
 
@@ -46,7 +48,40 @@ def default_scene_path() -> Path:
     return share_path("fullperc_eval", "config", "scene.yaml")
 
 
-def load_scene_config(path: str | os.PathLike | None = None) -> dict:
+def profile_path(profile: str) -> Path:
+    """``config/profile_<profile>.yaml`` (installed, else the source copy)."""
+    if profile not in PROFILES:
+        raise SceneError(f"unknown twin profile {profile!r} (one of {', '.join(PROFILES)}, or 'base')")
+    return share_path("fullperc_eval", "config", f"profile_{profile}.yaml")
+
+
+def load_profile(profile: str) -> dict:
+    """The profile file: ``overrides`` (merged into scene.yaml), ``plans_file``, ``targets``, ``rationale``."""
+    p = profile_path(profile)
+    try:
+        data = yaml.safe_load(p.read_text())
+    except (OSError, yaml.YAMLError) as e:
+        raise SceneError(f"profile file {p}: {e}") from e
+    if not isinstance(data, dict) or not isinstance(data.get("overrides"), dict):
+        raise SceneError(f"profile file {p}: expected a mapping with 'overrides: {{...}}'")
+    data["_source"] = str(p)
+    return data
+
+
+def merge_overrides(base: dict, over: dict) -> dict:
+    """Deep merge: mappings merge key by key, every other value (lists included) replaces the base's."""
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = merge_overrides(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def load_scene_config(path: str | os.PathLike | None = None, profile: str | None = None) -> dict:
+    """scene.yaml (``path`` or the installed one) with the twin ``profile``'s overrides merged in.
+
+    ``profile`` None or "base": scene.yaml alone (the scene of the bags before the profiles). The result carries
+    ``_source`` (the scene file) and ``_profile`` (the profile name, "base" when none).
+    """
     p = Path(path) if path is not None else default_scene_path()
     try:
         data = yaml.safe_load(p.read_text())
@@ -54,7 +89,12 @@ def load_scene_config(path: str | os.PathLike | None = None) -> dict:
         raise SceneError(f"scene file {p}: {e}") from e
     if not isinstance(data, dict):
         raise SceneError(f"scene file {p}: expected a mapping at the top level")
+    if profile not in (None, "base"):
+        prof = load_profile(profile)
+        data = merge_overrides(data, prof["overrides"])
+        data["_plans_file"] = prof.get("plans_file")
     data["_source"] = str(p)
+    data["_profile"] = profile or "base"
     return data
 
 
@@ -176,12 +216,13 @@ def _boxes(cfg: dict, layout: Layout) -> list[PlacedBox]:
 
 
 def build_scene(seed: int = 0, config: dict | str | os.PathLike | None = None, layout: Layout | None = None,
-                duration_s: float = 120.0, miscalibration: bool = True) -> Scene:
+                duration_s: float = 120.0, miscalibration: bool = True, profile: str | None = None) -> Scene:
     """Instantiate the scene for ``seed``. ``duration_s`` bounds the staff paths (they hold still after it).
 
-    ``miscalibration=False`` gives the OMC its true extrinsics (for tests of the ideal system).
+    ``miscalibration=False`` gives the OMC its true extrinsics (for tests of the ideal system). ``profile``: a twin
+    profile merged into the scene file (ignored when ``config`` is already a dict).
     """
-    cfg = config if isinstance(config, dict) else load_scene_config(config)
+    cfg = config if isinstance(config, dict) else load_scene_config(config, profile)
     lay = layout if layout is not None else load_layout(default_layout_path())
     if lay.ots is None:
         raise SceneError(f"layout {lay.source} has no 'ots' section; the simulator needs the Vega pose")

@@ -278,15 +278,20 @@ def _cache_dir() -> Path:
     return Path(os.environ.get("FULLPERC_CACHE", Path.home() / ".cache" / "fullperc")) / "task_plans"
 
 
-def source_plans_path() -> Path:
-    """``config/task_plans.yaml`` in the source tree (what ``--write-plans`` writes)."""
-    return Path(__file__).resolve().parents[2] / "config" / PLANS_FILE
+def plans_file_of(scene) -> str:
+    """The shipped plans file of ``scene``: its twin profile's ``plans_file``, else ``task_plans.yaml``."""
+    return str(scene.config.get("_plans_file") or PLANS_FILE)
 
 
-def default_plans_path() -> Path | None:
-    """The installed ``share/fullperc_eval/config/task_plans.yaml``, else the source copy, else None."""
+def source_plans_path(name: str = PLANS_FILE) -> Path:
+    """``config/<name>`` in the source tree (what ``--write-plans`` writes)."""
+    return Path(__file__).resolve().parents[2] / "config" / name
+
+
+def default_plans_path(name: str = PLANS_FILE) -> Path | None:
+    """The installed ``share/fullperc_eval/config/<name>``, else the source copy, else None."""
     try:
-        return share_path("fullperc_eval", "config", PLANS_FILE)
+        return share_path("fullperc_eval", "config", name)
     except FileNotFoundError:
         return None
 
@@ -339,14 +344,13 @@ def load_shipped_plans(path: str | os.PathLike | None = None) -> dict[str, dict]
 
 
 _MEM_CACHE: dict[str, TaskPlan] = {}
-_SHIPPED: dict[str, dict] | None = None
+_SHIPPED: dict[str, dict[str, dict]] = {}   # plans file name -> its plans
 
 
-def _shipped(task: str) -> TaskPlan | None:
-    global _SHIPPED
-    if _SHIPPED is None:
-        _SHIPPED = load_shipped_plans()
-    d = _SHIPPED.get(task)
+def _shipped(task: str, name: str = PLANS_FILE) -> TaskPlan | None:
+    if name not in _SHIPPED:
+        _SHIPPED[name] = load_shipped_plans(default_plans_path(name))
+    d = _SHIPPED[name].get(task)
     if d is None:
         return None
     try:
@@ -376,13 +380,13 @@ def plan_task(task: str, scene, cache: bool = True) -> TaskPlan:
         plan = _MEM_CACHE.get(key)
         if plan is not None:
             return plan
-        plan = _shipped(task)
+        plan = _shipped(task, plans_file_of(scene))
         if plan is not None:
             err = problem(plan)
             if not err:
                 _MEM_CACHE[key] = plan
                 return plan
-            warnings.warn(f"shipped plan for {task} ({default_plans_path()}) is stale in this scene: {err}; planning "
+            warnings.warn(f"shipped plan for {task} ({plans_file_of(scene)}) is stale in this scene: {err}; planning "
                           "it again (regenerate the file: python -m fullperc_eval.sim --write-plans)",
                           StalePlanWarning, stacklevel=2)
         f = _cache_dir() / f"{key}.json"
@@ -519,16 +523,28 @@ def check_arc_order(scene, arc: JointArc, order: tuple[int, ...], rate_hz: float
     ok = feasible_poses(scene, origins, p, 0.0)
     if not ok.all():
         return f"{int((~ok).sum())} poses collide with obstacles"
-    got = compress(label_points(scene.layout, p)[0])
+    labels = label_points(scene.layout, p)[0]
+    got = compress(labels)
     if got != tuple(order):
         return f"visits {order_name(got)}"
+    st = _settings(scene)
+    clear = st.get("base_marker_clearance_m")
+    if clear is not None:   # the tool must not sweep through the reference marker
+        d = np.linalg.norm(p - scene.T_omc_base[:3, 3], axis=1).min()
+        if d < float(clear):
+            return f"passes {d:.3f} m from the base marker (< {float(clear):.3f} m)"
+    b_range = st.get("max_b_range_m")
+    if b_range is not None and np.any(labels == BVV):   # the B part in the Vega's recommended (middle) range
+        d = np.linalg.norm(p[labels == BVV] - scene.T_omc_ots[:3, 3], axis=1).max()
+        if d > float(b_range):
+            return f"B part reaches {d:.2f} m from the Vega (> {float(b_range):.2f} m)"
     return ""
 
 
-def write_plans(path: str | os.PathLike | None = None, tasks=TASKS, log=print) -> Path:
-    """Plan ``tasks`` cold on the default scene (seed 0) and write them as the shipped plans file."""
-    out = Path(path) if path is not None else source_plans_path()
-    scene = build_scene(0)
+def write_plans(path: str | os.PathLike | None = None, tasks=TASKS, log=print, profile: str | None = None) -> Path:
+    """Plan ``tasks`` cold on the scene of ``profile`` (seed 0) and write them as its shipped plans file."""
+    scene = build_scene(0, profile=profile)
+    out = Path(path) if path is not None else source_plans_path(plans_file_of(scene))
     plans = {}
     if out.exists():  # keep the entries of tasks not planned now (in TASKS order)
         with warnings.catch_warnings():
@@ -541,8 +557,10 @@ def write_plans(path: str | os.PathLike | None = None, tasks=TASKS, log=print) -
         plans[task] = plan_to_dict(plan)
         log(f"{task}: {time.monotonic() - t0:.1f} s, {plan.attempts} start configurations, joint {plan.arc.joint}, "
             f"Vega sees {100 * plan.ots_fraction_b:.0f} % of the B part, OMC {100 * plan.omc_fraction:.0f} %")
-    header = ("# Precomputed task plans of the default scene (seed-independent: the search has its own seed).\n"
-              "# Generated by `python -m fullperc_eval.sim --write-plans`; do not edit by hand.\n"
+    how = "--write-plans" + (f" --profile {profile}" if profile not in (None, "base") else "")
+    header = (f"# Precomputed task plans of the {scene.config['_profile']} scene (seed-independent: the search has its "
+              "own seed).\n"
+              f"# Generated by `python -m fullperc_eval.sim {how}`; do not edit by hand.\n"
               "# plan_task() uses these first and re-checks each against the margin model before use\n"
               "# (a stale plan is reported and re-planned).\n"
               f"# layout: {Path(scene.layout.source).name}, scene: {Path(scene.config.get('_source', '')).name}\n")
@@ -561,13 +579,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--write-plans", action="store_true", help="plan cold and write the shipped plans file")
     ap.add_argument("--out", default=None, help=f"plans file (default: {source_plans_path()})")
     ap.add_argument("--tasks", nargs="+", default=list(TASKS), choices=TASKS, metavar="TASK")
+    ap.add_argument("--profile", default="base", help="twin profile whose plans to write: paper, spec or base "
+                    "(scene.yaml alone; default)")
     args = ap.parse_args(argv)
     if not args.write_plans:
         ap.print_help()
         return 2
     try:
-        out = write_plans(args.out, args.tasks)
-    except (TaskPlanningError, OSError) as e:
+        out = write_plans(args.out, args.tasks, profile=args.profile)
+    except (TaskPlanningError, OSError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
     print(f"wrote {out}")

@@ -1,0 +1,197 @@
+"""``make accuracy``: the six tasks on many seeds and twin profiles, Table 1 as mean ± sd over seeds.
+
+    python -m fullperc_eval.evaluation.accuracy --seeds 0-9 --profile paper|spec|both [--fusion-config FILE]
+        [--jobs 2] [--json bags/accuracy.json] [--cache DIR]
+
+Per (profile, seed): the six bags are generated with :func:`fullperc_eval.sim.dataset.generate` into
+``<cache>/<profile>-<twin hash>/seed<k>/`` (reused when present: the hash covers the merged scene configuration and
+the plans file, so a changed profile never reuses old bags) and evaluated with
+:func:`fullperc_eval.evaluation.metrics.evaluate_bag` (the fusion config given, else ``fusion.yaml``). One progress
+line per seed on stderr. Then, per profile:
+
+* Table 1: MAE per task and method, mean ± sd over seeds;
+* the share of task-seeds where the paper's ordering CBKF <= CKF <= BKF <= KF <= OMC holds, and where
+  CBKF <= KF <= OMC holds;
+* the CBKF/OMC ratio over every task-seed: mean, sd, median, min, max;
+* Table 2 (G-B-P, B->P segment): max and median per method, mean ± sd over seeds.
+
+Stdout: one JSON line per figure (``{"name", "value", "unit", "profile", ...}``, like ``bench/benchlib.py``), then
+the human tables. ``--json`` writes every per-task-seed figure and the summary.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fullperc_eval.sim.dataset import generate
+from fullperc_eval.sim.scene import PROFILES, load_scene_config
+from fullperc_eval.sim.tasks import TASKS, default_plans_path, plans_file_of
+
+from .config import METHODS
+from .evaluate_all import TASK_ORDER
+from .twin_report import parse_seeds
+
+ORDER_FULL = ("cbkf", "ckf", "bkf", "kf", "omc")   # CBKF <= CKF <= BKF <= KF <= OMC
+ORDER_MAIN = ("cbkf", "kf", "omc")                 # CBKF <= KF <= OMC
+
+
+def twin_hash(profile: str) -> str:
+    """Hash of what a profile's bags depend on: the merged scene configuration and its plans file."""
+    cfg = load_scene_config(profile=profile)
+    cfg = {k: v for k, v in cfg.items() if k != "_source"}
+
+    class _S:   # plans_file_of only reads .config
+        config = cfg
+    plans = default_plans_path(plans_file_of(_S))
+    text = plans.read_text() if plans is not None else ""
+    return hashlib.sha256(json.dumps([cfg, text], sort_keys=True, default=str).encode()).hexdigest()[:12]
+
+
+def default_cache() -> Path:
+    return Path(os.environ.get("FULLPERC_CACHE", Path.home() / ".cache" / "fullperc")) / "accuracy"
+
+
+def holds(mae: dict[str, float], order=ORDER_FULL) -> bool:
+    return all(mae[a] <= mae[b] + 1e-9 for a, b in zip(order, order[1:], strict=False))
+
+
+def run_seed(profile: str, seed: int, cache: str, fusion_config: str | None, key: str) -> dict[str, Any]:
+    """Generate (or reuse) and evaluate the six bags of one seed; returns per-task figures."""
+    from .metrics import evaluate_bag  # in the worker: keeps the parent light
+    t0 = time.monotonic()
+    d = Path(cache) / f"{profile}-{key}" / f"seed{seed}"
+    have = [t for t in TASKS if (d / t / "metadata.yaml").is_file() and (d / t / "calibration.yaml").is_file()]
+    missing = [t for t in TASKS if t not in have]
+    if missing:
+        generate(d, missing, seed, log=lambda _m: None, profile=profile)
+    t1 = time.monotonic()
+    rows = []
+    for t in TASK_ORDER:
+        r = evaluate_bag(d / t, fusion_config=fusion_config, progress=False).result
+        rows.append({"task": t, "seed": seed, "profile": profile, "mae_mm": r["mae_mm"],
+                     "mae_by_region_mm": r["mae_by_region_mm"], "b_to_p": r["b_to_p"]})
+    return {"profile": profile, "seed": seed, "rows": rows, "generated": len(missing),
+            "sim_s": t1 - t0, "eval_s": time.monotonic() - t1}
+
+
+def _ms(v: list[float]) -> tuple[float, float]:
+    a = np.asarray([x for x in v if x is not None], float)
+    return (float(a.mean()), float(a.std(ddof=1)) if a.size > 1 else 0.0) if a.size else (float("nan"), float("nan"))
+
+
+def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Table 1 mean ± sd, ordering shares, CBKF/OMC distribution and Table 2 of one profile's task-seeds."""
+    t1 = {t: {m: _ms([r["mae_mm"][m] for r in rows if r["task"] == t]) for m in METHODS} for t in TASK_ORDER}
+    ratio = np.array([r["mae_mm"]["cbkf"] / r["mae_mm"]["omc"] for r in rows])
+    gbp = [r for r in rows if r["task"] == "G-B-P" and r.get("b_to_p")]
+    t2 = {k: {m: _ms([r["b_to_p"][k][m] for r in gbp]) for m in METHODS} for k in ("max_mm", "median_mm")}
+    return {"n_task_seeds": len(rows), "seeds": sorted({r["seed"] for r in rows}), "table1_mae_mm": t1,
+            "share_full_order": float(np.mean([holds(r["mae_mm"], ORDER_FULL) for r in rows])),
+            "share_cbkf_kf_omc": float(np.mean([holds(r["mae_mm"], ORDER_MAIN) for r in rows])),
+            "share_cbkf_le_omc": float(np.mean(ratio <= 1.0)),
+            "cbkf_over_omc": {"mean": float(ratio.mean()), "sd": float(ratio.std(ddof=1)) if ratio.size > 1 else 0.0,
+                              "median": float(np.median(ratio)), "min": float(ratio.min()),
+                              "max": float(ratio.max())},
+            "table2_gbp_b_to_p_mm": t2, "table2_n": len(gbp)}
+
+
+def json_lines(profile: str, s: dict[str, Any]) -> list[dict[str, Any]]:
+    out = []
+    for t, per in s["table1_mae_mm"].items():
+        for m, (mu, sd) in per.items():
+            out.append({"name": f"mae_{m}_{t}", "value": round(mu, 4), "sd": round(sd, 4), "unit": "mm"})
+    out.append({"name": "share_full_order", "value": round(s["share_full_order"], 4), "unit": "fraction"})
+    out.append({"name": "share_cbkf_kf_omc", "value": round(s["share_cbkf_kf_omc"], 4), "unit": "fraction"})
+    out.append({"name": "share_cbkf_le_omc", "value": round(s["share_cbkf_le_omc"], 4), "unit": "fraction"})
+    for k, v in s["cbkf_over_omc"].items():
+        out.append({"name": f"cbkf_over_omc_{k}", "value": round(v, 4), "unit": "ratio"})
+    for k, per in s["table2_gbp_b_to_p_mm"].items():
+        for m, (mu, sd) in per.items():
+            out.append({"name": f"b_to_p_{k.removesuffix('_mm')}_{m}", "value": round(mu, 4), "sd": round(sd, 4),
+                        "unit": "mm"})
+    for rec in out:
+        rec.update(profile=profile, seeds=len(s["seeds"]))
+    return out
+
+
+def format_summary(profile: str, s: dict[str, Any]) -> str:
+    seeds = s["seeds"]
+    lines = [f"profile {profile}: Table 1, MAE [mm] mean ± sd over {len(seeds)} seeds "
+             f"({seeds[0]}-{seeds[-1]}), {s['n_task_seeds']} task-seeds",
+             f"{'task':<9}" + "".join(f"{m.upper():>14}" for m in METHODS) + "   CBKF/OMC"]
+    for t, per in s["table1_mae_mm"].items():
+        r = per["cbkf"][0] / per["omc"][0] if per["omc"][0] else float("nan")
+        lines.append(f"{t:<9}" + "".join(f"{mu:8.2f} ± {sd:4.2f}" for mu, sd in per.values()) + f"   {r:8.2f}")
+    c = s["cbkf_over_omc"]
+    lines += [f"CBKF <= CKF <= BKF <= KF <= OMC in {100 * s['share_full_order']:.0f} % of task-seeds; "
+              f"CBKF <= KF <= OMC in {100 * s['share_cbkf_kf_omc']:.0f} %; CBKF <= OMC in "
+              f"{100 * s['share_cbkf_le_omc']:.0f} %",
+              f"CBKF/OMC over task-seeds: mean {c['mean']:.2f} ± {c['sd']:.2f}, median {c['median']:.2f}, "
+              f"min {c['min']:.2f}, max {c['max']:.2f} (paper: mean 0.51, 0.46-0.66)",
+              f"Table 2 (G-B-P, B->P segment, {s['table2_n']} seeds), error [mm] mean ± sd:",
+              f"{'':<9}" + "".join(f"{m.upper():>14}" for m in METHODS)]
+    for k, per in s["table2_gbp_b_to_p_mm"].items():
+        lines.append(f"{k.removesuffix('_mm'):<9}" + "".join(f"{mu:8.2f} ± {sd:4.2f}" for mu, sd in per.values()))
+    lines.append(f"{'paper':<9}max 6.36 8.32 6.76 2.02 2.02 | median 5.81 5.77 5.56 0.25 0.25")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m fullperc_eval.evaluation.accuracy", description=__doc__.split("\n")[0])
+    ap.add_argument("--seeds", default="0-9", help="e.g. 0-9 or 0,4 (default 0-9)")
+    ap.add_argument("--profile", default="paper", choices=(*PROFILES, "both"))
+    ap.add_argument("--fusion-config", default=None, help="fusion.yaml to evaluate with (default: fusion_node's)")
+    ap.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
+    ap.add_argument("--cache", default=None, help=f"bag cache (default {default_cache()})")
+    ap.add_argument("--json", default="bags/accuracy.json", help="write all figures here ('' = no file)")
+    args = ap.parse_args(argv)
+    seeds = parse_seeds(args.seeds)
+    profiles = PROFILES if args.profile == "both" else (args.profile,)
+    cache = str(Path(args.cache) if args.cache else default_cache())
+    keys = {p: twin_hash(p) for p in profiles}
+    t0 = time.monotonic()
+    results: list[dict[str, Any]] = []
+    jobs = [(p, s) for p in profiles for s in seeds]
+    with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as ex:
+        futs = {ex.submit(run_seed, p, s, cache, args.fusion_config, keys[p]): (p, s) for p, s in jobs}
+        for f in as_completed(futs):
+            r = f.result()
+            results.append(r)
+            ratio = [x["mae_mm"]["cbkf"] / x["mae_mm"]["omc"] for x in r["rows"]]
+            print(f"[{len(results)}/{len(jobs)}] profile {r['profile']} seed {r['seed']}: "
+                  f"{'generated ' + str(r['generated']) + ' bags' if r['generated'] else 'cached bags'} "
+                  f"{r['sim_s']:.0f} s, evaluated {r['eval_s']:.0f} s; CBKF/OMC mean {np.mean(ratio):.2f}, "
+                  f"{time.monotonic() - t0:.0f} s so far", file=sys.stderr, flush=True)
+    summary, text = {}, []
+    for p in profiles:
+        rows = [x for r in sorted(results, key=lambda r: r["seed"]) if r["profile"] == p for x in r["rows"]]
+        summary[p] = summarize(rows)
+        for rec in json_lines(p, summary[p]):
+            print(json.dumps(rec))
+        text.append(format_summary(p, summary[p]))
+    print()
+    print("\n\n".join(text))
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        with open(args.json, "w") as f:
+            json.dump({"profiles": list(profiles), "seeds": seeds, "fusion_config": args.fusion_config,
+                       "twin_hash": keys, "summary": summary,
+                       "task_seeds": [x for r in results for x in r["rows"]]}, f, indent=1, default=float)
+            f.write("\n")
+        print(f"wrote {args.json}")
+    print(f"accuracy: {len(jobs)} profile-seeds in {time.monotonic() - t0:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
