@@ -137,7 +137,7 @@ def test_simulator_truth_survives_the_bag(tmp_path):
     assert ok.all()
     np.testing.assert_allclose(P, run.truth.T_base_tool[:, :3, 3], atol=2e-6)
     info = load_metadata(bag)
-    assert info["custom_data"] == {"generator": "fullperc_eval.dataset", "task": "unit", "seed": "0"}
+    assert info["custom_data"] == {"generator": "fullperc_eval.dataset", "task": "unit", "seed": "0", "profile": "base"}
 
 
 def test_generate_refuses_to_overwrite_foreign_directories(tmp_path):
