@@ -34,7 +34,9 @@ inputs=("$REQ/ros-jazzy.txt" "$REQ/python.txt" scripts/setup.sh)
 [ -f "$lock" ] && inputs+=("$lock")
 stamp_want="$mode $pyver $(cat "${inputs[@]}" | sha256sum | cut -c1-16)"
 stamp_file="$VENV/.fullperc-setup"
-if [ -f "$stamp_file" ] && [ "$(cat "$stamp_file")" = "$stamp_want" ] && [ -x "$VENV/bin/python" ]; then
+ament_marker="$VENV/local_setup.sh"   # wheels only, see mark_ament_prefix below
+if [ -f "$stamp_file" ] && [ "$(cat "$stamp_file")" = "$stamp_want" ] && [ -x "$VENV/bin/python" ] \
+   && { [ "$mode" = system ] || [ -f "$ament_marker" ]; }; then
   echo "fullperc setup: up to date ($mode, Python $pyver, $VENV)"
   exit 0
 fi
@@ -96,6 +98,20 @@ check='import numpy, scipy, yaml, rosbags, mcap, serial, matplotlib, pinocchio'
 if [ "$mode" = wheels ]; then
   [ -f "$VENV/share/std_msgs/cmake/std_msgsConfig.cmake" ] || die "ros-jazzy-common-interfaces is missing share/std_msgs/cmake"
 fi
+
+# The wheels put share/ament_index into the venv root, and scripts/env.sh adds that root to AMENT_PREFIX_PATH.
+# colcon accepts a prefix there only if it holds a local_setup.* file (else it warns on every build that the path
+# "doesn't contain any 'local_setup.*' files"), and the install/setup.* it generates then source the prefix's
+# local_setup.<shell>. The venv needs nothing sourced (env.sh sets its paths), so these files only mark it.
+mark_ament_prefix() {
+  local ext
+  for ext in sh bash zsh ps1; do
+    printf '%s\n' "# fullperc (scripts/setup.sh): marks this venv as an ament prefix for colcon; nothing to set up." \
+      "# The ROS 2 wheels installed share/ament_index here; scripts/env.sh puts it on AMENT_PREFIX_PATH." \
+      > "$VENV/local_setup.$ext"
+  done
+}
+if [ "$mode" = wheels ]; then mark_ament_prefix; fi
 
 echo "$stamp_want" > "$stamp_file"
 echo "fullperc setup: done"

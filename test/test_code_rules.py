@@ -282,10 +282,6 @@ ALLOWED: tuple[tuple[str, str, str], ...] = (
      "the include path the PyPI ROS wheels were built with (manylinux container); cmake/ rewrites it"),
     ("README.md", r"/opt/nokov/lib/libnokov_sdk\.so", "an example location of NOKOV's vendor library"),
     ("*", r"/tmp/(report|f\.yaml|run\.npz)", "scratch output paths in example commands (README, sim --help)"),
-    # `make eval` records the config files the evaluation used, with absolute paths of the machine that ran it.
-    # Follow-up: record them relative to the package share and regenerate bags/eval.json; until then these two.
-    ("bags/*eval.json", r"/[\w./-]*/share/fullperc_fusion/config/(fusion|or_layout)\.yaml",
-     "pinned evaluation written before the follow-up above"),
     ("test/test_code_rules.py", r".*", "this file spells out the patterns it looks for"),
 )
 
@@ -309,8 +305,9 @@ def test_machine_path_checker_finds_planted_paths():
     found = machine_paths("docs/x.md", text)
     assert [f.split(": ", 1)[1] for f in found] == [f"{home}/x.py", work, "/" + "Users/bob/x",
                                                     "C:" + "\\" + "Users" + "\\" + "bob\\x"], found
-    assert machine_paths("bags/eval.json", f'"layout": "{work}/../share/fullperc_fusion/config/or_layout.yaml"') == []
-    assert machine_paths("other.json", f'"layout": "{work}/../share/fullperc_fusion/config/or_layout.yaml"')
+    # `make eval` records its config files as package://<pkg>/<file> (evaluate_all.portable_path), never absolute
+    assert machine_paths("bags/paper/eval.json", f'"layout": "{work}/../share/fullperc_fusion/config/or_layout.yaml"')
+    assert machine_paths("bags/paper/eval.json", '"layout": "package://fullperc_fusion/config/or_layout.yaml"') == []
 
 
 def test_no_machine_paths_in_tracked_files():

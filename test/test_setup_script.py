@@ -45,3 +45,24 @@ def test_second_setup_installs_nothing():
                        cwd=str(workspace_root()))
     assert r.returncode == 0, r.stderr
     assert "up to date" in r.stdout and "installing" not in r.stdout.lower()
+
+
+def test_the_venv_is_a_proper_ament_prefix_for_colcon(tmp_path):
+    """env.sh puts the wheel venv on AMENT_PREFIX_PATH; colcon must accept it without the warning that the path
+    "doesn't contain any 'local_setup.*' files" (printed on every build before), and the setup files colcon
+    generates (which chain that prefix's local_setup.<shell>) must still source cleanly."""
+    root = workspace_root()
+    empty = tmp_path / "no_packages"
+    empty.mkdir()
+    build = subprocess.run(
+        ["bash", "-c", 'source scripts/env.sh && colcon --log-base "$1/log" build --base-paths "$1/no_packages" '
+                       '--build-base "$1/build" --install-base "$1/install"', "build", str(tmp_path)],
+        cwd=str(root), capture_output=True, text=True, timeout=300)
+    assert build.returncode == 0, build.stdout + build.stderr
+    assert "local_setup" not in build.stdout + build.stderr, build.stdout + build.stderr
+    for shell in ("bash", "sh"):
+        script = tmp_path / "install" / f"setup.{shell}"
+        src = subprocess.run([shell, "-c", '. "$1" && echo sourced', shell, str(script)], capture_output=True,
+                             text=True, timeout=60)
+        assert src.returncode == 0 and "sourced" in src.stdout, (shell, src.stdout, src.stderr)
+        assert "not found" not in src.stderr, (shell, src.stderr)  # every chained local_setup.<shell> exists

@@ -33,7 +33,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m fullperc_eval.bag", description=__doc__.split("\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
     sub.add_parser("info", help="print what metadata.yaml says about a bag").add_argument("bag")
-    sub.add_parser("reindex", help="rebuild metadata.yaml and recover incomplete MCAP files").add_argument("bag")
+    sub.add_parser("reindex", help="recover a bag: complete killed MCAP files, checkpoint "
+                                  "sqlite3 logs, rebuild metadata.yaml").add_argument("bag")
     args = ap.parse_args(argv)
     try:
         if args.cmd == "info":
@@ -41,7 +42,9 @@ def main(argv: list[str] | None = None) -> int:
         else:
             meta, reports = reindex(args.bag)
             for r in reports:
-                if r.recovered:
+                if r.recovered and r.file.endswith(".db3"):
+                    print(f"{r.file}: recovered {r.messages} messages (write-ahead log checkpointed)")
+                elif r.recovered:
                     print(f"{r.file}: recovered {r.messages} messages"
                           + (f" (stopped at: {r.error})" if r.error else "") + f"; original kept as {r.file}.orig")
                 else:

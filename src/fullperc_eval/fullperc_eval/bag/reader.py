@@ -1,8 +1,10 @@
 """Reading rosbag2 bags through rosbags' AnyReader, with every failure turned into a clear :class:`BagError`.
 
 Before opening, the bag is checked the way a user would want it explained: metadata.yaml present and valid,
-every storage file it lists present, every MCAP file complete (a recorder that was killed leaves one without
-footer; the error then names the command that recovers it).
+every storage file it lists present, every MCAP file complete and every sqlite3 file checkpointed. A recorder
+that was killed leaves an MCAP file without footer, or a sqlite3 file whose messages are still in its write-ahead
+log (``<file>-wal``, which rosbags' read-only reader does not see); the error then names the command that
+recovers the bag (:data:`.metadata.REINDEX_HINT`).
 """
 
 from __future__ import annotations
@@ -45,6 +47,8 @@ class BagReader:
                 raise BagError(f"bag {str(self.path)!r}: file {rel!r} listed in {METADATA_FILE} is missing")
             if self.storage == "mcap":
                 check_mcap_complete(f, self.path)
+            elif self.storage == "sqlite3":
+                check_sqlite_complete(f, self.path)
         self.topics: dict[str, TopicInfo] = {}
         for entry in self.info.get("topics_with_message_count") or []:
             try:
@@ -126,3 +130,12 @@ def check_mcap_complete(path: Path, bagdir: Path) -> None:
         if f.read(8) != MCAP_MAGIC:
             raise BagError(f"{path} is incomplete (the recorder did not close it, e.g. it was killed); "
                            f"recover it with: {REINDEX_HINT} {bagdir}")
+
+
+def check_sqlite_complete(path: Path, bagdir: Path) -> None:
+    """BagError if ``path`` has a non-empty write-ahead log: the recorder did not close it (a clean close
+    checkpoints the log into the file and removes it), and a read-only reader would miss what the log holds."""
+    wal = path.with_name(path.name + "-wal")
+    if wal.is_file() and wal.stat().st_size > 0:
+        raise BagError(f"{path} is incomplete (the recorder did not close it, e.g. it was killed: its messages are "
+                       f"still in {wal.name}); recover it with: {REINDEX_HINT} {bagdir}")

@@ -29,12 +29,21 @@ from typing import Any
 import yaml
 
 from .errors import BagError
-from .metadata import STORAGES
+from .metadata import REINDEX_HINT, STORAGES
 from .qos import offered_qos_dict, rclpy_qos_from_dict
 from .types import get_message, resolve_definition
 from .writer import DEFAULT_FLUSH_INTERVAL, BagWriter
 
 NODE_NAME = "rosbag2_recorder"
+RECOVERY_HELP = f"""\
+stopping and recovery:
+  SIGINT (Ctrl-C) or SIGTERM: what DDS already delivered is written and the bag is closed cleanly.
+  A killed recorder (SIGKILL, power loss, out of memory) loses at most about --flush-interval of data, but
+  leaves the bag incomplete (an MCAP file without footer; a sqlite3 file with its -wal log beside it):
+  reading it fails with an error that says so. Recover the bag, in place, with
+      {REINDEX_HINT} BAG
+  (MCAP: rewritten complete, the original kept as <file>.mcap.orig; sqlite3: the log is checkpointed;
+  metadata.yaml is rebuilt from the storage files in both cases)."""
 
 
 # ---------------------------------------------------------------- helpers shared with play
@@ -97,8 +106,9 @@ def split_ros_args(argv: list[str]) -> tuple[list[str], list[str]]:
 # ---------------------------------------------------------------- recorder
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="record", description="Record ROS 2 topics into a rosbag2 bag "
-                                 "(MCAP or sqlite3), like `ros2 bag record`.")
+    ap = argparse.ArgumentParser(
+        prog="record", description="Record ROS 2 topics into a rosbag2 bag (MCAP or sqlite3), like `ros2 bag record`.",
+        epilog=RECOVERY_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("-o", "--output", help="bag directory (must not exist); default rosbag2_<date>-<time>")
     ap.add_argument("-s", "--storage", choices=STORAGES, default="mcap", help="storage plugin (mcap)")
     ap.add_argument("--topics", nargs="+", default=[], metavar="TOPIC", help="topics to record")

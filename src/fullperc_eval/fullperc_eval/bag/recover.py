@@ -24,7 +24,7 @@ from .writer import DEFAULT_CHUNK_SIZE, MCAP_LIBRARY, mcap_version
 class RecoveryReport:
     file: str
     messages: int
-    recovered: bool  # the file was incomplete and got rewritten (original kept as <file>.orig)
+    recovered: bool  # the file was incomplete: MCAP rewritten (original kept as <file>.orig), sqlite3 log checkpointed
     error: str = ""  # why salvage stopped early ('' if the whole file was read)
 
 
@@ -39,7 +39,8 @@ def reindex(bagdir: str | os.PathLike) -> tuple[dict, list[RecoveryReport]]:
     Like ``ros2 bag reindex``. An MCAP without footer (killed recorder) is read record by record
     up to the first damaged record, and rewritten as a complete, indexed file in log-time order;
     the original is kept beside it as ``<file>.orig``. A sqlite3 file is opened read-write so its
-    WAL is checkpointed. Returns the new metadata and one report per file.
+    write-ahead log (``<file>-wal``, where a killed recorder's commits are) is checkpointed into it and
+    removed. Returns the new metadata and one report per file.
     """
     bagdir = Path(bagdir)
     if not bagdir.is_dir():
@@ -172,6 +173,8 @@ def _scan_mcap(path: Path, topics: dict[str, TopicInfo]) -> FileInfo:
 
 
 def _recover_sqlite(path: Path) -> RecoveryReport:
+    wal = path.with_name(path.name + "-wal")
+    had_log = wal.is_file() and wal.stat().st_size > 0  # a killed recorder's commits are still in the log
     try:
         db = sqlite3.connect(path)
         db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
@@ -180,7 +183,7 @@ def _recover_sqlite(path: Path) -> RecoveryReport:
         db.close()
     except sqlite3.DatabaseError as err:
         raise BagError(f"{path}: not a readable rosbag2 sqlite3 file ({err})") from None
-    return RecoveryReport(path.name, int(n), False)
+    return RecoveryReport(path.name, int(n), had_log)
 
 
 def _scan_sqlite(path: Path, topics: dict[str, TopicInfo]) -> FileInfo:

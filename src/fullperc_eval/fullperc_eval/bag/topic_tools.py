@@ -8,13 +8,16 @@ type lookup.
     echo /fullperc/tool/pose [--type geometry_msgs/msg/PoseStamped] [--count N] [--timeout S]
     pub  /topic fullperc_msgs/msg/TrackingQuality '{"body": "tool", "visible": true}' [--rate HZ] [--count N]
 
-`echo` prints one JSON object per message on stdout (machine-readable, for scripts and tests).
+`echo` prints one JSON object per message on stdout (machine-readable, for scripts and tests). When the reader
+of a pipe goes away (``echo /topic | head -3``), it stops quietly with status 141, as a coreutils program killed
+by SIGPIPE does, instead of a BrokenPipeError traceback.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from typing import Any
@@ -111,10 +114,30 @@ def echo_main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return 0
+    except BrokenPipeError:
+        return stdout_closed()
     finally:
         node.destroy_node()
         if rclpy.ok():
             rclpy.shutdown()
+
+
+EXIT_SIGPIPE = 128 + 13  # the status a shell reports for a program killed by SIGPIPE (`yes | head -1`)
+
+
+def stdout_closed() -> int:
+    """The reader of stdout went away: stop quietly, like coreutils (status 141, no message).
+
+    Python ignores SIGPIPE, so the write raised BrokenPipeError; stdout is pointed at /dev/null so that the
+    interpreter's final flush of what is still buffered does not raise (and print) it again.
+    """
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError):
+        pass
+    return EXIT_SIGPIPE
 
 
 def pub_main(argv: list[str] | None = None) -> int:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import sys
 import time
 from pathlib import Path
@@ -36,6 +37,18 @@ PAPER_TABLE1 = {  # Sensors 2023, 23(20), 8637, Table 1: MAE [mm], columns OMC K
     "P-G-B-P": (3.94, 2.61, 2.59, 1.85, 1.85), "P-B-G": (3.79, 2.02, 2.02, 2.02, 2.02),
     "B-G-P": (3.79, 2.14, 2.13, 1.82, 1.82), "P-B-G-P": (3.81, 2.21, 2.20, 1.77, 1.76)}
 PAPER_TABLE2 = {"task": "G-B-P", "max_mm": (6.36, 8.32, 6.76, 2.02, 2.02), "median_mm": (5.81, 5.77, 5.56, 0.25, 0.25)}
+
+
+def portable_path(path: str) -> str:
+    """A config file as the JSON records it, the same on every machine: ``package://<pkg>/<file>`` for a file in
+    an installed package's share directory (``.../share/<pkg>/<file>``, e.g. fusion_node's default params file),
+    else relative to the current directory (the repository root under ``make eval``) when it lies below it, else
+    as given."""
+    m = re.search(r"(?:^|/)share/([^/]+)/(.+)$", path.replace(os.sep, "/"))
+    if m and os.path.isabs(path):
+        return f"package://{m.group(1)}/{m.group(2)}"
+    rel = os.path.relpath(path) if os.path.isabs(path) else path
+    return path if rel.startswith("..") else rel
 
 
 def find_bags(root: str | Path) -> list[Path]:
@@ -121,6 +134,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"warning: {r['task']}: {w}", file=sys.stderr)
     if args.json:
         config = next((r["config"] for r in rows if "config" in r), None)   # the same for every bag: kept once
+        for key in ("fusion_config", "layout"):
+            if config and isinstance(config.get(key), str) and config[key] != "<given>":
+                config[key] = portable_path(config[key])
         for r in rows:
             r.pop("config", None)
         write_json(args.json, {"tasks": rows, "config": config, "comparison": comp,

@@ -31,7 +31,7 @@ from fullperc_common.runs import runs
 from fullperc_common.transforms import make_T, mean_T
 from fullperc_eval.bag.calibration import Calibration, CalibrationError, load_calibration
 from fullperc_eval.bag.errors import BagError
-from fullperc_eval.bag.metadata import load_metadata
+from fullperc_eval.bag.reader import BagReader
 from fullperc_fusion.layout import LayoutError, default_layout_path, load_layout
 from fullperc_fusion.margin import label_points
 from fullperc_fusion.pipeline import TargetConfig
@@ -193,7 +193,7 @@ def evaluate_bag(bag: str | Path, *, calibration: str | Path | None = None, layo
     ``live``: evaluate the fused poses recorded from ``fusion_node`` (:func:`live_replay`) instead.
     """
     try:
-        load_metadata(Path(bag))          # the bag itself first: its problems are the likeliest
+        BagReader(Path(bag))   # the bag itself first (metadata, storage files complete): its problems are likeliest
     except BagError as e:
         raise EvaluationError(str(e)) from None
     flat: dict[str, Any] = {"idle_flush": 0.5}

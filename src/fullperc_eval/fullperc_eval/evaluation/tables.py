@@ -13,29 +13,38 @@ from .config import METHODS
 
 
 def _fmt(v) -> str:
-    return "   -  " if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:6.2f}"
+    return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.2f}"
+
+
+def _grid(head: list[str], rows: list[list[str]]) -> list[str]:
+    """Columns as wide as their widest cell: the first (a label) left-aligned, the figures right-aligned."""
+    widths = [max(len(r[i]) for r in [head, *rows]) for i in range(len(head))]
+
+    def line(cells: list[str]) -> str:
+        out = [cells[0].ljust(widths[0])] + [c.rjust(w) for c, w in zip(cells[1:], widths[1:], strict=True)]
+        return "  ".join(out).rstrip()
+
+    return [line(head)] + [line(r) for r in rows]
 
 
 def format_table1(rows: list[dict[str, Any]], methods=METHODS) -> str:
-    head = f"{'task':<10}" + "".join(f"{m.upper():>7}" for m in methods) + "   CBKF/OMC"
-    lines = ["Table 1: MAE [mm] (every pose each method outputs, vs Diana ground truth)", head]
+    body = []
     for r in rows:
         mae = r["mae_mm"]
         ratio = (mae["cbkf"] / mae["omc"]) if mae.get("cbkf") and mae.get("omc") else None
-        lines.append(f"{r['task']:<10}" + "".join(f" {_fmt(mae.get(m))}" for m in methods)
-                     + (f"   {ratio:9.2f}" if ratio is not None else ""))
-    return "\n".join(lines)
+        body.append([str(r["task"])] + [_fmt(mae.get(m)) for m in methods] + [_fmt(ratio)])
+    head = ["task"] + [m.upper() for m in methods] + ["CBKF/OMC"]
+    return "\n".join(["Table 1: MAE [mm] (every pose each method outputs, vs Diana ground truth)",
+                      *_grid(head, body)])
 
 
 def format_table2(r: dict[str, Any], methods=METHODS) -> str:
     bp = r.get("b_to_p")
     if not bp:
         return f"Table 2 ({r['task']}): no B->P segment on this path (regions {r['regions']['order']})"
-    lines = [f"Table 2 ({r['task']}): B->P segment {bp['t0_s']:.2f}-{bp['t1_s']:.2f} s, error [mm]",
-             f"{'value':<10}" + "".join(f"{m.upper():>7}" for m in methods)]
-    for key in ("max_mm", "median_mm"):
-        lines.append(f"{key[:-3]:<10}" + "".join(f" {_fmt(bp[key].get(m))}" for m in methods))
-    return "\n".join(lines)
+    body = [[key[:-3]] + [_fmt(bp[key].get(m)) for m in methods] for key in ("max_mm", "median_mm")]
+    return "\n".join([f"Table 2 ({r['task']}): B->P segment {bp['t0_s']:.2f}-{bp['t1_s']:.2f} s, error [mm]",
+                      *_grid(["value"] + [m.upper() for m in methods], body)])
 
 
 def to_json(obj: Any) -> Any:

@@ -11,6 +11,10 @@ shuts everything down, and then evaluates the recorded bag twice:
 
 Both are compared with the Diana's ground truth (forward kinematics of the recorded joint states and the
 simulator's calibration). The report (plots, HTML, JSON) goes to ``<out>/report``.
+
+Only a bag of a task that ran to its end is evaluated: after Ctrl-C (or when a process failed) the bag holds part
+of the task, and MAE figures of a part would look like the task's. The demo then says so, names the bag and the
+command that evaluates it anyway, and exits non-zero (130 after Ctrl-C).
 """
 
 from __future__ import annotations
@@ -27,7 +31,7 @@ from fullperc_eval.evaluation.metrics import evaluate_bag
 from fullperc_eval.evaluation.report import write_report
 from fullperc_eval.evaluation.tables import format_table1, format_table2, write_json
 
-from .supervisor import run_graph
+from .supervisor import execute_graph
 
 
 def _free_port(kind: int) -> int:
@@ -45,7 +49,7 @@ def graph_path(root: Path) -> Path:
 
 
 def run_demo(task: str, seed: str, out: Path, root: Path, speed: str = "1.0",
-             extra: dict[str, str] | None = None) -> int:
+             extra: dict[str, str] | None = None, graph: Path | None = None) -> int:
     out = out / f"{task}-{time.strftime('%Y%m%d-%H%M%S')}"
     out.mkdir(parents=True, exist_ok=False)
     os.environ.setdefault("ROS_DOMAIN_ID", str(101 + os.getpid() % 100))
@@ -55,11 +59,18 @@ def run_demo(task: str, seed: str, out: Path, root: Path, speed: str = "1.0",
               "vega_port": str(_free_port(socket.SOCK_STREAM)), **(extra or {})}
     print(f"demo: task {task}, seed {seed}, output {out}, ROS_DOMAIN_ID={os.environ['ROS_DOMAIN_ID']}", flush=True)
     t0 = time.monotonic()
-    rc = run_graph(graph_path(root), values, out / "logs", root)
+    outcome = execute_graph(graph or graph_path(root), values, out / "logs", root)
+    rc = outcome.rc
     bag = out / "bag"
     if not (bag / "metadata.yaml").exists():
         print(f"demo: no bag was recorded (graph exit {rc}); logs in {out / 'logs'}", file=sys.stderr)
-        return 1
+        return 128 + outcome.interrupted if outcome.interrupted else 1
+    if outcome.interrupted or not outcome.completed:
+        state = "ran to its end" if outcome.completed else f"did not finish: {outcome.reason}"
+        print(f"\ndemo: not evaluating: the task {state}; the bag {bag} is "
+              f"{'complete' if outcome.completed else 'PARTIAL (only part of the task)'}. "
+              f"Evaluate it anyway with: evaluate {bag}\n(logs in {out / 'logs'})", file=sys.stderr)
+        return 128 + outcome.interrupted if outcome.interrupted else (rc or 1)
     cal = out / "calibration.yaml"
     if cal.exists():
         shutil.copy(cal, bag / "calibration.yaml")

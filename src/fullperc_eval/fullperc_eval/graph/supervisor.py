@@ -151,6 +151,9 @@ class Supervisor:
         self._print_lock = threading.Lock()
         self._stop = threading.Event()
         self.failed: list[str] = []
+        self.interrupted = 0  # the signal that asked for the stop (SIGINT, SIGTERM), 0 if none did
+        self.completed = False  # a process marked ends_graph finished with exit 0: the graph's work is done
+        self.reason = ""  # why the graph stopped, as said on the console
 
     def say(self, name: str, line: str) -> None:
         with self._print_lock:
@@ -211,11 +214,16 @@ class Supervisor:
             threading.Thread(target=self._pump, args=(r,), daemon=True).start()
             self.say("supervisor", f"started {spec.name} (pid {popen.pid}): {' '.join(spec.cmd)}")
             if not self._wait_ready(r):
-                self.say("supervisor", f"{spec.name} did not become ready (exit {popen.poll()}); "
-                                       f"see {r.log_path}")
+                if self._stop.is_set():
+                    return False
+                self._stop_because(f"{spec.name} did not become ready (exit {popen.poll()}); see {r.log_path}")
                 self.failed.append(spec.name)
                 return False
         return True
+
+    def _stop_because(self, reason: str) -> None:
+        self.reason = reason
+        self.say("supervisor", f"{reason}; shutting down")
 
     def wait(self, timeout: float | None = None) -> None:
         """Block until a process marked ends_graph exits, a required process dies, or a signal arrives."""
@@ -228,21 +236,29 @@ class Supervisor:
                 if r.spec.ends_graph:
                     if rc != 0:
                         self.failed.append(r.spec.name)
-                    self.say("supervisor", f"{r.spec.name} finished (exit {rc}); shutting down")
+                    self.completed = rc == 0
+                    self._stop_because(f"{r.spec.name} finished (exit {rc})")
                     return
                 if r.spec.required and r.spec.name not in self.failed:
                     self.failed.append(r.spec.name)
-                    self.say("supervisor", f"{r.spec.name} exited unexpectedly (exit {rc}); shutting down")
+                    self._stop_because(f"{r.spec.name} exited unexpectedly (exit {rc})")
                     return
             if end is not None and time.monotonic() > end:
-                self.say("supervisor", "time limit reached; shutting down")
+                self._stop_because("time limit reached")
                 return
             self._stop.wait(0.1)
 
-    def request_stop(self, *_a) -> None:
+    def request_stop(self, signum: int = 0, _frame=None) -> None:
+        """Signal handler (SIGINT/SIGTERM): stop starting, stop waiting; :meth:`shutdown` does the rest.
+
+        It only sets flags: printing here could deadlock on the print lock the interrupted code holds."""
+        if signum and not self.interrupted:
+            self.interrupted = signum
         self._stop.set()
 
     def shutdown(self) -> dict[str, int | None]:
+        if self.interrupted and not self.reason:
+            self._stop_because(f"interrupted ({signal.Signals(self.interrupted).name})")
         codes: dict[str, int | None] = {}
         for r in reversed(self.running):
             codes[r.spec.name] = stop_group(r.popen, self.graph.grace)
@@ -270,8 +286,20 @@ def stop_group(p: subprocess.Popen, grace: float) -> int | None:
     return p.poll()
 
 
-def run_graph(path: str | Path, values: dict[str, str], log_dir: Path, root: Path,
-              timeout: float | None = None) -> int:
+@dataclass
+class GraphOutcome:
+    """How a graph run ended: what :func:`run_graph` returns as an exit code, and why."""
+
+    rc: int  # 1 if a process failed (did not become ready, died, or an ends_graph process exited non-zero)
+    codes: dict[str, int | None]  # exit code of every started process
+    completed: bool  # a process marked ends_graph finished with exit 0 (e.g. the simulated task ran to its end)
+    interrupted: int  # the signal (SIGINT/SIGTERM) that stopped the run, 0 if none
+    reason: str  # why the graph stopped ("sim finished (exit 0)", "interrupted (SIGINT)", ...)
+
+
+def execute_graph(path: str | Path, values: dict[str, str], log_dir: Path, root: Path,
+                  timeout: float | None = None) -> GraphOutcome:
+    """Run a graph until it ends (see :meth:`Supervisor.wait`), shut it down, and say how it ended."""
     graph = load_graph(path, values)
     sup = Supervisor(graph, log_dir, root)
     old = {s: signal.signal(s, sup.request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
@@ -283,4 +311,11 @@ def run_graph(path: str | Path, values: dict[str, str], log_dir: Path, root: Pat
         for s, h in old.items():
             signal.signal(s, h)
     sup.say("supervisor", "all processes stopped: " + ", ".join(f"{k}={v}" for k, v in codes.items()))
-    return 1 if sup.failed else 0
+    return GraphOutcome(1 if sup.failed else 0, codes, sup.completed and not sup.failed, sup.interrupted,
+                        sup.reason)
+
+
+def run_graph(path: str | Path, values: dict[str, str], log_dir: Path, root: Path,
+              timeout: float | None = None) -> int:
+    """:func:`execute_graph`'s exit code: 1 if a process failed, else 0."""
+    return execute_graph(path, values, log_dir, root, timeout).rc
