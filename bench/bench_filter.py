@@ -1,17 +1,28 @@
 """Fusion filter cost: median time of one filter step per kind, and samples/s through TargetPipeline.
 
-Baseline (same run): a bare 6-state constant-velocity numpy KF step (predict + 3-D update written
-inline, no validation, no NIS, no biased estimator) -- the floor for a Python/numpy filter step.
+``filter_step_us[<kind>]`` (issue 16 item 3, goal <= 20 us): one ``predict`` + ``update`` of the filter the
+pipeline uses (``filter_registry.make_filter``: the closed form per axis, fast_filter.py) on prebuilt Measurements,
+as the pipeline calls it, over a 120 Hz global stream with a local sample paired to every second one (3 ms lag);
+median over interleaved repeats of the mean per step. Baseline (same run, interleaved): the general form
+``filters.FusionFilter`` on the same items.
+Older lines: ``<kind>_step_*`` time ``FusionFilter.step`` (Measurement construction included) against a bare 6-state
+constant-velocity numpy KF step (predict + 3-D update written inline, no validation, no NIS, no biased
+estimator) -- the floor for a Python/numpy filter step in general matrix form.
 Run: python bench/bench_filter.py
 """
 
 from __future__ import annotations
+
+import statistics
+import time
 
 import numpy as np
 from benchlib import emit, median_time
 from scipy.spatial.transform import Rotation as Rot
 
 from fullperc_common.transforms import inv_T, make_T
+from fullperc_fusion.filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement
+from fullperc_fusion.filter_registry import make_filter
 from fullperc_fusion.filters import FILTER_KINDS, FusionFilter
 from fullperc_fusion.pipeline import FILTER_NAMES, TargetConfig, TargetPipeline
 
@@ -45,6 +56,40 @@ def filter_steps(kind, zs, paired):
             f.step(z_global=z, t_global=t)
 
 
+def step_items(zs) -> list[tuple[int, list[Measurement]]]:
+    """(stamp, measurements) as the pipeline feeds them: global at 120 Hz, every second one paired with a local
+    sample stamped 3 ms later."""
+    items = []
+    for k, z in enumerate(zs):
+        t = 10**18 + k * 8_333_333
+        ms = [Measurement(t, SOURCE_GLOBAL, z + 2e-3)]
+        if k % 2 == 0:
+            ms.append(Measurement(t + 3_000_000, SOURCE_LOCAL, z))
+        items.append((max(m.t_ns for m in ms), ms))
+    return items
+
+
+def time_steps(f, items) -> float:
+    """Mean seconds per predict + update over ``items`` on a fresh filter ``f``."""
+    t0 = time.perf_counter()
+    for t, ms in items:
+        f.predict(t)
+        f.update(*ms)
+    return (time.perf_counter() - t0) / len(items)
+
+
+def filter_step_figures(zs, repeats=9) -> None:
+    items = step_items(zs)
+    for kind in FILTER_KINDS:
+        fast, general = [], []
+        for _ in range(repeats):   # interleaved: both see the same machine load
+            fast.append(time_steps(make_filter(kind), items))
+            general.append(time_steps(FusionFilter(kind), items))
+        emit(f"filter_step_us[{kind}]", statistics.median(fast) * 1e6, "us",
+             baseline=statistics.median(general) * 1e6,
+             note="closed form per axis (as the pipeline uses it) vs general FusionFilter; goal <= 20 us")
+
+
 def pipeline_events(seconds=10.0):
     T_omc_base = make_T([1.0, 0.5, 0.8], Rot.from_euler("z", 30, degrees=True).as_quat())
     T_omc_ots = make_T([3.0, 1.0, 1.5], Rot.from_euler("z", 150, degrees=True).as_quat())
@@ -75,6 +120,7 @@ def run_pipeline(ev, filters):
 
 def main() -> None:
     zs = np.random.default_rng(1).normal(0, 1e-3, size=(N, 3)) + [0.5, 0.2, 0.3]
+    filter_step_figures(zs)
     base = median_time(lambda: bare_kf_steps(zs), repeats=5) / N
     emit("bare_numpy_kf6_step", base * 1e6, "us")
     for kind in FILTER_KINDS:

@@ -1,5 +1,8 @@
 """One Kalman filter, four configurations: KF, BKF, CKF, CBKF (paper §3.2, eq. 3-14).
 
+This is the general (matrix) form and the reference; ``filter_registry`` serves the same filters in closed form per
+axis (:mod:`fast_filter`, equal to rounding, falls back to this form when a covariance couples the axes).
+
 State per target (all in ``base``, metres): x = [p v b] (9 states) with the compensation (bias) term b
 of the global source, or x = [p v] (6 states) without it.
 
