@@ -146,6 +146,8 @@ PARAMS: tuple[Param, ...] = (
           "wait for late / reordered samples before processing"),
     Param("clock", "stamps", "str", lambda v: v in ("stamps", "host"), "stamps or host", "",
           "what 'now' is for the synchronizer: the newest stamp, or the node clock"),
+    Param("max_future", _T.max_future_ns * 1e-9, "float", _pos, "must be finite and > 0", "s",
+          "a sample stamped more than this ahead of the node clock is rejected (named on /diagnostics)"),
     Param("idle_flush", 0.5, "float", _pos, "must be finite and > 0", "s",
           "without target samples for this long: process everything pending"),
     Param("stale_timeout", 1.0, "float", _pos, "must be finite and > 0", "s",
@@ -316,6 +318,7 @@ def target_config(get: Get | dict[str, Any], target: str, filters: tuple[str, ..
                             calibration_file=path)
         return TargetConfig(name=target, chain=chain, filters=tuple(filters), params=filter_params(vals),
                             slop_ns=int(vals["slop"] * 1e9), delay_ns=int(vals["reorder_delay"] * 1e9),
+                            max_future_ns=int(round(vals["max_future"] * 1e9)),
                             monitor=monitor_params(vals))
     except ParameterError:
         raise

@@ -36,7 +36,8 @@ mapping the offline evaluator uses), documented in config/fusion.yaml; names of 
   filter cbkf|ckf|bkf|kf|omc (primary), filters [..] (side-by-side extras, optional)
   noise.accel, noise.bias_walk, noise.global_std, noise.local_std, init.pos_std, init.vel_std,
   init.bias_std, hop_gate, hop_to_bias, max_gap (see filters.FilterParams)
-  slop [s], reorder_delay [s], clock stamps|host, idle_flush [s], stale_timeout [s], problem_hold [s]
+  slop [s], reorder_delay [s], clock stamps|host, max_future [s] 0.1, idle_flush [s], stale_timeout [s],
+  problem_hold [s]
   qos_reliability reliable|best_effort, qos_depth
   alarm.hop_window [s] 2.0, alarm.hop_max 5, alarm.bias_max [m] 0.02, alarm.reject_timeout [s] 1.0
   calibration_file '' (calibration YAML loaded at start; a bad file stops the node naming file and field),
@@ -50,6 +51,12 @@ mapping the offline evaluator uses), documented in config/fusion.yaml; names of 
 so output depends only on the data (live, replayed bags, simulated time alike); after ``idle_flush``
 seconds without any target sample everything pending is flushed. With ``host`` "now" is the node
 clock, for deployments where the stamps are on that clock and latency must not depend on traffic.
+
+``max_future`` (time guard, either clock mode): a sample stamped more than this ahead of the node clock is
+rejected before it reaches the pipeline's synchronizer (``rejected_future`` on /diagnostics, naming the source,
+the stamp and how far ahead), so one bad stamp cannot move the watermark an hour ahead and stall the output. The
+node clock follows /clock under ``use_sim_time`` (replays keep working); while that clock has not started
+(time 0) nothing is checked.
 """
 
 from __future__ import annotations
@@ -84,9 +91,9 @@ from .pipeline import FusedOutput, TargetPipeline
 
 # Diagnostics.set takes an int level (the diagnostic_msgs constants are bytes in rclpy).
 OK, WARN, ERROR = (diag.as_level(v) for v in (diag.OK, diag.WARN, diag.ERROR))
-_PROBLEM_KEYS = ("rejected_nonfinite", "rejected_nonunit", "rejected_pose", "rejected_stamp", "late", "duplicate",
-                 "rejected_cov", "local_skipped", "filter_error", "nonfinite_output", "publish_error",
-                 "calibration_refused")
+_PROBLEM_KEYS = ("rejected_nonfinite", "rejected_nonunit", "rejected_pose", "rejected_stamp", "rejected_future",
+                 "late", "duplicate", "rejected_cov", "local_skipped", "filter_error", "nonfinite_output",
+                 "publish_error", "calibration_refused")
 # ROS type of a parameter declared without a default value (optional ones, empty lists)
 _ROS_TYPES = {"str_list": Parameter.Type.STRING_ARRAY, "pose7": Parameter.Type.DOUBLE_ARRAY}
 
@@ -209,6 +216,7 @@ class FusionNode(Node):
         t_ns = stamp_to_ns(msg.header.stamp)
         p, q = pose_to_pq(msg.pose)
         now = time.monotonic()
+        clock_ns = self.get_clock().now().nanoseconds or None   # the time guard's clock; 0: sim time not started
         if self._cal_run is not None:
             self._cal_run[0].add(dev, body, t_ns, p, q)
         targets = self._targets_of_omc[body] if dev == "omc" else self._targets_of_ots[body]
@@ -216,13 +224,13 @@ class FusionNode(Node):
             pipe = self.pipes[t]
             c = pipe.config.chain
             if dev == "omc":
-                ok = pipe.push_omc(body, t_ns, (p, q))
+                ok = pipe.push_omc(body, t_ns, (p, q), now_ns=clock_ns)
                 if body == c.omc_target:
                     self._last_rx[t]["omc"] = now
                     self._last_target_rx = now
                     self._source_sample(t, GLOBAL, ok, now)
             else:
-                ok = pipe.push_ots(body, t_ns, (p, q))
+                ok = pipe.push_ots(body, t_ns, (p, q), now_ns=clock_ns)
                 if body == c.ots_target:
                     self._last_rx[t]["ots"] = now
                     self._last_target_rx = now

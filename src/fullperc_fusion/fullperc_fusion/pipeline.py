@@ -28,6 +28,12 @@ C_base = J C J^T, J = diag(R_A, R_A) (the links are taken as exact here). Withou
 fixed noise, as the paper does. The output's orientation covariance is the rotation block of the
 orientation source's measurement when it has one, else ``orientation_std_*``.
 
+Time guard: a sample stamped more than ``max_future_ns`` ahead of ``now_ns`` -- the clock the caller passes to
+``push_*`` (fusion_node: its node clock, which follows /clock under ``use_sim_time``) -- is rejected
+(``rejected_future``, message naming source, stamp and how far ahead) before it reaches the chain or the
+synchronizer: one such stamp would otherwise move the synchronizer's watermark and horizon ahead and every later
+sample would be "late". Without ``now_ns`` (offline replay of a bag, the evaluator) nothing is checked.
+
 Once the local link is set (``static`` / ``direct`` chains), the OTS's sightings of the base marker also feed a
 :class:`~link_monitor.LinkMonitor`: a bump of the Vega or of the reference marker sets ``link_bumped`` in every
 output and, with ``monitor.recalibrate``, re-estimates the static links in calibrate mode (the old links stay in
@@ -68,6 +74,7 @@ class TargetConfig:
     params: FilterParams = field(default_factory=FilterParams)
     slop_ns: int = 4_000_000        # pair samples closer than this (below half the OMC period at 120 Hz)
     delay_ns: int = 50_000_000      # reorder / transport delay the synchronizer waits for
+    max_future_ns: int = 100_000_000   # a sample stamped further ahead of the caller's clock is rejected
     orientation_std_local: float = 0.002   # [rad] reported in pose_cov when the OTS orientation is used
     orientation_std_global: float = 0.01   # [rad] when the OMC orientation is used
     monitor: MonitorParams = field(default_factory=MonitorParams)   # link monitoring (link_monitor)
@@ -83,6 +90,8 @@ class TargetConfig:
             raise ValueError(f"target '{self.name}': duplicate filter in {self.filters}")
         self.params.validate()
         self.monitor.validate()
+        if not self.max_future_ns > 0:
+            raise ValueError(f"target '{self.name}': max_future must be > 0, got {self.max_future_ns * 1e-9} s")
 
 
 @dataclass
@@ -136,7 +145,8 @@ class TargetPipeline:
         self.problems[key] = msg
         self.last_problem_t_ns = t_ns
 
-    def _validate(self, what: str, t_ns, pose, cov=None) -> tuple[int, np.ndarray, np.ndarray | None] | None:
+    def _validate(self, what: str, t_ns, pose, cov=None,
+                  now_ns: int | None = None) -> tuple[int, np.ndarray, np.ndarray | None] | None:
         try:
             t = int(t_ns)
         except (TypeError, ValueError, OverflowError):
@@ -144,6 +154,11 @@ class TargetPipeline:
             return None
         if t <= 0:
             self._problem("rejected_stamp", f"{what}: invalid stamp {t}", None)
+            return None
+        if now_ns is not None and t - now_ns > self.config.max_future_ns:
+            self._problem("rejected_future", f"{what}: stamp {t} ns is {(t - now_ns) * 1e-9:.3f} s ahead of the "
+                                             f"clock ({now_ns} ns; max_future {self.config.max_future_ns * 1e-9:g} s); "
+                                             "dropped", t)
             return None
         try:
             T = pose_to_T(pose)
@@ -161,13 +176,13 @@ class TargetPipeline:
             self._problem("rejected_cov", f"{what}: {e}", t)
             return None
 
-    def push_omc(self, body: str, t_ns: int, pose, cov=None) -> bool:
+    def push_omc(self, body: str, t_ns: int, pose, cov=None, now_ns: int | None = None) -> bool:
         """One OMC sample of ``body`` (pose of the body in ``omc``, optional 6x6 covariance in ``omc``).
-        False if rejected or unused."""
+        False if rejected or unused. ``now_ns``: the caller's clock, for the time guard (module docstring)."""
         c = self.config.chain
         if body not in (c.omc_target, c.omc_base, c.omc_rig):
             return False
-        v = self._validate(f"OMC body '{body}'", t_ns, pose, cov)
+        v = self._validate(f"OMC body '{body}'", t_ns, pose, cov, now_ns)
         if v is None:
             return False
         t, T, C = v
@@ -178,13 +193,13 @@ class TargetPipeline:
             return self._enqueue(GLOBAL, f"OMC body '{body}'", t, (T, C))
         return True
 
-    def push_ots(self, tool: str, t_ns: int, pose, cov=None) -> bool:
+    def push_ots(self, tool: str, t_ns: int, pose, cov=None, now_ns: int | None = None) -> bool:
         """One OTS sample of ``tool`` (pose of the tool in ``ots``, optional 6x6 covariance in ``ots``).
-        False if rejected or unused."""
+        False if rejected or unused. ``now_ns``: the caller's clock, for the time guard (module docstring)."""
         c = self.config.chain
         if tool not in (c.ots_target, c.ots_base):
             return False
-        v = self._validate(f"OTS tool '{tool}'", t_ns, pose, cov)
+        v = self._validate(f"OTS tool '{tool}'", t_ns, pose, cov, now_ns)
         if v is None:
             return False
         t, T, C = v

@@ -11,6 +11,9 @@ Faults for the /diagnostics alarms (each option repeatable; BODY is ``tool`` or 
 further OMC bodies that follow the same path, seen by the OMC only):
   --omc-jump BODY:AT:DX   from AT seconds on, the OMC pose of BODY is DX metres off along omc x (a hop or jump)
   --omc-nan BODY:FROM     from FROM seconds on, every OMC pose of BODY has a NaN position
+Timing (the time guard):
+  --future AT:AHEAD       at AT seconds, one extra OMC pose of ``tool`` stamped AHEAD seconds in the future
+  --pause AT:LEN          publish nothing from AT for LEN seconds (the node's idle flush runs meanwhile)
 Static links (calibration, link monitoring):
   --static-only           publish only /omc/base, /omc/ots_rig and /ots/base (what `calibrate` subscribes to)
   --link-noise            sensor noise on those three (OMC 0.1 mm / 1 mrad, Vega 0.05 mm / 0.5 mrad per frame)
@@ -74,7 +77,11 @@ def main() -> int:
     ap.add_argument("--link-noise", action="store_true")
     ap.add_argument("--move-base", default=None, metavar="AT:DX")
     ap.add_argument("--bump-ots", default=None, metavar="AT:DX")
+    ap.add_argument("--future", default=None, metavar="AT:AHEAD")
+    ap.add_argument("--pause", default=None, metavar="AT:LEN")
     a = ap.parse_args()
+    future = tuple(float(x) for x in a.future.split(":")) if a.future else None
+    pause = tuple(float(x) for x in a.pause.split(":")) if a.pause else None
     move_base = tuple(float(x) for x in a.move_base.split(":")) if a.move_base else None
     bump_ots = tuple(float(x) for x in a.bump_ots.split(":")) if a.bump_ots else None
     extra = [b for b in a.extra_bodies.split(",") if b]
@@ -124,6 +131,9 @@ def main() -> int:
         while time.monotonic() - t0 < t:
             time.sleep(0.0005)
         ns = t0_ns + round(t * 1e9)
+        if pause is not None and pause[0] <= t < pause[0] + pause[1]:
+            k += 1
+            continue
         T_omc_base, T_omc_ots, flags_links = T_OMC_BASE, T_OMC_OTS, {}
         if move_base is not None and t >= move_base[0]:
             T_omc_base = make_T([move_base[1], 0.0, 0.0]) @ T_OMC_BASE
@@ -160,6 +170,9 @@ def main() -> int:
             pub("/omc/tool/pose", "omc", "tool", ns - 500_000_000, "omc", p, q, bad="backwards")
         else:
             pub("/omc/tool/pose", "omc", "tool", ns, "omc", p, q, **tool_flags)
+        if future is not None and t >= future[0] and "future" not in bad_done:
+            bad_done.add("future")
+            pub("/omc/tool/pose", "omc", "tool", ns + round(future[1] * 1e9), "omc", p, q, bad="future")
         if k % 2 == 0:
             ns_l = ns + 3_000_000
             pub("/ots/base/pose", "ots", "base", ns_l, "ots", *seen(T_ots_base, 5e-5, 5e-4), **flags_links)

@@ -233,3 +233,48 @@ def test_fusion_node_alarms_on_diagnostics(procs, rclpy_context, python_exe, tmp
     b = lis.got["/fullperc/tool/status"][-1].bias
     assert abs(np.linalg.norm([b.x, b.y, b.z]) - 1.0) < 0.01
     assert not any(as_level(st.level) == 2 for st in _statuses(lis, "tool"))
+
+
+@pytest.mark.parametrize("max_future", [0.1, 7200.0], ids=["guard", "guard-too-wide"])
+def test_fusion_node_time_guard_one_sample_an_hour_ahead_does_not_stall(procs, rclpy_context, python_exe, tmp_path,
+                                                                         max_future):
+    """Issue 16 item 2: one OMC sample stamped an hour ahead of the node clock, then a 0.8 s pause (> idle_flush):
+    the sample is rejected and named on /diagnostics, and the node keeps publishing after the pause. With
+    ``max_future`` wider than an hour the same input stalls the output (what the guard prevents; the control that
+    shows this test can fail)."""
+    topics = ["/fullperc/tool/pose"]
+    lis = Listener(rclpy_context, topics)
+    try:
+        node = procs.start([installed_exe("fullperc_fusion", "fusion_node"), "--ros-args",
+                            "-p", "init_samples:=20", "-p", f"max_future:={max_future}"], name="fusion_node")
+        wait_for(lambda: all(lis.node.count_publishers(t) > 0 for t in topics), 30, what="node's publishers")
+        wait_for(lambda: all(p.get_publisher_count() > 0 for p in lis.node.subscriptions if p.topic_name in topics),
+                 30, what="subscriptions matched")
+        log = tmp_path / "pub.jsonl"
+        pub = procs.start([python_exe, str(PUB), "--log", str(log), "--duration", "4.0",
+                           "--future", "1.5:3600", "--pause", "2.0:0.8"], name="pub")
+        wait_for(lambda: pub.poll() is not None, 60, what="publisher to finish")
+        assert pub.returncode == 0, procs.log(pub)
+        rows, t0 = _read_log(log)
+        bad_ns = next(r["t_ns"] for r in rows if r.get("bad") == "future")
+
+        def after_pause():
+            return [m for m in lis.got["/fullperc/tool/pose"] if (_ns(m.header.stamp) - t0) / 1e9 > 3.0]
+        if max_future > 3600:
+            # the late samples are named on /diagnostics; by then the publisher is done and the node has flushed
+            wait_for(lambda: [st for st in _statuses(lis, "tool") if "late x" in st.message], 20,
+                     what="late samples on /diagnostics")
+            # nothing after the pause but the hour-ahead sample itself, published by the idle flush
+            assert [_ns(m.header.stamp) for m in after_pause()] == [bad_ns]
+            return
+        # liveness bounds only
+        wait_for(lambda: len(after_pause()) > 50, 20, what="fused poses after the pause")
+        named = wait_for(lambda: [st for st in _statuses(lis, "tool") if "rejected_future" in st.message], 20,
+                         what="the rejected stamp on /diagnostics")
+        assert node.poll() is None, procs.log(node)
+    finally:
+        lis.close()
+    assert re.search(rf"OMC body 'tool': stamp {bad_ns} ns is 3(600\.0|599\.9)\d* s ahead", named[0].message), \
+        named[0].message
+    stamps = [_ns(m.header.stamp) for m in lis.got["/fullperc/tool/pose"]]
+    assert stamps == sorted(stamps) and max(stamps) < bad_ns
