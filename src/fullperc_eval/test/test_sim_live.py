@@ -16,6 +16,7 @@ from fullperc_drivers.ndi.protocol import encode_command
 from fullperc_drivers.streams import decode_diana, decode_omc
 from fullperc_eval.sim.live import LiveServer
 from fullperc_eval.sim.runner import run_task
+from fullperc_eval.sim.scene import DEFAULT_PROFILE
 
 TASK, SEED = "P-G-B", 2
 
@@ -30,7 +31,8 @@ def _udp() -> socket.socket:
 
 @pytest.mark.slow
 def test_sim_serves_the_offline_measurements(procs, tmp_path):
-    offline = run_task(TASK, seed=SEED)  # before the sim starts, so this test drains its sockets promptly
+    # the `sim` executable's default twin profile, offline: before the sim starts, so this test drains its sockets
+    offline = run_task(TASK, seed=SEED, profile=DEFAULT_PROFILE)
     so, sd = _udp(), _udp()
     port_file = tmp_path / "vega.port"
     offset = 7_000_000_000  # device clocks 7 s ahead of the host clock
