@@ -193,7 +193,15 @@ def test_fusion_continues_on_omc_alone_and_recovers(demo):
     b0 = np.array([before[-1].bias.x, before[-1].bias.y, before[-1].bias.z])
     bias = np.array([[m.bias.x, m.bias.y, m.bias.z] for m in st])
     assert np.linalg.norm(b0) > 2e-4
-    assert np.all(np.linalg.norm(bias, axis=1) > 0.5 * np.linalg.norm(b0))
+    # Without the OTS the bias is unobservable and stays as learned -- except where the OMC hops: a hop's jump goes
+    # into the bias (hop_to_bias), by design. With the `paper` twin (OMC jumps of several mm where few cameras see
+    # the tool) a hop during the outage is normal, so: no drift between hops, and the bias never falls to zero.
+    hop = np.array([m.hop for m in st])
+    step = np.linalg.norm(np.diff(np.vstack([b0, bias]), axis=0), axis=1)
+    assert np.all(step[~hop] < 2e-4), f"bias drifted without a hop: {step[~hop].max() * 1e3:.3f} mm in one update"
+    first_hop = int(np.argmax(hop)) if hop.any() else len(st)
+    assert np.all(np.linalg.norm(bias[:first_hop], axis=1) > 0.5 * np.linalg.norm(b0))
+    assert np.all(np.linalg.norm(bias, axis=1) > 2e-4)
     # after the Vega comes back the driver has re-loaded both tools: quality of the target tool flows again
     # (the target itself has left the Vega's volume by then in this task, so visible may be false)
     q = _read(run_dir / "bag", ["/ots/tool/quality"])["/ots/tool/quality"]
