@@ -22,7 +22,7 @@ build: setup
 	    --cmake-args -DPython3_EXECUTABLE=$$Python3_EXECUTABLE
 
 lint: setup
-	@$(ENV) ruff check src test bench scripts
+	@$(ENV) ruff check src test bench scripts soak
 
 test: build lint
 	@$(ENV) python -m pytest $(PYTEST_ARGS)
@@ -38,6 +38,11 @@ demo: build
 
 bench: build
 	@$(ENV) python bench/run_all.py
+
+# Soak tests (minutes, not part of `make test`): every soak/soak_*.py, one JSON line per figure like `make bench`.
+.PHONY: soak
+soak: build
+	@$(ENV) python soak/run_all.py
 
 # Twin profile (paper | spec) and seed of `make dataset`; OUT defaults to bags/<profile>. `make eval` reads BAGS and
 # writes JSON (default: the committed sample bags of PROFILE).
