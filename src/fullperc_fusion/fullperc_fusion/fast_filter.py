@@ -47,7 +47,7 @@ import numpy as np
 from .filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement, Step, StepCompat
 from .filters import FILTER_KINDS, FilterParams, FusionFilter
 
-__all__ = ["ClosedFormFilter", "separable_cov"]
+__all__ = ["AxisStep", "ClosedFormFilter", "separable_cov"]
 
 
 def separable_cov(cov: np.ndarray | None) -> bool:
@@ -56,6 +56,44 @@ def separable_cov(cov: np.ndarray | None) -> bool:
         return True
     return cov[0, 1] == 0.0 and cov[0, 2] == 0.0 and cov[1, 2] == 0.0 and \
         cov[1, 0] == 0.0 and cov[2, 0] == 0.0 and cov[2, 1] == 0.0
+
+
+class AxisStep(Step):
+    """A :class:`Step` whose full covariance ``P`` is assembled from the per-axis blocks on first access: the
+    pipeline reads only ``pos_cov`` (diagonal here), and building the 9x9 array is a tenth of a closed-form step.
+    ``P`` behaves as on a Step (an ndarray, the covariance after this step; assigning replaces it)."""
+
+    @property  # type: ignore[override]
+    def P(self) -> np.ndarray:
+        P = self.__dict__["_P"]
+        if not isinstance(P, np.ndarray):
+            P = self.__dict__["_P"] = P.full()
+        return P
+
+    @P.setter
+    def P(self, value) -> None:
+        self.__dict__["_P"] = value
+
+    @property
+    def pos_cov(self) -> np.ndarray:
+        P = self.__dict__["_P"]
+        return P[0:3, 0:3] if isinstance(P, np.ndarray) else np.diag(P.pos_var())
+
+
+class _AxisCov:
+    """The per-axis covariance blocks of one step (a snapshot: the filter replaces, never mutates, the blocks)."""
+
+    __slots__ = ("blocks", "gather", "n")
+
+    def __init__(self, blocks, gather: np.ndarray, n: int) -> None:
+        self.blocks, self.gather, self.n = blocks, gather, n
+
+    def full(self) -> np.ndarray:
+        c0, c1, c2 = self.blocks
+        return np.array(c0 + c1 + c2 + [0.0])[self.gather].reshape(self.n, self.n)
+
+    def pos_var(self) -> list[float]:
+        return [c[0] for c in self.blocks]
 
 
 def _factor(x: float, var: float) -> float:
@@ -135,6 +173,9 @@ class ClosedFormFilter(StepCompat):
     def _full_P(self) -> np.ndarray:
         c0, c1, c2 = self._C
         return np.array(c0 + c1 + c2 + [0.0])[self._gather].reshape(self.n, self.n)
+
+    def _cov_snapshot(self) -> _AxisCov:
+        return _AxisCov(tuple(self._C), self._gather, self.n)
 
     def _to_general(self) -> None:
         r = self._ref
@@ -244,7 +285,7 @@ class ClosedFormFilter(StepCompat):
         self.t_ns = int(t)
         self._pending_ns = None
         src = (SOURCE_GLOBAL if mg is not None else 0) | (SOURCE_LOCAL if ml is not None else 0)
-        return Step(self.t_ns, np.array(p), np.zeros(3), self.bias, self._full_P(), src, reset=True)
+        return AxisStep(self.t_ns, np.array(p), np.zeros(3), self.bias, self._cov_snapshot(), src, reset=True)
 
     def _update_axes(self, t: int, mg: Measurement | None, ml: Measurement | None, lg: float, ll: float) -> Step:
         pr = self.params
@@ -347,6 +388,7 @@ class ClosedFormFilter(StepCompat):
             raise FloatingPointError("filter produced a non-finite state; it was reset")
         self._X, self._C, self.t_ns = Xn, Cn, t
         src = (SOURCE_GLOBAL if mg is not None else 0) | (SOURCE_LOCAL if ml is not None else 0)
-        return Step(t, np.array(Xn[0:3]), np.array(Xn[3:6]), np.array(Xn[6:9]) if hb else np.zeros(3),
-                    self._full_P(), src, innovation=np.array(innov), nis=nis, nis_global=nis_g, hop=hop,
-                    m=None if m_diag is None else np.array(m_diag))
+        xs = np.array(Xn)
+        return AxisStep(t, xs[0:3], xs[3:6], xs[6:9] if hb else np.zeros(3), self._cov_snapshot(), src,
+                        innovation=np.array(innov), nis=nis, nis_global=nis_g, hop=hop,
+                        m=None if m_diag is None else np.array(m_diag))

@@ -65,6 +65,7 @@ def _items(seed: int, n: int, cov_mode: str | None):
 
 def _agree(a, b, p_rel: bool, tol: float) -> None:
     assert a.t_ns == b.t_ns and a.sources == b.sources and a.reset == b.reset and a.hop == b.hop
+    assert np.max(np.abs(a.pos_cov - b.pos_cov)) <= tol   # before P: the closed form's pos_cov without building P
     for f in ("p", "v", "b", "innovation", "P"):
         assert np.max(np.abs(getattr(a, f) - getattr(b, f))) <= tol, f
     if p_rel:
@@ -176,6 +177,21 @@ def test_refusals_are_the_general_forms():
         with pytest.raises(FloatingPointError, match="non-finite"):
             f.update(Measurement(S + S // 5, SOURCE_GLOBAL, [1e200, 0.2, 0.3]))
         assert f.time_ns is None   # reset
+
+
+def test_a_steps_covariance_is_the_one_after_that_step():
+    """AxisStep builds P on first access: it must still be the covariance of its own step after later steps."""
+    f, g = ClosedFormFilter("cbkf"), FusionFilter("cbkf")
+    steps = []
+    for k in range(5):
+        m = Measurement(S + k * 8_000_000, SOURCE_GLOBAL, [0.5, 0.2, 0.3 + 1e-4 * k])
+        steps.append((f.update(m), g.update(m)))
+    for a, b in steps:
+        assert np.array_equal(a.pos_cov, np.diag(np.diag(a.P[0:3, 0:3]))) and a.P.shape == (9, 9)
+        assert np.max(np.abs(a.P - b.P)) <= TOL * np.max(np.abs(b.P))
+    a = steps[-1][0]
+    a.P = np.eye(9)
+    assert np.array_equal(a.P, np.eye(9)) and np.array_equal(a.pos_cov, np.eye(3))
 
 
 def test_the_registry_serves_the_closed_form_and_the_reference_stays():
