@@ -36,7 +36,7 @@ from .fusion_health import HealthParams
 from .link_monitor import MonitorParams
 from .pipeline import FILTER_NAMES, TargetConfig
 
-PAPER_ORDER = ("omc", "kf", "bkf", "ckf", "cbkf")   # every method, in the column order of the paper's Table 1
+PAPER_ORDER = tuple(reversed(FILTER_NAMES))   # every method, in the column order of the paper's Table 1
 KINDS = ("str", "int", "float", "bool", "str_list", "pose7")
 
 Get = Callable[[str, Any], Any]
