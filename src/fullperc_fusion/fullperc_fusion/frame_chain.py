@@ -20,11 +20,16 @@ The bodies must be stationary while the links are being estimated (the paper's i
 system"); :class:`StaticLinks` can be re-estimated on request (``fusion_node``'s ``~/initialize``).
 
 How the static links are estimated (``static_links``; a link given as a parameter is never estimated):
-  * ``average``   (default) the chordal mean of the first ``init_samples`` sightings of each body.
-  * ``calibrate`` the robust SE(3) mean of :mod:`fullperc_fusion.calibration` (outliers rejected, refused when
-                  a body moved or too few sightings came) over ``calibration_duration_s`` seconds of stamps,
+  * ``average``   the chordal mean of the first ``init_samples`` sightings of each body.
+  * ``calibrate`` (default) the robust SE(3) mean of :mod:`fullperc_fusion.calibration` (outliers rejected, refused
+                  when a body moved or too few sightings came) over ``calibration_duration_s`` seconds of stamps,
                   one :class:`~fullperc_fusion.calibration.Collector` for the global link and one for the local
                   link; a refused collection is logged (:attr:`StaticLinks.last_refusal`) and started again.
+                  Bridge: a link that has no value yet (the start; not a re-estimation, whose previous link stays)
+                  is served meanwhile by the ``average`` estimate (the first ``init_samples`` sightings, exactly as
+                  in ``average`` mode), so fusion starts as early; each link switches to its calibrated estimate
+                  when its collection completes (a refused one keeps the average and collects again).
+                  ``StaticLinks.sources`` names the estimate in use.
   * a calibration file (``ChainConfig.calibration``) gives links at start; only the missing ones are estimated,
     and ``~/initialize`` re-estimates every one of them.
 While a (re-)estimation runs the previous links stay in use; :meth:`StaticLinks.apply` swaps in a finished
@@ -64,6 +69,7 @@ __all__ = ["LOCAL_CHAINS", "STATIC_LINK_MODES", "BadSample", "ChainConfig", "Fra
 
 LOCAL_CHAINS = ("static", "tracked", "direct")
 STATIC_LINK_MODES = ("average", "calibrate")
+_BRIDGE = "until the robust mean"   # in ``sources`` of a link calibrate mode's bridge serves
 
 
 @dataclass
@@ -80,7 +86,7 @@ class ChainConfig:
     T_rig_ots: np.ndarray | None = None   # given hand-eye calibration (eq. 1), else estimated
     T_base_ots: np.ndarray | None = None  # given calibration of a stationary OTS, else estimated
     rig_max_age_ns: int = 20_000_000      # tracked mode: rig pose must be this close in time
-    static_links: str = "average"         # average | calibrate (module docstring)
+    static_links: str = "calibrate"       # calibrate | average (module docstring)
     calibration_duration_s: float = 10.0  # calibrate mode: seconds of stamps per collection
     calibration_settings: CalibrationSettings = field(default_factory=CalibrationSettings)
     calibration: Calibration | None = None  # links from a calibration file (calibration_io.load_calibration)
@@ -138,6 +144,7 @@ class StaticLinks:
         self.mode = cfg.static_links
         self._collect: dict[str, list[np.ndarray]] | None = None
         self._cal: dict[str, Collector] = {}
+        self._avg_global = self._avg_local = False   # links the average estimates (average mode, calibrate's bridge)
         if cfg.calibration is not None:
             self.apply(cfg.calibration, f"calibration file {cfg.calibration_file}".strip())
         self.start(initial=True)
@@ -154,7 +161,13 @@ class StaticLinks:
         self._need_global = "T_omc_base" not in from_file
         local = "T_rig_ots" if c.local_chain == "tracked" else "T_base_ots"
         self._need_local = getattr(c, local) is None and local not in from_file
-        self._collect = {"omc_base": [], "omc_rig": [], "ots_base": []} if self.mode == "average" else None
+        if self.mode == "average":
+            self._avg_global, self._avg_local = self._need_global, self._need_local
+        else:   # the bridge: only links without a value (a re-estimation keeps the previous link meanwhile)
+            self._avg_global = self._need_global and self.T_omc_base is None
+            self._avg_local = self._need_local and getattr(self, local) is None
+        bridge = self._avg_global or self._avg_local
+        self._collect = {"omc_base": [], "omc_rig": [], "ots_base": []} if bridge else None
         self._cal = {}
         if self.mode == "calibrate":
             parts = (["global"] if self._need_global else []) + (self._local_parts() if self._need_local else [])
@@ -200,6 +213,8 @@ class StaticLinks:
                  if col.start_ns is not None and col.last_ns is not None]
         text = (f"calibrating the static links over {self.cfg.calibration_duration_s:g} s of stamps "
                 f"({max(spans, default=0.0):.1f} s collected, sightings {self.progress()})")
+        if self._avg_global or self._avg_local or any(_BRIDGE in v for v in self.sources.values()):
+            text += f"; meanwhile the average of the first {self.cfg.init_samples} samples"
         return text + (f"; {self.refusals} collection(s) refused, last: {self.last_refusal}" if self.refusals else "")
 
     def add(self, which: str, T: np.ndarray, t_ns: int | None = None) -> bool:
@@ -207,6 +222,13 @@ class StaticLinks:
         mode); True when a link was updated."""
         if not self.collecting:
             return False
+        changed = False
+        if self._collect is not None and (self._avg_global or self._avg_local):   # average mode or the bridge
+            n = int(self.cfg.init_samples)
+            buf = self._collect[which]
+            if len(buf) < n:
+                buf.append(T)
+            changed = self._try_finish(n)
         if self.mode == "calibrate":
             if t_ns is None:
                 raise ValueError("calibrate mode needs the stamp of every observation")
@@ -215,14 +237,8 @@ class StaticLinks:
                          "ots_base": ("ots", c.ots_base)}[which]
             for col in self._cal.values():
                 col.add(dev, body, t_ns, T)
-            return self._try_finish_calibrate()
-        if self._collect is None:
-            return False
-        n = int(self.cfg.init_samples)
-        buf = self._collect[which]
-        if len(buf) < n:
-            buf.append(T)
-        return self._try_finish(n)
+            changed = self._try_finish_calibrate() or changed
+        return changed
 
     def apply(self, cal: Calibration, source: str) -> None:
         """Use the links of ``cal`` from now on (all in one step); stops estimating the links it provides."""
@@ -232,25 +248,36 @@ class StaticLinks:
             self.sources[name] = source
         local = "T_rig_ots" if self.cfg.local_chain == "tracked" else "T_base_ots"
         if "T_omc_base" in cal.links:
-            self._need_global = False
+            self._need_global = self._avg_global = False
             self._cal.pop("global", None)
         if local in cal.links:
-            self._need_local = False
+            self._need_local = self._avg_local = False
             for p in ("eq2", "rig", "tracked"):
                 self._cal.pop(p, None)
         self.generation += 1
 
-    # ---- average mode ------------------------------------------------------------------------
+    # ---- average mode (and calibrate mode's bridge) ------------------------------------------
+    def _done_avg(self, part: str) -> None:
+        """The average of ``part`` ('global' | 'local') is set: done in average mode; the bridge waits on."""
+        setattr(self, f"_avg_{part}", False)
+        if self.mode == "average":
+            setattr(self, f"_need_{part}", False)
+
+    def _set_average(self, name: str, source: str) -> None:
+        if self.mode == "calibrate":
+            source += f", {_BRIDGE} over {self.cfg.calibration_duration_s:g} s is done"
+        self._set_source(name, source)
+
     def _try_finish(self, n: int) -> bool:
         c = self._collect
         assert c is not None
         changed = False
-        if self._need_global and len(c["omc_base"]) >= n:
+        if self._avg_global and len(c["omc_base"]) >= n:
             self.T_omc_base = mean_T(c["omc_base"])
-            self._set_source("T_omc_base", f"average of {n} samples")
-            self._need_global = False
+            self._set_average("T_omc_base", f"average of {n} samples")
+            self._done_avg("global")
             changed = True
-        if self._need_local and not self._need_global:
+        if self._avg_local and not self._avg_global and self.T_omc_base is not None:
             T_omc_base = self.T_omc_base
             assert T_omc_base is not None
             given_rig = self.T_rig_ots   # static/direct: the hand-eye calibration (parameter or file), if any
@@ -260,20 +287,20 @@ class StaticLinks:
                     T_base_ots = mean_T([inv_T(T) for T in c["ots_base"]])
                     self.T_rig_ots = inv_T(mean_T(c["omc_rig"])) @ T_omc_base @ T_base_ots
                     self.T_base_ots = T_base_ots
-                    self._set_source("T_rig_ots", f"average of {n} samples (eq. 1)")
-                    self._need_local = False
+                    self._set_average("T_rig_ots", f"average of {n} samples (eq. 1)")
+                    self._done_avg("local")
                     changed = True
             elif len(c["ots_base"]) >= n:
                 # eq. (2) averaged: the OTS sees the base marker directly.
                 self.T_base_ots = mean_T([inv_T(T) for T in c["ots_base"]])
-                self._set_source("T_base_ots", f"average of {n} samples (eq. 2)")
-                self._need_local = False
+                self._set_average("T_base_ots", f"average of {n} samples (eq. 2)")
+                self._done_avg("local")
                 changed = True
             elif given_rig is not None and len(c["omc_rig"]) >= n:
                 # eq. (1) averaged with the hand-eye calibration T_rig_ots.
                 self.T_base_ots = inv_T(T_omc_base) @ mean_T(c["omc_rig"]) @ given_rig
-                self._set_source("T_base_ots", f"average of {n} rig samples and T_rig_ots (eq. 1)")
-                self._need_local = False
+                self._set_average("T_base_ots", f"average of {n} rig samples and T_rig_ots (eq. 1)")
+                self._done_avg("local")
                 changed = True
         if changed:
             self.generation += 1
@@ -317,7 +344,7 @@ class StaticLinks:
                 est = cal.links["T_omc_base"]
                 self.T_omc_base, self.estimates["T_omc_base"] = est.T, est
                 self.sources["T_omc_base"] = dur
-                self._need_global = False
+                self._need_global = self._avg_global = False
                 del self._cal["global"]
                 changed = True
         for part in ("eq2", "rig", "tracked"):
@@ -352,7 +379,7 @@ class StaticLinks:
                     continue
                 self.T_rig_ots, self.estimates["T_rig_ots"] = est.T, est
                 self.sources["T_rig_ots"] = f"{dur} (eq. 1)"
-            self._need_local = False
+            self._need_local = self._avg_local = False
             for p in ("eq2", "rig", "tracked"):
                 self._cal.pop(p, None)
             changed = True

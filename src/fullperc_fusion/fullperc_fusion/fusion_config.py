@@ -98,7 +98,7 @@ PARAMS: tuple[Param, ...] = (
     Param("calibration_file", "", "str", None, "", "",
           "calibration YAML (calibrate executable, ~/calibrate) whose links are used from the start; '' = none"),
     Param("static_links", _C.static_links, "str", lambda v: v in STATIC_LINK_MODES, f"one of {STATIC_LINK_MODES}",
-          "", "links not in calibration_file: average of init_samples | calibrate over calibration.duration"),
+          "", "links not in calibration_file: calibrate over calibration.duration (average meanwhile) | average"),
     Param("calibration.duration", _C.calibration_duration_s, "float", _pos, "must be finite and > 0", "s",
           "sightings collected per calibration (static_links calibrate, ~/calibrate, re-calibration)"),
     Param("calibration.min_samples", _S.min_samples, "int", lambda v: v >= 2, "must be >= 2", "samples",

@@ -182,7 +182,7 @@ class FusionNode(Node):
         links = next(iter(self.pipes.values())).chain.links
         given = "".join(f"{k} from {v}; " for k, v in links.sources.items())
         rest = (f"average of the first {vals['init_samples']} samples" if vals["static_links"] == "average"
-                else f"calibrated over the first {self._cal_duration:g} s")
+                else f"calibrated over the first {self._cal_duration:g} s, average of the first samples meanwhile")
         self.get_logger().info(
             f"fusing targets {targets} with {filters[0]} (side by side: {self._extra or 'none'}), "
             f"local chain '{local_chain}', clock '{self._clock_mode}', static links: {given}"

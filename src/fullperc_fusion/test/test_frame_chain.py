@@ -123,7 +123,7 @@ def test_averaging_reduces_noise_of_the_static_link():
 
 
 def test_reinitialize_keeps_old_links_until_new_ones_are_ready(scene):
-    ch = FrameChain(ChainConfig(init_samples=3))
+    ch = FrameChain(ChainConfig(init_samples=3, static_links="average"))
     _feed_init(ch, scene, 3)
     old = ch.links.T_omc_base.copy()
     gen = ch.links.generation

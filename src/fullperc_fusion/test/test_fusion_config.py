@@ -197,9 +197,9 @@ def test_calibration_and_link_monitor_rows_are_mapped(tmp_path):
     assert cfg.monitor == MonitorParams(enabled=False, trans_max_m=0.004, rot_max_rad=0.006, window_s=2.0,
                                         recalibrate=True)
     assert values["calibration.output"] == "out.yaml" and values["calibration.timeout"] == 3.0
-    # the defaults: average of init_samples, monitoring on without re-calibration
+    # the defaults: calibrate (bridged by the average of init_samples), monitoring on without re-calibration
     d = fc.load_fusion_config().config
-    assert d.chain.static_links == "average" and d.monitor == MonitorParams() and d.chain.calibration is None
+    assert d.chain.static_links == "calibrate" and d.monitor == MonitorParams() and d.chain.calibration is None
 
 
 def _calibration_file(tmp_path):

@@ -277,7 +277,7 @@ def test_sources_silent_for_minutes():
 
 
 def test_reinitialize_request_re_estimates_the_base_link():
-    pipe = TargetPipeline(TargetConfig(chain=ChainConfig(init_samples=10)))
+    pipe = TargetPipeline(TargetConfig(chain=ChainConfig(init_samples=10, static_links="average")))
     run(pipe, stream(duration=1.0))
     g0 = pipe.chain.links.generation
     pipe.request_initialize()

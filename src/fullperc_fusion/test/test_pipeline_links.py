@@ -108,16 +108,21 @@ def test_monitor_is_off_for_a_tracked_chain_and_when_disabled():
     assert not any(o.link_bumped for o in outs) and pipe.monitor.n_checks == 0
 
 
-def test_calibrate_mode_fuses_only_after_the_duration_and_reports_refusals():
+def test_calibrate_mode_fuses_from_the_average_on_and_reports_refusals():
     pipe = _pipe(static_links="calibrate", calibration_duration_s=2.0)
-    outs = run(pipe, stream(5.0, move_base_at=1.0))     # the base marker moves during the first collection
+    sources = []
+    ev = stream(5.0, move_base_at=1.0)                   # the base marker moves during the first collection
+    outs = run(pipe, [e for e in ev if e[2] < T0 + round(1.5 * S)])
+    sources.append(pipe.stats()["links_source"])
+    outs += run(pipe, [e for e in ev if e[2] >= T0 + round(1.5 * S)])
     assert pipe.counts["calibration_refused"] >= 1
     assert "OMC body 'base' moved" in pipe.problems["calibration_refused"]
-    first = min((o.t_ns - T0) / S for o in outs)
-    assert first >= 2.0 - 0.05                           # nothing before a link (items wait reorder_delay 0.05 s)
-    first_global = min((o.t_ns - T0) / S for o in outs if o.sources & 1)
-    assert first_global > 3.0                            # the global link came from the second collection
-    assert pipe.chain.links.local_ready                  # the OTS's view did not move: taken from the first one
+    first = min((o.t_ns - T0) / S for o in outs if o.sources & 1)
+    assert first < 30 / 120 + 0.1                        # output from the average of the first 30 sightings on
+    assert "T_omc_base: average of 30 samples, until the robust mean" in sources[0]
+    L = pipe.chain.links                                 # the global link came from the second collection
+    assert "robust mean over 2 s" in L.sources["T_omc_base"] and not L.collecting
+    assert "robust mean over 2 s (eq. 2)" in L.sources["T_base_ots"]   # the OTS's view did not move: the first one
     assert pipe.stats()["static_links"] == "calibrate"
 
 

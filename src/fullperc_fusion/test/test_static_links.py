@@ -1,5 +1,6 @@
-"""Static links of the frame chain: ``static_links: calibrate`` (robust calibration over a duration) against the
-default ``average``, a calibration file, :meth:`StaticLinks.apply`, refusals and re-collection.
+"""Static links of the frame chain: ``static_links: calibrate`` (the default: robust calibration over a duration,
+bridged by the average of the first ``init_samples`` sightings until it completes) against ``average``, a calibration
+file, :meth:`StaticLinks.apply`, refusals and re-collection.
 
 Synthetic sightings with a fixed seed and made-up stamps (no wall clock): OMC at 120 Hz with ~1 mm / 2 mrad per
 frame, Vega at 60 Hz with ~0.1-0.3 mm / 3 mrad (as in test_calibration), optionally with gross outliers.
@@ -11,7 +12,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation as Rot
 
-from fullperc_common.transforms import inv_T, make_T
+from fullperc_common.transforms import inv_T, make_T, mean_T
 from fullperc_fusion.calibration import Calibration, Collector, se3_residuals, se3_retract
 from fullperc_fusion.frame_chain import ChainConfig, FrameChain, links_needed
 
@@ -62,17 +63,23 @@ def err(T, T_true):
 
 def test_calibrate_mode_reaches_the_truth_better_than_the_30_sample_average():
     """The decision this mode is for: over 10 s the robust calibration beats the average of the first 30 sightings
-    (the default) on both links, with and without gross outliers, for every seed."""
+    (``average`` mode, and the bridge of calibrate mode until the calibration completes: the same links) on both
+    links, with and without gross outliers, for every seed."""
     ratios = []
     for seed in range(6):
         for outliers in (0.0, 0.03):
-            chains = {}
+            chains, bridge = {}, {}
             for mode in ("average", "calibrate"):
                 ch = FrameChain(ChainConfig(static_links=mode, calibration_duration_s=10.0))
-                feed(ch, events(10.2, np.random.default_rng(seed), outliers))
+                ev = events(10.2, np.random.default_rng(seed), outliers)
+                feed(ch, [e for e in ev if e[2] < T0 + 5 * S])
+                bridge[mode] = {k: getattr(ch.links, k).copy() for k in ("T_omc_base", "T_base_ots")}
+                feed(ch, [e for e in ev if e[2] >= T0 + 5 * S])
                 assert ch.links.global_ready and ch.links.local_ready and not ch.links.collecting, mode
                 chains[mode] = ch
             for link, truth in (("T_omc_base", T_OMC_BASE), ("T_base_ots", T_BASE_OTS)):
+                assert np.array_equal(bridge["calibrate"][link], bridge["average"][link])   # the bridge: the average
+                assert np.array_equal(bridge["average"][link], getattr(chains["average"].links, link))
                 a = err(getattr(chains["average"].links, link), truth)
                 c = err(getattr(chains["calibrate"].links, link), truth)
                 # T_base_ots: its translation carries the Vega's rotation noise times the 2 m lever
@@ -83,16 +90,47 @@ def test_calibrate_mode_reaches_the_truth_better_than_the_30_sample_average():
     assert np.median(ratios) < 0.35     # ~sqrt(30/600) = 0.22 without outliers, far less with them
 
 
-def test_calibrate_mode_waits_for_the_duration_of_stamps_and_keeps_the_covariance():
+def test_calibrate_is_the_default():
+    assert ChainConfig().static_links == "calibrate" and FrameChain(ChainConfig()).links.mode == "calibrate"
+
+
+def test_calibrate_mode_serves_the_average_from_init_samples_on():
+    """Output starts as early as in average mode: after init_samples sightings of each body, with the average's
+    links (exactly), named as the bridge in ``sources``; the collection goes on meanwhile."""
+    ev = events(1.5, np.random.default_rng(17))
+    ch = FrameChain(ChainConfig(static_links="calibrate", calibration_duration_s=2.0, init_samples=30))
+    base = [T for d, b, _, T in ev if (d, b) == ("omc", "base")]
+    ots = [T for d, b, _, T in ev if (d, b) == ("ots", "base")]
+    t29 = [t for d, b, t, _ in ev if (d, b) == ("omc", "base")][29]
+    feed(ch, [e for e in ev if e[2] < t29])
+    L = ch.links
+    assert not L.global_ready and ch.global_T(T_OMC_BASE) is None      # 29 sightings: nothing yet
+    feed(ch, [e for e in ev if e[2] >= t29])
+    assert L.global_ready and L.local_ready and L.collecting
+    assert ch.global_T(T_OMC_BASE) is not None and ch.local_T(T0, T_OTS_BASE)[0] is not None
+    assert np.array_equal(L.T_omc_base, mean_T(base[:30]))
+    assert np.array_equal(L.T_base_ots, mean_T([inv_T(T) for T in ots[:30]]))
+    for name in ("T_omc_base", "T_base_ots"):
+        assert L.sources[name].startswith("average of 30 samples") and "until the robust mean over 2 s" in \
+            L.sources[name] and name not in L.estimates
+    assert "meanwhile the average of the first 30 samples" in L.describe()
+
+
+def test_calibrate_mode_switches_every_link_to_the_calibrated_one_after_the_duration():
     ch = FrameChain(ChainConfig(static_links="calibrate", calibration_duration_s=2.0))
     ev = events(3.0, np.random.default_rng(1))
     feed(ch, [e for e in ev if e[2] < T0 + round(1.9 * S)])
-    assert not ch.links.global_ready and ch.links.collecting
+    avg = {k: getattr(ch.links, k).copy() for k in ("T_omc_base", "T_base_ots")}
+    gen = ch.links.generation
+    assert ch.links.global_ready and ch.links.local_ready and ch.links.collecting   # the bridge
     assert "calibrating the static links over 2 s" in ch.links.describe()
-    assert ch.global_T(T_OMC_BASE) is None
+    assert set(ch.links.estimates) == set()
     feed(ch, [e for e in ev if e[2] >= T0 + round(1.9 * S)])
     L = ch.links
     assert L.global_ready and L.local_ready and not L.collecting and L.describe() == ""
+    assert L.generation == gen + 2                        # global and local link, each once
+    for k, T in avg.items():
+        assert not np.array_equal(getattr(L, k), T) and np.array_equal(getattr(L, k), L.estimates[k].T)
     assert set(L.estimates) == {"T_omc_base", "T_base_ots"}
     assert L.estimates["T_omc_base"].n_samples == 241    # 2 s at 120 Hz, both ends included
     assert "robust mean over 2 s" in L.sources["T_omc_base"] and "eq. 2" in L.sources["T_base_ots"]
@@ -102,11 +140,15 @@ def test_calibrate_mode_waits_for_the_duration_of_stamps_and_keeps_the_covarianc
 def test_a_moving_body_is_refused_and_collected_again():
     ch = FrameChain(ChainConfig(static_links="calibrate", calibration_duration_s=2.0))
     rng = np.random.default_rng(2)
-    feed(ch, events(2.5, rng, move=("omc:base", 1.0, 5e-3)))    # the base marker is moved 5 mm after 1 s
+    ev = events(2.5, rng, move=("omc:base", 1.0, 5e-3))     # the base marker is moved 5 mm after 1 s
+    feed(ch, ev)
     L = ch.links
     assert L.refusals == 1 and "OMC body 'base' moved during the collection" in L.last_refusal
-    assert not L.global_ready and L.collecting      # no link from a moving body
-    assert L.local_ready                             # the OTS's view did not move: its link was taken
+    assert L.collecting and "T_omc_base" not in L.estimates   # no calibrated link from a moving body ...
+    avg = mean_T([T for d, b, _, T in ev if (d, b) == ("omc", "base")][:30])
+    assert L.global_ready and np.array_equal(L.T_omc_base, avg)   # ... the average (before the move) stays
+    assert L.sources["T_omc_base"].startswith("average of 30 samples")
+    assert L.local_ready and "robust mean" in L.sources["T_base_ots"]   # the OTS's view did not move: calibrated
     assert "refused" in L.describe()
     moved = T_OMC_BASE @ make_T([0, 0, 0])
     moved[:3, 3] += [5e-3, 0, 0]
@@ -155,7 +197,8 @@ def _calibration(rng, seconds=2.0) -> Calibration:
 
 def test_a_calibration_file_gives_the_links_from_the_first_sample():
     cal = _calibration(np.random.default_rng(5))
-    ch = FrameChain(ChainConfig(calibration=cal, calibration_file="cal.yaml", init_samples=30))
+    ch = FrameChain(ChainConfig(calibration=cal, calibration_file="cal.yaml", init_samples=30,
+                                static_links="average"))
     L = ch.links
     assert L.global_ready and L.local_ready and not L.collecting
     assert np.array_equal(L.T_omc_base, cal.T("T_omc_base")) and np.array_equal(L.T_base_ots, cal.T("T_base_ots"))
@@ -212,14 +255,38 @@ def test_links_needed():
 
 
 def test_the_average_mode_is_unchanged():
-    """The default: the chordal mean of the first init_samples sightings, exactly (the pinned evaluation)."""
+    """The chordal mean of the first init_samples sightings, exactly (as calibrate mode's bridge serves it)."""
     from fullperc_common.transforms import mean_T
 
     ev = events(1.0, np.random.default_rng(14))
-    ch = FrameChain(ChainConfig(init_samples=30))
+    ch = FrameChain(ChainConfig(init_samples=30, static_links="average"))
     feed(ch, ev)
     base = [T for d, b, _, T in ev if (d, b) == ("omc", "base")][:30]
     ots = [inv_T(T) for d, b, _, T in ev if (d, b) == ("ots", "base")][:30]
     assert np.array_equal(ch.links.T_omc_base, mean_T(base))
     assert np.array_equal(ch.links.T_base_ots, mean_T(ots))
     assert ch.links.mode == "average" and ch.links.estimates == {}
+
+
+def test_a_calibration_file_with_calibrate_mode_keeps_its_links_on_reinitialize_until_calibrated():
+    """No bridge on a re-estimation: the previous links stay in use until the calibration completes."""
+    cal = _calibration(np.random.default_rng(18))
+    ch = FrameChain(ChainConfig(calibration=cal, calibration_duration_s=1.0))
+    ch.reinitialize()
+    L = ch.links
+    feed(ch, events(0.9, np.random.default_rng(19)))
+    assert L.collecting and np.array_equal(L.T_omc_base, cal.T("T_omc_base"))
+    assert np.array_equal(L.T_base_ots, cal.T("T_base_ots"))
+    feed(ch, events(0.5, np.random.default_rng(20), start=0.95))
+    assert not L.collecting and "robust mean over 1 s" in L.sources["T_omc_base"]
+
+
+def test_tracked_chain_bridge_then_calibrated_T_rig_ots():
+    ch = FrameChain(ChainConfig(local_chain="tracked", calibration_duration_s=2.0))
+    ev = events(2.2, np.random.default_rng(21))
+    feed(ch, [e for e in ev if e[2] < T0 + S])
+    L = ch.links
+    assert L.local_ready and L.sources["T_rig_ots"].startswith("average of 30 samples (eq. 1)")
+    feed(ch, [e for e in ev if e[2] >= T0 + S])
+    assert not L.collecting and L.sources["T_rig_ots"] == "robust mean over 2 s (eq. 1)"
+    assert err(L.T_rig_ots, T_RIG_OTS)[0] < 1e-3
