@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import re
 
 import numpy as np
@@ -156,32 +155,6 @@ def test_the_mapping_is_the_same_for_a_getter_and_for_values():
     _same_config(fc.target_config(vals, "probe"), cfg)
     with pytest.raises(ParameterError, match="'probe.omc_body'"):
         fc.target_config(lambda n, d: "" if n == "probe.omc_body" else None, "probe")
-
-
-def _eval_loader():
-    """The evaluator's own copy of the mapping, as long as it has one (helper A moves and then drops it)."""
-    for mod in ("fullperc_eval.evaluate", "fullperc_eval.evaluation.config", "fullperc_eval.evaluation.replay",
-                "fullperc_eval.evaluation"):
-        try:
-            m = importlib.import_module(mod)
-        except ImportError:
-            continue
-        f = getattr(m, "load_fusion_config", None)
-        if f is not None and getattr(f, "__module__", "") != fc.__name__:
-            return f
-    return None
-
-
-def test_same_result_as_the_evaluators_former_loader(tmp_path):
-    old = _eval_loader()
-    if old is None:
-        pytest.skip("the evaluator has no loader of its own any more (it uses fusion_config)")
-    for path in (None, _write(tmp_path, {"noise": {"accel": 0.2}, "local_chain": "direct", "slop": 0.002,
-                                         "tool": {"omc_body": "t1"}, "T_base_ots": [1, 2, 3, 0, 0, 0, 1]})):
-        a, va = fc.load_fusion_config(path)
-        b, vb = old(path)
-        _same_config(a, b)
-        assert {k: v for k, v in vb.items() if k in va} == {k: va[k] for k in vb}   # old values, same keys
 
 
 def test_calibration_and_link_monitor_rows_are_mapped(tmp_path):
