@@ -25,6 +25,10 @@ The rule (``stale_after_s`` = S, ``frames_stale_after_s`` = F, default S; ``reco
     S s (<reason>)``. (A single item named like its kind, the arm, is just ``arm``.)
 * An item the device refused for good (e.g. a tool ROM at PINIT): WARN ``<item> '<name>': <reason>``; ERROR
   ``every <item> refused by the device`` when no item is left.
+* WARN ``link down, reconnecting (<reason>)`` from a :meth:`link_down` after the link had been up, and WARN
+  ``link lost t s ago and re-established (<reason>)`` for ``link_hold_s`` (H) after it: a cut shorter than S would
+  otherwise never leave OK (the driver reconnects in tens of ms), yet an OR user wants to see every link drop.
+  Held only while frames are not already stale (then the ERROR above says it).
 * WARN ``N reconnects in the last W s (last error: <reason>)`` when at least ``max_reconnects`` successful
   reconnects fell in the last W s, even while outputs flow.
 * WARN ``k <problem> in the last S s (<detail>)`` for problems the node reports (decode errors, overflow),
@@ -53,6 +57,7 @@ class HealthConfig:
     reconnect_window_s: float = 10.0  # reconnects are counted over this window
     max_reconnects: int = 3  # this many reconnects within the window -> WARN even while outputs flow
     rate_window_s: float = 1.0  # the reported rate counts new frames over this window
+    link_hold_s: float = 1.0  # a link drop stays visible (WARN) this long after the link is back
 
     def validate(self) -> None:
         if not self.stale_after_s > 0:
@@ -61,6 +66,8 @@ class HealthConfig:
             raise ValueError("frames_stale_after_s must be > 0")
         if not (self.reconnect_window_s > 0 and self.max_reconnects >= 1 and self.rate_window_s > 0):
             raise ValueError("reconnect_window_s and rate_window_s must be > 0, max_reconnects >= 1")
+        if not self.link_hold_s >= 0:
+            raise ValueError("link_hold_s must be >= 0")
 
     @property
     def frames_after_s(self) -> float:
@@ -114,6 +121,8 @@ class Health:
         self.link_reason = ""
         self._ever_up = False
         self._down_since_up = False
+        self._lost_at: float | None = None  # last link_down after the link had been up
+        self._lost_reason = ""
         self.frames = 0  # new frames
         self.repeats = 0  # frames that repeated the previous frame number
         self._repeats_since_new = 0
@@ -145,6 +154,8 @@ class Health:
         self.link_reason = ""
 
     def link_down(self, reason: str) -> None:
+        if self._ever_up and self.connected:
+            self._lost_at, self._lost_reason = self.clock(), reason
         self.connected = False
         self.link_reason = reason
         self.last_error = reason
@@ -271,6 +282,11 @@ class Health:
             reasons.append((ERROR, f"no new {fw}s for {frames_age:.1f} s ({self._why_no_frames(now)})"))
         else:
             reasons += self._item_reasons(now, S)
+            if self._lost_at is not None and not self.connected:
+                reasons.append((WARN, f"link down, reconnecting ({self._lost_reason or 'no reason given'})"))
+            elif self._lost_at is not None and now - self._lost_at <= self.cfg.link_hold_s:
+                reasons.append((WARN, f"link lost {now - self._lost_at:.1f} s ago and re-established "
+                                      f"({self._lost_reason or 'no reason given'})"))
         for name, it in self.items.items():
             if it.failed:
                 reasons.append((WARN, f"{self._label(name)}: {it.failed}"))

@@ -204,3 +204,30 @@ def test_stream_stopped_is_an_error_and_counts_one_stall(clk):
 def test_config_is_validated():
     with pytest.raises(ValueError):
         Health(config=HealthConfig(stale_after_s=0))
+
+
+def test_a_short_link_cut_is_visible_and_clears_after_the_hold(clk):
+    """A cut the driver repairs in 30 ms would never reach the stale rule: it is held as WARN for link_hold_s."""
+    h = Health(["tool"], HealthConfig(stale_after_s=2.0, link_hold_s=1.0), clock=clk)
+    h.link_up()
+    nxt = counter()
+    clk.run(h, 1.0, frame=nxt, tools=("tool",))
+    assert h.verdict().level == OK
+    h.link_down("connection reset by peer")
+    v = h.verdict()
+    assert v.level == WARN and "link down, reconnecting (connection reset by peer)" in v.message
+    clk.t += 0.03
+    h.link_up()
+    clk.run(h, 0.5, frame=nxt, tools=("tool",))
+    v = h.verdict()
+    assert v.level == WARN and "link lost 0.5 s ago and re-established (connection reset by peer)" in v.message
+    clk.run(h, 0.6, frame=nxt, tools=("tool",))
+    assert h.verdict().level == OK
+
+
+def test_the_first_connection_is_not_a_lost_link(clk):
+    h = Health(["tool"], HealthConfig(link_hold_s=1.0), clock=clk)
+    h.link_down("connecting")
+    h.link_up()
+    clk.run(h, 0.5, frame=counter(), tools=("tool",))
+    assert h.verdict().level == OK
