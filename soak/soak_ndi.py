@@ -55,6 +55,8 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from benchlib import emit  # noqa: E402
 
+from fullperc_common.testing import SpunNode  # noqa: E402
+
 STATUS = "ndi_driver: link"
 STALE_AFTER_S = 2.0  # ndi_driver's health.stale_after_s default (config/ndi_vega.yaml)
 
@@ -140,21 +142,18 @@ class LinkCutter:
         self._thread.join(2)
 
 
-class Watcher:
+class Watcher(SpunNode):
     """This process's view of the driver: every pose (arrival, stamp, finite?) and every link status."""
 
     def __init__(self, context) -> None:
-        import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PoseStamped
-        from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import QoSProfile, ReliabilityPolicy
 
         from fullperc_common.diagnostics import as_level
 
         self._as_level = as_level
-        self.node = rclpy.create_node("soak_ndi_watcher", context=context)
-        self.lock = threading.Lock()
+        super().__init__(context, "soak_ndi_watcher")
         self.poses: dict[str, list[tuple[int, int]]] = {"tool": [], "base": []}  # (arrival ns, stamp ns)
         self.nan = 0
         self.diag: list[tuple[int, int, str]] = []  # (arrival ns, level, message)
@@ -162,11 +161,7 @@ class Watcher:
         for tool in self.poses:
             self.node.create_subscription(PoseStamped, f"/ots/{tool}/pose", lambda m, t=tool: self._pose(t, m), qos)
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._diag, 100)
-        self.ex = SingleThreadedExecutor(context=context)
-        self.ex.add_node(self.node)
-        self._stop = threading.Event()
-        self.thread = threading.Thread(target=self._spin, daemon=True, name="watcher")
-        self.thread.start()
+        self.start()
 
     def _pose(self, tool: str, m) -> None:
         now = time.time_ns()
@@ -183,16 +178,6 @@ class Watcher:
             if st.name == STATUS:
                 with self.lock:
                     self.diag.append((now, self._as_level(st.level), st.message))
-
-    def _spin(self) -> None:
-        while not self._stop.is_set():
-            self.ex.spin_once(timeout_sec=0.05)
-
-    def close(self) -> None:
-        self._stop.set()
-        self.thread.join(2)
-        self.ex.shutdown()
-        self.node.destroy_node()
 
     def n_poses(self) -> int:
         with self.lock:

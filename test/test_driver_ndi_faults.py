@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from fullperc_common.diagnostics import as_level
-from fullperc_common.testing import installed_exe, wait_for
+from fullperc_common.testing import SpunNode, installed_exe, wait_for
 from fullperc_drivers.ndi import replies as R
 from fullperc_drivers.ndi.protocol import FrameReader, decode_command, encode_ascii_reply, encode_binary_reply
 
@@ -135,29 +135,22 @@ class FaultProxy:
         return encode_binary_reply(rep.data)
 
 
-class Listener:
+class Listener(SpunNode):
     """This process's view of the driver: poses per tool and the latest ``ndi_driver: link`` status."""
 
     def __init__(self, context, tools=("tool", "base")) -> None:
-        import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PoseStamped
-        from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-        self.node = rclpy.create_node("ndi_fault_listener", context=context)
-        self.lock = threading.Lock()
+        super().__init__(context, "ndi_fault_listener")
         self.poses = {t: 0 for t in tools}
         self.history: list[tuple[int, str, dict]] = []
         qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
         for t in tools:
             self.node.create_subscription(PoseStamped, f"/ots/{t}/pose", lambda m, t=t: self._pose(t), qos)
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._diag, 50)
-        self.ex = SingleThreadedExecutor(context=context)
-        self.ex.add_node(self.node)
-        self._stop = threading.Event()
-        self.thread = threading.Thread(target=self._spin, daemon=True)
-        self.thread.start()
+        self.start()
 
     def _pose(self, t: str) -> None:
         with self.lock:
@@ -169,16 +162,6 @@ class Listener:
                 lvl = as_level(st.level)
                 with self.lock:
                     self.history.append((lvl, st.message, {kv.key: kv.value for kv in st.values}))
-
-    def _spin(self) -> None:
-        while not self._stop.is_set():
-            self.ex.spin_once(timeout_sec=0.05)
-
-    def close(self) -> None:
-        self._stop.set()
-        self.thread.join(2)
-        self.ex.shutdown()
-        self.node.destroy_node()
 
     def n_poses(self, tool: str) -> int:
         with self.lock:

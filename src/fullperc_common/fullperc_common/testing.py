@@ -108,7 +108,47 @@ def poll_until(pred, timeout: float, interval: float = 0.05):
         time.sleep(interval)
 
 
-class TopicCounter:
+class SpunNode:
+    """A node of this process spun by its own executor in a background thread: the listeners of tests and soaks.
+
+    A subclass calls ``super().__init__(context, name)``, creates its subscriptions on ``self.node`` (guarding shared
+    state with ``self.lock``), then calls :meth:`start`; :meth:`close` stops the thread and destroys the node.
+    """
+
+    def __init__(self, context, name: str) -> None:
+        import threading
+
+        from rclpy.node import Node
+
+        self.node = Node(name, context=context)
+        self.lock = threading.Lock()
+        self._context = context
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        import threading
+
+        from rclpy.executors import SingleThreadedExecutor
+
+        self.ex = SingleThreadedExecutor(context=self._context)
+        self.ex.add_node(self.node)
+        self._thread = threading.Thread(target=self._spin, daemon=True, name=self.node.get_name())
+        self._thread.start()
+
+    def _spin(self) -> None:
+        while not self._stop.is_set():
+            self.ex.spin_once(timeout_sec=0.05)
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(5)
+            self.ex.shutdown()
+        self.node.destroy_node()
+
+
+class TopicCounter(SpunNode):
     """Counts messages on topics in this process (own node, spun in a background thread).
 
     Subscribes best effort, which matches reliable and best-effort publishers alike: for tests that only
@@ -116,33 +156,20 @@ class TopicCounter:
     """
 
     def __init__(self, context, topics: dict[str, type], node_name: str = "fullperc_topic_counter") -> None:
-        import threading
-
-        from rclpy.executors import SingleThreadedExecutor
-        from rclpy.node import Node
         from rclpy.qos import qos_profile_sensor_data
 
-        self.node = Node(node_name, context=context)
+        super().__init__(context, node_name)
         self.counts = dict.fromkeys(topics, 0)
-        self._lock = threading.Lock()
         for topic, msg_type in topics.items():
             self.node.create_subscription(msg_type, topic, lambda _m, t=topic: self._count(t), qos_profile_sensor_data)
-        self.ex = SingleThreadedExecutor(context=context)
-        self.ex.add_node(self.node)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._spin, daemon=True, name="topic_counter")
-        self._thread.start()
+        self.start()
 
     def _count(self, topic: str) -> None:
-        with self._lock:
+        with self.lock:
             self.counts[topic] += 1
 
-    def _spin(self) -> None:
-        while not self._stop.is_set():
-            self.ex.spin_once(timeout_sec=0.05)
-
     def count(self, topic: str) -> int:
-        with self._lock:
+        with self.lock:
             return self.counts[topic]
 
     def call(self, srv_type, name: str, request, timeout: float = 20.0):
@@ -155,9 +182,3 @@ class TopicCounter:
             return fut.result() if poll_until(fut.done, timeout) else None
         finally:
             self.node.destroy_client(cli)
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(5)
-        self.ex.shutdown()
-        self.node.destroy_node()

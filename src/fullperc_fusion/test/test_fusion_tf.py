@@ -4,13 +4,12 @@ fusion_node in another; this test subscribes to /tf and /tf_static (a late, tran
 from __future__ import annotations
 
 import importlib.util
-import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from fullperc_common.testing import installed_exe, wait_for
+from fullperc_common.testing import SpunNode, installed_exe, wait_for
 
 HERE = Path(__file__).resolve().parent
 PUB = HERE / "synthetic_driver_pub.py"
@@ -29,40 +28,25 @@ def _ns(stamp) -> int:
     return stamp.sec * 1_000_000_000 + stamp.nanosec
 
 
-class TfListener:
+class TfListener(SpunNode):
     def __init__(self, ctx):
-        import rclpy
         from geometry_msgs.msg import PoseStamped
-        from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import QoSProfile, ReliabilityPolicy
 
         from fullperc_common.tf import dynamic_qos, static_qos
         from tf2_msgs.msg import TFMessage
 
         self.TFMessage, self.static_qos = TFMessage, static_qos
-        self.node = rclpy.create_node("fusion_tf_listener", context=ctx)
+        super().__init__(ctx, "fusion_tf_listener")
         self.tf, self.static, self.late_static, self.poses = [], [], [], []
         self.node.create_subscription(TFMessage, "/tf", self.tf.append, dynamic_qos())
         self.node.create_subscription(TFMessage, "/tf_static", self.static.append, static_qos())
         self.node.create_subscription(PoseStamped, "/fullperc/tool/pose", self.poses.append,
                                       QoSProfile(depth=2000, reliability=ReliabilityPolicy.RELIABLE))
-        self.ex = SingleThreadedExecutor(context=ctx)
-        self.ex.add_node(self.node)
-        self._stop = threading.Event()
-        self.th = threading.Thread(target=self._spin, daemon=True)
-        self.th.start()
-
-    def _spin(self):
-        while not self._stop.is_set():
-            self.ex.spin_once(timeout_sec=0.05)
+        self.start()
 
     def subscribe_late(self):
         self.node.create_subscription(self.TFMessage, "/tf_static", self.late_static.append, self.static_qos())
-
-    def close(self):
-        self._stop.set()
-        self.th.join(5)
-        self.node.destroy_node()
 
 
 def _static_map(msg) -> dict:
