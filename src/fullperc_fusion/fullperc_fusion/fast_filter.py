@@ -44,7 +44,7 @@ import math
 
 import numpy as np
 
-from .filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement, Step, StepCompat
+from .filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement, Step, StepCompat, split_update
 from .filters import FILTER_KINDS, FilterParams, FusionFilter
 
 __all__ = ["AxisStep", "ClosedFormFilter", "separable_cov"]
@@ -233,16 +233,7 @@ class ClosedFormFilter(StepCompat):
 
     # ---- update (eq. 11-14) ---------------------------------------------------------------------
     def update(self, *measurements: Measurement) -> Step:
-        mg = ml = None
-        for m in measurements:
-            if m.source == SOURCE_GLOBAL and mg is None:
-                mg = m
-            elif m.source == SOURCE_LOCAL and ml is None:
-                ml = m
-            else:
-                raise ValueError(f"filter {self.kind} takes at most one global and one local measurement per update")
-        if mg is None and ml is None:
-            raise ValueError("update needs a global or a local measurement")
+        mg, ml = split_update(self.kind, measurements)
         if self._general or not all(separable_cov(m.cov) for m in measurements):
             if not self._general:
                 self._to_general()

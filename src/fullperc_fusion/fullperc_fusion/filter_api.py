@@ -128,6 +128,21 @@ def measurements_from_samples(z_global=None, t_global=None, z_local=None, t_loca
     return ms
 
 
+def split_update(kind: str, measurements) -> tuple[Measurement | None, Measurement | None]:
+    """``(global, local)`` of one update's measurements: at most one of each source, at least one in all."""
+    mg = ml = None
+    for m in measurements:
+        if m.source == SOURCE_GLOBAL and mg is None:
+            mg = m
+        elif m.source == SOURCE_LOCAL and ml is None:
+            ml = m
+        else:
+            raise ValueError(f"filter {kind} takes at most one global and one local measurement per update")
+    if mg is None and ml is None:
+        raise ValueError("update needs a global or a local measurement")
+    return mg, ml
+
+
 @runtime_checkable
 class Filter(Protocol):
     """What the pipeline needs of a filter. Register an implementation in :mod:`filter_registry`.

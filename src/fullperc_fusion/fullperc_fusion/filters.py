@@ -75,7 +75,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement, Step, StepCompat
+from .filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement, Step, StepCompat, split_update
 
 __all__ = ["FILTER_KINDS", "SOURCE_GLOBAL", "SOURCE_LOCAL", "FilterParams", "FusionFilter", "PassThrough", "Step",
            "biased_factors", "kalman_update", "measurement_matrix", "process_noise", "transition"]
@@ -274,16 +274,7 @@ class FusionFilter(StepCompat):
     def update(self, *measurements: Measurement) -> Step:
         """Eq. (11)-(14) for one measurement or a (global, local) pair, at the filter's time (predicted to the
         newest stamp first if that is ahead); an older measurement gets its lag in H (module docstring)."""
-        mg = ml = None
-        for m in measurements:
-            if m.source == SOURCE_GLOBAL and mg is None:
-                mg = m
-            elif m.source == SOURCE_LOCAL and ml is None:
-                ml = m
-            else:
-                raise ValueError(f"filter {self.kind} takes at most one global and one local measurement per update")
-        if mg is None and ml is None:
-            raise ValueError("update needs a global or a local measurement")
+        mg, ml = split_update(self.kind, measurements)
         t_new = max(m.t_ns for m in measurements)
         if self.time_ns is None or t_new > self.time_ns:
             self.predict(t_new)
