@@ -31,3 +31,20 @@ def test_runs_inclusive_ends():
     assert runs([1, 1, 2, 3, 3, 3]) == [(1, 0, 1), (2, 2, 2), (3, 3, 5)]
     assert runs(np.array([7])) == [(7, 0, 0)]
     assert runs([]) == []
+
+
+def test_load_yaml_file_names_the_file_as_the_callers_error(tmp_path):
+    from fullperc_common.yaml_file import load_yaml_file
+
+    class MyError(ValueError):
+        pass
+
+    good = tmp_path / "a.yaml"
+    good.write_text("a: [1, 2]\n")
+    assert load_yaml_file(good, "thing file", MyError) == {"a": [1, 2]}
+    bad = tmp_path / "b.yaml"
+    bad.write_text("a: [1, 2\n")
+    with pytest.raises(MyError, match=f"thing file {bad}: not valid YAML"):
+        load_yaml_file(bad, "thing file", MyError)
+    with pytest.raises(MyError, match="thing file .*missing.yaml: cannot read"):
+        load_yaml_file(tmp_path / "missing.yaml", "thing file", MyError)

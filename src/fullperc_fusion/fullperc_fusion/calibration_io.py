@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from fullperc_common.yaml_file import load_yaml_file
 from fullperc_fusion.calibration import CALIBRATION_VERSION, LINK_NAMES, Calibration, CalibrationError, LinkEstimate
 
 CONVENTIONS = ("T_a_b maps points from frame b into frame a; position in m; quaternion x y z w; covariance of the "
@@ -85,16 +86,7 @@ def save_calibration(path: str | os.PathLike, cal: Calibration) -> None:
 
 def load_calibration(path: str | os.PathLike) -> Calibration:
     """Read and check a calibration YAML; :class:`CalibrationError` names the file and the bad field."""
-    p = Path(path)
-    try:
-        text = p.read_text()
-    except OSError as e:
-        raise CalibrationError(f"calibration file {p}: cannot read: {e}") from e
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        raise CalibrationError(f"calibration file {p}: not valid YAML: {e}") from e
-    return parse_calibration(data, str(p))
+    return parse_calibration(load_yaml_file(path, "calibration file", CalibrationError), str(Path(path)))
 
 
 class _Ctx:

@@ -49,11 +49,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 from scipy.spatial.transform import Rotation
 
 from fullperc_common.share import share_path
 from fullperc_common.transforms import apply_T, inv_T, make_T
+from fullperc_common.yaml_file import load_yaml_file
 
 #: NDI Polaris Vega pyramid volume as used by third-party code (reference/ndi.md §3.5, marked UNCERTAIN there):
 #: (depth from the sensor [m], half width along x [m], half height along y [m]) at the near, middle and far planes.
@@ -560,16 +560,7 @@ def parse_layout(data: Any, source: str = "<memory>") -> Layout:
 
 def load_layout(path: str | os.PathLike) -> Layout:
     """Read and check a layout YAML file; raises :class:`LayoutError` naming the file and the bad field."""
-    p = Path(path)
-    try:
-        text = p.read_text()
-    except OSError as e:
-        raise LayoutError(f"layout file {p}: cannot read: {e}") from e
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        raise LayoutError(f"layout file {p}: not valid YAML: {e}") from e
-    return parse_layout(data, str(p))
+    return parse_layout(load_yaml_file(path, "layout file", LayoutError), str(Path(path)))
 
 
 def default_layout_path() -> Path:
