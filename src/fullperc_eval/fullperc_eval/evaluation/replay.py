@@ -22,6 +22,7 @@ from fullperc_eval.bag.reader import BagReader
 from fullperc_fusion.pipeline import TargetConfig, TargetPipeline
 
 from .config import METHODS, EvaluationError
+from .sources import SourceTap
 
 POSE_TYPE = "geometry_msgs/msg/PoseStamped"
 JOINT_TYPE = "sensor_msgs/msg/JointState"
@@ -38,6 +39,10 @@ class Outputs:
     sources: list[int] = field(default_factory=list)
     hop: list[bool] = field(default_factory=list)
     bias: list[np.ndarray] = field(default_factory=list)
+    # orientation and covariance hook (orientation error and NEES, evaluation/orientation.py, consistency.py)
+    q: list[np.ndarray] = field(default_factory=list)
+    cov: list[np.ndarray] = field(default_factory=list)
+    orientation_source: list[int] = field(default_factory=list)
 
     def arrays(self) -> dict[str, np.ndarray]:
         n = len(self.t_ns)
@@ -45,7 +50,10 @@ class Outputs:
                 "p": np.asarray(self.p, dtype=float).reshape(n, 3),
                 "sources": np.asarray(self.sources, dtype=np.int64),
                 "hop": np.asarray(self.hop, dtype=bool),
-                "bias": np.asarray(self.bias, dtype=float).reshape(n, 3)}
+                "bias": np.asarray(self.bias, dtype=float).reshape(n, 3),
+                "q": np.asarray(self.q, dtype=float).reshape(n, 4),
+                "cov": np.asarray(self.cov, dtype=float).reshape(n, 6, 6),
+                "orientation_source": np.asarray(self.orientation_source, dtype=np.int64)}
 
 
 @dataclass
@@ -64,6 +72,7 @@ class Replay:
     warnings: list[str]
     messages: int
     seconds: float
+    single_sources: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)  # SourceTap.arrays() (sources.py)
 
 
 def _stamp_ns(header) -> int:
@@ -106,6 +115,8 @@ def replay(bag: str | Path, config: TargetConfig, idle_flush_s: float = 0.5, pro
     total = sum(reader.topics[t].count for t in present)
 
     pipe = TargetPipeline(config)
+    tap = SourceTap()   # hook: records the measurements the filters get (raw local chain for the evaluation)
+    pipe.filters[SourceTap.NAME] = tap
     outs = {f: Outputs() for f in config.filters}
     joint_t: list[int] = []
     joint_q: list[np.ndarray] = []
@@ -126,6 +137,9 @@ def replay(bag: str | Path, config: TargetConfig, idle_flush_s: float = 0.5, pro
             r.sources.append(o.sources)
             r.hop.append(o.hop)
             r.bias.append(o.bias)
+            r.q.append(o.q)
+            r.cov.append(o.cov)
+            r.orientation_source.append(o.orientation_source)
 
     try:
         reader.open()
@@ -195,7 +209,8 @@ def replay(bag: str | Path, config: TargetConfig, idle_flush_s: float = 0.5, pro
     return Replay(bag=reader.path, task=_task_name(reader), start_ns=reader.start_time,
                   outputs={f: o.arrays() for f, o in outs.items()}, joint_t_ns=np.asarray(joint_t, np.int64),
                   joint_q=np.asarray(joint_q, float), omc_base_poses=base_poses, counts=counts,
-                  pipeline_stats=stats, warnings=warnings, messages=n, seconds=time.perf_counter() - t_start)
+                  pipeline_stats=stats, warnings=warnings, messages=n, seconds=time.perf_counter() - t_start,
+                  single_sources=tap.arrays())
 
 
 def live_replay(bag: str | Path, target: str = "tool", primary: str = "cbkf", base_body: str = "base") -> Replay:
@@ -241,6 +256,9 @@ def live_replay(bag: str | Path, target: str = "tool", primary: str = "cbkf", ba
                 o.sources.append(0)
                 o.hop.append(False)
                 o.bias.append(np.zeros(3))
+                o.q.append(np.array([qq.x, qq.y, qq.z, qq.w]))
+                o.cov.append(np.full((6, 6), np.nan))   # a PoseStamped carries no covariance
+                o.orientation_source.append(0)
             else:
                 base_poses.append((p, np.array([qq.x, qq.y, qq.z, qq.w])))
     except BagError as e:
