@@ -15,9 +15,12 @@ from typing import Any
 from fullperc_fusion.fusion_config import FusionConfigError, load_fusion_config
 from fullperc_fusion.pipeline import FILTER_NAMES, TargetConfig
 
-# Every method, in the paper's column order (omc, kf, bkf, ckf, cbkf): the pipeline's filter names, which list
-# the default filter first and the raw OMC pass-through last, reversed.
-METHODS: tuple[str, ...] = tuple(reversed(FILTER_NAMES))
+# Every method: the paper's five in the paper's column order (Table 1: OMC, KF, BKF, CKF, CBKF) first, then every
+# further registered filter (e.g. fullperc) in registry order -- so the paper's tables, JSON lines and figures keep
+# their columns wherever a new filter is registered, and a new filter shows up everywhere without another list.
+PAPER_METHODS: tuple[str, ...] = ("omc", "kf", "bkf", "ckf", "cbkf")
+METHODS: tuple[str, ...] = (tuple(m for m in PAPER_METHODS if m in FILTER_NAMES)
+                            + tuple(m for m in FILTER_NAMES if m not in PAPER_METHODS))
 
 
 class EvaluationError(Exception):
