@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from fullperc_eval.bag.errors import BagError
-from fullperc_eval.bag.reader import BagReader
+from fullperc_eval.bag.reader import BagReader, decoded_messages
 from fullperc_fusion.pipeline import TargetConfig, TargetPipeline
 
 from .config import METHODS, EvaluationError
@@ -142,36 +142,29 @@ def replay(bag: str | Path, config: TargetConfig, idle_flush_s: float = 0.5, pro
             r.orientation_source.append(o.orientation_source)
 
     try:
-        reader.open()
-        for m in reader.messages(present):
+        # bulk-decoded (bag.fast_decode), in bag order; rosbags is opened only if a record needs it
+        for m in decoded_messages(reader, present):
             n += 1
             counts[m.topic] += 1
-            try:
-                msg = reader.deserialize(m.data, m.msgtype)
-            except Exception as e:  # noqa: BLE001 - rosbags raises many types for bad CDR
-                raise EvaluationError(f"bag {str(reader.path)!r}: message {counts[m.topic]} of {m.topic} cannot be "
-                                      f"decoded as {m.msgtype} ({type(e).__name__}: {e})") from None
             if m.topic == JOINT_TOPIC:
-                names = list(msg.name)
+                names = m.names or []
                 if joint_names is None:
                     joint_names = names
-                q = np.asarray(msg.position, dtype=float)
+                q = m.position
                 if names and names != joint_names:
                     raise EvaluationError(f"{JOINT_TOPIC}: joint names changed from {joint_names} to {names}")
                 if q.shape != (7,):
                     raise EvaluationError(f"{JOINT_TOPIC}: expected 7 joint positions, got {q.shape[0]}")
-                joint_t.append(_stamp_ns(msg.header))
+                joint_t.append(m.t_ns)
                 joint_q.append(q)
                 continue
-            t_ns = _stamp_ns(msg.header)
-            pp = msg.pose.position
-            qq = msg.pose.orientation
-            pose = (np.array([pp.x, pp.y, pp.z]), np.array([qq.x, qq.y, qq.z, qq.w]))
+            t_ns = m.t_ns
+            pose = (m.p, m.q)
             dev = "omc" if m.topic in omc_topics else "ots"
             if frames[dev] is None:
-                frames[dev] = msg.header.frame_id
-                if msg.header.frame_id != dev:
-                    warnings.append(f"{m.topic}: frame_id '{msg.header.frame_id}', expected '{dev}'")
+                frames[dev] = m.frame_id
+                if m.frame_id != dev:
+                    warnings.append(f"{m.topic}: frame_id '{m.frame_id}', expected '{dev}'")
             is_target = m.topic == target_omc or m.topic == f"/ots/{c.ots_target}/pose"
             if is_target:
                 # fusion_node's idle flush: no target sample for idle_flush seconds -> process everything pending
