@@ -3,6 +3,7 @@
     sim --task P-B-G-P --seed 0 --speed 1.0            # plays one task in real time, then exits
     sim --task G-B-P --speed 4 --vega-port 0 --loop    # 4x faster, any free Vega port, repeat forever
     sim --task P-G-B --save-npz /tmp/run.npz --no-serve   # offline arrays with ground truth only
+    sim --task P-B-G-P --vega-bump 12:0.005:0.3        # the Vega stand bumped 12 s into the task
 
 Defaults: OMC UDP frames to 127.0.0.1:3883, Diana UDP joint states to 127.0.0.1:3884, NDI Vega emulator on
 TCP 127.0.0.1:8765 (``--vega-port 0``: a free port, printed in the ``start`` record and written to
@@ -28,7 +29,7 @@ from fullperc_fusion.layout import load_layout
 from .dataset import sim_calibration
 from .live import LiveServer
 from .run import simulate
-from .scene import DEFAULT_PROFILE, PROFILES, build_scene
+from .scene import DEFAULT_PROFILE, PROFILES, VegaBump, build_scene
 from .tasks import TASKS, TaskPlanningError, plan_task
 
 
@@ -88,6 +89,10 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--vega-outage", default="", metavar="A:B",
                     help="switch the Vega emulator off from task second A to B (as if killed), then start a fresh "
                          "one on the same port, as a power-cycled device would come back")
+    ap.add_argument("--vega-bump", default="", metavar="AT:DX[:TILT]",
+                    help="bump the Vega stand at task second AT: the Vega head and its OMC rig body ots_rig move by DX "
+                         "metres along omc x and tilt by TILT degrees about omc y (what fusion_node's link monitor "
+                         "must report)")
     ap.add_argument("--calibration-out", help="write the run's calibration.yaml (true T_base_diana_base, "
                     "T_flange_tool) here, for evaluating a recording of this run")
     return ap
@@ -117,6 +122,11 @@ def main(argv: list[str] | None = None) -> int:
     if not args.speed > 0:
         print(f"sim: --speed must be > 0, got {args.speed}", file=sys.stderr)
         return 2
+    try:
+        bump = VegaBump.parse(args.vega_bump) if args.vega_bump else None
+    except ValueError as e:
+        print(f"sim: --vega-bump: {e}", file=sys.stderr)
+        return 2
     t0 = time.perf_counter()
     layout = load_layout(args.layout) if args.layout else None
     scene = build_scene(args.seed, config=args.scene, layout=layout, profile=args.profile)
@@ -125,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     except TaskPlanningError as e:
         print(f"sim: {e}", file=sys.stderr, flush=True)
         return 3
-    scene = scene.with_diana_base(plan.T_omc_diana_base)
+    scene = scene.with_diana_base(plan.T_omc_diana_base).with_vega_bump(bump)
     run = simulate(scene, plan.arc, task=args.task)
     run.info["profile"] = scene.config.get("_profile", "base")
     print(json.dumps({"event": "plan", "task": args.task, "seed": args.seed, "profile": args.profile,

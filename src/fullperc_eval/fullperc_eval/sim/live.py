@@ -19,7 +19,8 @@ Streams (wire formats: :mod:`fullperc_drivers.streams`):
     the model did not see the tool.
 
 Stdout gets JSON lines: a ``start`` record (t0 of the task on the host clock, speed, ports), region changes
-of the true target path, and an ``end`` record — enough to align ground truth with recorded data.
+of the true target path, a ``vega_bump`` record when the run has one (its time, size, host time), and an ``end``
+record — enough to align ground truth with recorded data.
 """
 
 from __future__ import annotations
@@ -140,13 +141,16 @@ class LiveServer:
                                        q=d.q[i], dq=d.dq[i] * self.speed))
 
     def _events(self) -> list[tuple[int, int, int]]:
-        """(send time [sim ns], kind, index) sorted; kind 0 = OMC, 1 = Diana, 2 = region change."""
+        """(send time [sim ns], kind, index) sorted; kind 0 = OMC, 1 = Diana, 2 = region change, 3 = Vega bump."""
         o, d = self.run.omc, self.run.diana
         lat = int(round(o.latency_s * 1e9))
         ev = [(int(t) + lat, 0, i) for i, t in enumerate(o.t_ns)]
         ev += [(int(t), 1, i) for i, t in enumerate(d.t_ns)]
         reg = self.run.truth.region
         ev += [(int(self.run.truth.t_ns[i]), 2, i) for i in range(len(reg)) if i == 0 or reg[i] != reg[i - 1]]
+        bump = self.run.info.get("vega_bump")
+        if bump:
+            ev.append((int(round(bump["at_s"] * 1e9)), 3, 0))
         ev.sort()
         return ev
 
@@ -195,6 +199,9 @@ class LiveServer:
                 elif kind == 1:
                     self._sock.sendto(self.diana_datagram(i), self.diana_addr)
                     self.sent["diana"] += 1
+                elif kind == 3:
+                    b = self.run.info["vega_bump"]
+                    self.log({"event": "vega_bump", **b, "t_host_ns": self.host_ns(t_send)})
                 else:
                     r = int(self.run.truth.region[i])
                     self.log({"event": "region", "t_s": round(self.run.truth.t_ns[i] / 1e9, 3),

@@ -176,24 +176,29 @@ def _occluders(scene: Scene, origins: np.ndarray, t_ns: np.ndarray, staff: bool)
     return Occluders(a, b, r, scene.boxes)
 
 
-def _body_pose(scene: Scene, name: str, T_tool: np.ndarray) -> np.ndarray:
+def _body_pose(scene: Scene, name: str, T_tool: np.ndarray, t_ns: np.ndarray | None = None) -> np.ndarray:
     F = len(T_tool)
     if name == "tool":
         return T_tool
     if name == "base":
         return np.broadcast_to(scene.T_omc_base, (F, 4, 4))
     if name == "ots_rig":
-        return np.broadcast_to(scene.T_omc_ots_rig, (F, 4, 4))
+        T = np.broadcast_to(scene.T_omc_ots_rig, (F, 4, 4))
+        if scene.vega_bump is not None and t_ns is not None:   # the rig sits on the Vega head: it moves with it
+            after, T_ots = scene.bumped_at(t_ns)
+            T = np.where(after[:, None, None], T_ots @ inv_T(scene.T_ots_rig_ots), T)
+        return T
     raise KeyError(name)
 
 
-def _markers(scene: Scene, names, T_tool: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[slice]]:
+def _markers(scene: Scene, names, T_tool: np.ndarray,
+             t_ns: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, list[slice]]:
     """All markers of ``names`` in omc (F, M, 3), their plate normals (F, M, 3; zero = none), slices per body."""
     Xs, Ns, sl = [], [], []
     k = 0
     for n in names:
         body = scene.bodies[n]
-        T = _body_pose(scene, n, T_tool)
+        T = _body_pose(scene, n, T_tool, t_ns)
         X = np.einsum("fij,mj->fmi", T[:, :3, :3], body.markers) + T[:, None, :3, 3]
         nrm = np.zeros_like(X) if body.normal is None else np.broadcast_to(
             (T[:, :3, :3] @ body.normal)[:, None, :], X.shape)
@@ -217,7 +222,7 @@ def _simulate_omc(scene: Scene, arc: JointArc, t_ns: np.ndarray, noise: bool, st
     for a in range(0, len(t_ns), CHUNK):
         tc = t_ns[a:a + CHUNK]
         _, _, origins, T_tool = _arm_state(scene, arc, tc)
-        X, N, sl = _markers(scene, OMC_BODIES, T_tool)
+        X, N, sl = _markers(scene, OMC_BODIES, T_tool, tc)
         occ = _occluders(scene, origins, tc, staff)
         shape = (len(tc), X.shape[1], scene.omc_cams.K, 2)
         z = rng.standard_normal(shape) if (noise and rng is not None) else np.zeros(shape)
@@ -241,14 +246,23 @@ def _simulate_ots(scene: Scene, arc: JointArc, t_ns: np.ndarray, noise: bool, st
         tc = t_ns[a:a + CHUNK]
         _, _, origins, T_tool = _arm_state(scene, arc, tc)
         occ = _occluders(scene, origins, tc, staff)
-        X, N, sl = _markers(scene, tools, T_tool)
+        X, N, sl = _markers(scene, tools, T_tool, tc)
         shape = (len(tc), X.shape[1], 2, 2)
         z = rng.standard_normal(shape) if (noise and rng is not None) else np.zeros(shape)
+        # a bump inside the chunk: the frames before and after it are measured from the Vega's two poses, with the
+        # chunk's noise draws, so the frames before a bump are those of the run without it
+        after, T_bumped = scene.bumped_at(tc)
+        parts = [(slice(0, len(tc)), T_bumped if after.all() else scene.T_omc_ots)]
+        if after.any() and not after.all():
+            k = int(np.argmax(after))
+            parts = [(slice(0, k), scene.T_omc_ots), (slice(k, len(tc)), T_bumped)]
         for n, s in zip(tools, sl, strict=True):
             body = scene.bodies[n]
-            fit, part = ots.measure(scene.T_omc_ots, body.markers, X[:, s],
-                                    None if body.normal is None else N[:, s][:, 0], occ, z[:, s])
-            out[n].append((fit, part))
+            for f, T_omc_ots in parts:
+                occ_f = Occluders(occ.cap_a[f], occ.cap_b[f], occ.cap_r, occ.boxes)
+                fit, part = ots.measure(T_omc_ots, body.markers, X[f, s],
+                                        None if body.normal is None else N[f, s][:, 0], occ_f, z[f, s])
+                out[n].append((fit, part))
     return {n: (_stack_fits([f for f, _ in v]), np.concatenate([p for _, p in v])) for n, v in out.items()}
 
 
@@ -287,7 +301,8 @@ def simulate(scene: Scene, arc: JointArc, task: str = "", noise: bool = True, st
                   cameras_believed=(scene.omc_cams.Cb.copy(), scene.omc_cams.Rb.copy()),
                   info={"noise": noise, "staff": staff, "layout": scene.layout.source,
                         "ots_rate_hz": float(cfg["ots"]["rate_hz"]), "omc_rate_hz": float(cfg["omc"]["rate_hz"]),
-                        "scene": scene.config.get("_source", "")})
+                        "scene": scene.config.get("_source", ""),
+                        "vega_bump": None if scene.vega_bump is None else scene.vega_bump.as_dict()})
 
 
 def simulate_ideal_visibility(scene: Scene, arc: JointArc, rate_hz: float = 30.0) -> tuple[float, float]:

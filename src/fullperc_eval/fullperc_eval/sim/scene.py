@@ -120,6 +120,51 @@ def _pose(cfg: dict, dotted: str) -> np.ndarray:
 
 
 @dataclass(frozen=True)
+class VegaBump:
+    """The Vega stand bumped during a run (issue 15 item 2: a real OR event the link monitor must catch).
+
+    From ``at_s`` seconds of task time on, the Vega head -- and the OMC rig body ``ots_rig`` on it -- is moved by
+    ``dx_m`` along ``omc`` x (the stand pushed along the floor) and tilted by ``tilt_deg`` about ``omc`` y through
+    the head's origin (the pole leaning over). The step is instantaneous: a bump takes a few tenths of a second,
+    far below the monitor's 1 s window, and what the monitor must catch is the pose after it.
+    """
+
+    at_s: float
+    dx_m: float
+    tilt_deg: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("at_s", "dx_m", "tilt_deg"):
+            v = getattr(self, name)
+            if not np.isfinite(v):
+                raise ValueError(f"vega bump: {name} must be finite, got {v!r}")
+        if self.at_s < 0:
+            raise ValueError(f"vega bump: the time must be >= 0 s, got {self.at_s}")
+
+    @classmethod
+    def parse(cls, text: str) -> VegaBump:
+        """``AT:DX[:TILT]`` (seconds, metres, degrees), the ``sim --vega-bump`` syntax."""
+        parts = text.split(":")
+        try:
+            if len(parts) not in (2, 3):
+                raise ValueError
+            return cls(*(float(x) for x in parts))
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"vega bump {text!r}: expected AT:DX[:TILT] (s, m, deg){f' ({e})' if str(e) else ''}"
+                             ) from None
+
+    def apply(self, T_omc_ots: np.ndarray) -> np.ndarray:
+        """The Vega's pose in ``omc`` after the bump."""
+        T = np.array(T_omc_ots, dtype=float)
+        T[:3, :3] = Rotation.from_euler("y", self.tilt_deg, degrees=True).as_matrix() @ T[:3, :3]
+        T[0, 3] += self.dx_m
+        return T
+
+    def as_dict(self) -> dict[str, float]:
+        return {"at_s": self.at_s, "dx_m": self.dx_m, "tilt_deg": self.tilt_deg}
+
+
+@dataclass(frozen=True)
 class BodyDef:
     """A rigid body: id, marker centres in its own frame [m] (M, 3), plate normal in its frame (or None)."""
 
@@ -150,6 +195,7 @@ class Scene:
     T_omc_diana_base: np.ndarray
     T_flange_tool: np.ndarray
     noise_seeds: tuple = field(repr=False, default=())  # SeedSequences of the OMC and OTS image noise
+    vega_bump: VegaBump | None = None  # the Vega (and its rig) moved during the run; None: it stays put
 
     def noise_rngs(self) -> tuple[np.random.Generator, np.random.Generator]:
         """Fresh generators for the OMC and OTS image noise (a new run of the same scene repeats exactly)."""
@@ -170,9 +216,20 @@ class Scene:
         """The same scene (same seed streams) with the arm's cart moved to ``T_omc_diana_base``."""
         return replace(self, T_omc_diana_base=np.asarray(T_omc_diana_base, dtype=float).copy())
 
+    def with_vega_bump(self, bump: VegaBump | None) -> Scene:
+        """The same scene with the Vega bumped during the run (:class:`VegaBump`); None: not bumped."""
+        return replace(self, vega_bump=bump)
+
     @property
     def T_omc_ots_rig(self) -> np.ndarray:
         return self.T_omc_ots @ inv_T(self.T_ots_rig_ots)
+
+    def bumped_at(self, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(mask (F,): task times ``t_ns`` [ns] at or after the Vega bump, the Vega's true pose after it)."""
+        t = np.asarray(t_ns)
+        if self.vega_bump is None:
+            return np.zeros(t.shape, bool), self.T_omc_ots
+        return t >= round(self.vega_bump.at_s * 1e9), self.vega_bump.apply(self.T_omc_ots)
 
     def static_transforms(self) -> dict[str, np.ndarray]:
         """The true static transforms an evaluator needs to turn joint states into ground truth."""
