@@ -34,7 +34,7 @@ system: build
 	@$(ENV) python -m pytest test $(PYTEST_ARGS)
 
 demo: build
-	@$(ENV) install/fullperc_eval/lib/fullperc_eval/supervisor demo --task $(TASK) $(DEMO_ARGS)
+	@$(ENV) install/fullperc_eval/lib/fullperc_eval/supervisor demo --task $(TASK) --profile $(PROFILE) $(if $(CALIBRATION),--calibration $(CALIBRATION)) $(DEMO_ARGS)
 
 bench: build
 	@$(ENV) python bench/run_all.py

@@ -2,8 +2,9 @@
 
 Same processes and parameters as config/demo_graph.yaml (which `make demo` runs with fullperc's own
 supervisor where `launch` is not available); test_launch_matches_graph.py keeps the two in step.
-Arguments: task (P-B-G-P), seed (0), speed (1.0), out (demo_out/launch), ports omc_port (3883),
-diana_port (3884), vega_port (8765). After the simulator finishes, the whole launch shuts down; evaluate
+Arguments: task (P-B-G-P), seed (0), speed (1.0), profile (paper | spec), calibration_file ('' = fusion_node
+calibrates itself), out (demo_out/launch), ports omc_port (3883), diana_port (3884), vega_port (8765). After the
+simulator finishes, the whole launch shuts down; evaluate
 the bag with `ros2 run fullperc_eval evaluate <out>/bag --calibration <out>/calibration.yaml`.
 """
 
@@ -26,13 +27,15 @@ RECORD_TOPICS = [
 
 def generate_launch_description():
     args = [DeclareLaunchArgument(n, default_value=v) for n, v in (
-        ("task", "P-B-G-P"), ("seed", "0"), ("speed", "1.0"), ("out", "demo_out/launch"),
+        ("task", "P-B-G-P"), ("seed", "0"), ("speed", "1.0"), ("profile", "paper"), ("calibration_file", ""),
+        ("out", "demo_out/launch"),
         ("omc_port", "3883"), ("diana_port", "3884"), ("vega_port", "8765"))]
     out = C("out")
     record = Node(package="fullperc_eval", executable="record", name="record",
                   arguments=["-o", PathJoinSubstitution([out, "bag"]), "--topics", *RECORD_TOPICS])
     fusion = Node(package="fullperc_fusion", executable="fusion_node", name="fusion_node",
-                  parameters=[{"filter": "cbkf", "filters": ["ckf", "bkf", "kf", "omc"]}])
+                  parameters=[{"filter": "cbkf", "filters": ["ckf", "bkf", "kf", "omc"],
+                               "calibration_file": C("calibration_file")}])
     margin = Node(package="fullperc_fusion", executable="margin_node", name="margin_node",
                   parameters=[{"targets": ["tool"]}])
     omc = Node(package="fullperc_drivers", executable="omc_driver", name="omc_driver",
@@ -46,7 +49,7 @@ def generate_launch_description():
         cmd=["ros2", "run", "fullperc_eval", "sim", "--task", C("task"), "--seed", C("seed"), "--speed", C("speed"),
              "--omc-addr", ["127.0.0.1:", C("omc_port")], "--diana-addr", ["127.0.0.1:", C("diana_port")],
              "--vega-port", C("vega_port"), "--start-when-tracking", "120", "--start-delay", "2.0",
-             "--calibration-out", PathJoinSubstitution([out, "calibration.yaml"])],
+             "--calibration-out", PathJoinSubstitution([out, "calibration.yaml"]), "--profile", C("profile")],
         name="sim", output="screen")
     ndi = Node(package="fullperc_drivers", executable="ndi_driver", name="ndi_driver",
                parameters=[{"transport": "tcp", "host": "127.0.0.1", "port": C("vega_port"),

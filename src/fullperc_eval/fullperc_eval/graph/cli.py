@@ -31,6 +31,11 @@ def main(argv: list[str] | None = None) -> int:
     d.add_argument("--speed", default="1.0", help="simulation speed (1.0 = real time)")
     d.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                    help="graph variable, e.g. vega_outage=8:14 (switch the Vega off from task second 8 to 14)")
+    d.add_argument("--profile", default="paper", choices=("paper", "spec", "base"),
+                   help="twin profile the simulator plays (default paper; base = scene.yaml alone)")
+    d.add_argument("--calibration", type=Path, default=None, metavar="FILE",
+                   help="static-link calibration YAML for fusion_node (calibration_file) and the offline evaluation "
+                        "(default: fusion_node calibrates itself)")
     d.add_argument("--graph", type=Path, default=None,
                    help="graph file (default: the installed config/demo_graph.yaml)")
     args = ap.parse_args(argv)
@@ -40,7 +45,8 @@ def main(argv: list[str] | None = None) -> int:
             values = dict(kv.split("=", 1) for kv in args.set)
             return run_graph(args.graph, values, Path(args.logs), root, args.timeout)
         return run_demo(task=args.task, seed=args.seed, out=Path(args.out), root=root, speed=args.speed,
-                        extra=dict(kv.split("=", 1) for kv in args.set), graph=args.graph)
+                        extra=dict(kv.split("=", 1) for kv in args.set), graph=args.graph, profile=args.profile,
+                        calibration=args.calibration)
     except GraphError as e:
         print(f"supervisor: {e}", file=sys.stderr)
         return 2

@@ -12,6 +12,11 @@ shuts everything down, and then evaluates the recorded bag twice:
 Both are compared with the Diana's ground truth (forward kinematics of the recorded joint states and the
 simulator's calibration). The report (plots, HTML, JSON) goes to ``<out>/report``.
 
+``profile`` picks the twin profile the simulator plays (``paper`` or ``spec``: ``make demo PROFILE=spec``);
+``calibration`` a static-link calibration YAML (written by ``calibrate`` or ``~/calibrate``) that ``fusion_node``
+loads instead of calibrating itself, and that the offline evaluation uses too, so offline and live stay comparable
+(``make demo CALIBRATION=or1.yaml``).
+
 Only a bag of a task that ran to its end is evaluated: after Ctrl-C (or when a process failed) the bag holds part
 of the task, and MAE figures of a part would look like the task's. The demo then says so, names the bag and the
 command that evaluates it anyway, and exits non-zero (130 after Ctrl-C).
@@ -25,6 +30,8 @@ import socket
 import sys
 import time
 from pathlib import Path
+
+import yaml
 
 from fullperc_eval.evaluation.config import EvaluationError
 from fullperc_eval.evaluation.metrics import evaluate_bag
@@ -48,16 +55,40 @@ def graph_path(root: Path) -> Path:
     raise FileNotFoundError("demo_graph.yaml not found (is the workspace built?)")
 
 
+def fusion_params_with(calibration: Path, out: Path) -> Path:
+    """fusion_node's installed params file with ``calibration_file`` set, written to ``out/fusion.yaml``: the offline
+    evaluation must run with the links the live node loaded, or offline and live would differ by the calibration."""
+    from fullperc_fusion.fusion_config import default_fusion_config_path
+
+    doc = yaml.safe_load(default_fusion_config_path().read_text()) or {}
+    doc.setdefault("fusion_node", {}).setdefault("ros__parameters", {})["calibration_file"] = str(calibration)
+    path = out / "fusion.yaml"
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return path
+
+
 def run_demo(task: str, seed: str, out: Path, root: Path, speed: str = "1.0",
-             extra: dict[str, str] | None = None, graph: Path | None = None) -> int:
+             extra: dict[str, str] | None = None, graph: Path | None = None, profile: str = "paper",
+             calibration: Path | None = None) -> int:
+    if calibration is not None and not Path(calibration).is_file():
+        print(f"demo: calibration file {calibration} does not exist", file=sys.stderr)
+        return 2
     out = out / f"{task}-{time.strftime('%Y%m%d-%H%M%S')}"
     out.mkdir(parents=True, exist_ok=False)
+    fusion_config = None
+    extra = dict(extra or {})
+    if calibration is not None:
+        calibration = Path(calibration).resolve()
+        extra["calibration_file"] = str(calibration)
+        fusion_config = fusion_params_with(calibration, out)
     os.environ.setdefault("ROS_DOMAIN_ID", str(101 + os.getpid() % 100))
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     values = {"task": task, "seed": str(seed), "out": str(out.resolve()), "speed": str(speed),
               "omc_port": str(_free_port(socket.SOCK_DGRAM)), "diana_port": str(_free_port(socket.SOCK_DGRAM)),
-              "vega_port": str(_free_port(socket.SOCK_STREAM)), **(extra or {})}
-    print(f"demo: task {task}, seed {seed}, output {out}, ROS_DOMAIN_ID={os.environ['ROS_DOMAIN_ID']}", flush=True)
+              "vega_port": str(_free_port(socket.SOCK_STREAM)), "profile": profile, **extra}
+    print(f"demo: task {task}, seed {seed}, profile {profile}, output {out}, "
+          f"ROS_DOMAIN_ID={os.environ['ROS_DOMAIN_ID']}"
+          + (f", static links from {calibration}" if calibration else ""), flush=True)
     t0 = time.monotonic()
     outcome = execute_graph(graph or graph_path(root), values, out / "logs", root)
     rc = outcome.rc
@@ -76,8 +107,8 @@ def run_demo(task: str, seed: str, out: Path, root: Path, speed: str = "1.0",
         shutil.copy(cal, bag / "calibration.yaml")
     print(f"\ndemo: graph finished in {time.monotonic() - t0:.0f} s; evaluating {bag}", flush=True)
     try:
-        offline = evaluate_bag(bag, progress=False)
-        live = evaluate_bag(bag, progress=False, live=True)
+        offline = evaluate_bag(bag, progress=False, fusion_config=fusion_config)
+        live = evaluate_bag(bag, progress=False, live=True, fusion_config=fusion_config)
     except EvaluationError as e:
         print(f"demo: evaluation failed: {e}", file=sys.stderr)
         return 1
