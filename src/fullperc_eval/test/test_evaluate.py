@@ -108,7 +108,7 @@ def test_calibration_roundtrip_and_clear_errors(tmp_path):
 # ---------------------------------------------------------------------------------------------- segments
 def test_methods_are_the_pipeline_filters_in_the_papers_column_order():
     assert sorted(METHODS) == sorted(FILTER_NAMES) and len(METHODS) == len(FILTER_NAMES)
-    assert METHODS[0] == "omc" and METHODS[-1] == "cbkf"  # Table 1: OMC first, CBKF last
+    assert METHODS[:5] == ("omc", "kf", "bkf", "ckf", "cbkf")  # Table 1: OMC first, CBKF last of the paper's
 
 
 def test_runs_and_transition_segments_follow_the_documented_definition():

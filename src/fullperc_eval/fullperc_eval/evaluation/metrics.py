@@ -17,6 +17,12 @@ Definitions (documented in the README, pinned by tests):
   Table 2 segment is the first **B->P** segment (a BVV run directly followed by a PVV run); a path that goes
   B->G->P has no B->P segment (``b_to_p`` is null). Its ``max_mm`` / ``median_mm`` are over the errors of the
   poses each method output inside the segment.
+* **Orientation** (:mod:`.orientation`): ``orientation_mae_deg`` per method = mean angle of R_true^T R_est [deg]
+  over the same outputs as the MAE, plus ``local`` -- the raw local chain (the Vega measurement mapped into
+  ``base``, recorded by :class:`.sources.SourceTap`), the second single source beside ``omc``; by region too.
+* **Consistency** (:mod:`.consistency`): ``nees`` per method, ``position`` (dof 3, the output covariance's
+  position block, every output) and ``pose`` (dof 6, only outputs whose orientation the method fused itself).
+* ``omc_hops`` (:func:`.headline.hop_events`) and ``regions.seconds`` / ``regions.threshold_deg`` for the headline.
 """
 
 from __future__ import annotations
@@ -37,7 +43,10 @@ from fullperc_fusion.margin import label_points
 from fullperc_fusion.pipeline import TargetConfig
 
 from .config import METHODS, EvaluationError, replay_config
+from .consistency import FUSED_ORIENTATION, nees, summary
 from .ground_truth import GroundTruth
+from .headline import hop_events
+from .orientation import orientation_error_deg, pose_error
 from .replay import Replay, live_replay, replay
 
 LETTER = {1: "B", 2: "G", 3: "P"}
@@ -66,6 +75,47 @@ def _stats(e_mm: np.ndarray) -> dict[str, float | int | None]:
     return {"n": int(e_mm.size), "mae": float(e_mm.mean()), "rmse": float(np.sqrt(np.mean(e_mm**2))),
             "max": float(e_mm.max()), "median": float(med), "min": float(e_mm.min()), "q1": float(q1),
             "q3": float(q3), "p95": float(p95)}
+
+
+def _mean(x: np.ndarray) -> float | None:
+    x = x[np.isfinite(x)]
+    return float(x.mean()) if x.size else None
+
+
+def _by_region(err: dict[str, np.ndarray], labels: dict[str, np.ndarray]) -> dict[str, dict[str, float | None]]:
+    return {name: {f: _mean(err[f][labels[f] == lab]) for f in err} for lab, name in ((1, "BVV"), (2, "GVV"),
+                                                                                       (3, "PVV"))}
+
+
+def _pose_figures(outputs: dict[str, dict[str, np.ndarray]], idx: dict[str, np.ndarray], ok: dict[str, np.ndarray],
+                  T_true: np.ndarray) -> tuple[dict[str, np.ndarray], dict[str, dict[str, np.ndarray]]]:
+    """Orientation error [deg] (NaN without truth or orientation) and NEES per method (position; pose where the
+    method fused the orientation), each output against the truth T_true[idx]."""
+    orient, nees_v = {}, {}
+    for f, o in outputs.items():
+        n = len(o["t_ns"])
+        oe, npos, npose = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
+        k = ok[f]
+        if "q" in o and k.any():
+            Tt = T_true[idx[f][k]]
+            oe[k] = orientation_error_deg(Tt[:, :3, :3], o["q"][k])
+            d = pose_error(Tt[:, :3, 3], Tt[:, :3, :3], o["p"][k], o["q"][k])
+            C = o["cov"][k]
+            npos[k] = nees(d[:, :3], C[:, :3, :3])
+            fused = o["orientation_source"][k] == FUSED_ORIENTATION
+            if fused.any():
+                tmp = np.full(len(d), np.nan)
+                tmp[fused] = nees(d[fused], C[fused])
+                npose[k] = tmp
+        orient[f] = oe
+        nees_v[f] = {"position": npos, "pose": npose}
+    return orient, nees_v
+
+
+def _region_seconds(t_ns: np.ndarray, labels: np.ndarray) -> dict[str, float]:
+    """Time [s] the true path spent in each region: each grid interval counted to the label it starts in."""
+    dt = np.diff(t_ns) * 1e-9
+    return {name: float(dt[labels[:-1] == lab].sum()) for lab, name in ((1, "BVV"), (2, "GVV"), (3, "PVV"))}
 
 
 @dataclass
@@ -101,12 +151,15 @@ def evaluate_replay(rep: Replay, calibration: Calibration, layout, kinematics=No
 
     # errors per method at each output stamp
     all_t = np.unique(np.concatenate([o["t_ns"] for o in rep.outputs.values()] + [np.zeros(0, np.int64)]))
-    P_true_all, ok_all = gt.position_base(all_t)
+    T_true_all, ok_all = gt.T_base_tool(all_t)
+    P_true_all = T_true_all[:, :3, 3]
     errors: dict[str, np.ndarray] = {}
     valid: dict[str, np.ndarray] = {}
     out_labels: dict[str, np.ndarray] = {}
+    out_idx: dict[str, np.ndarray] = {}
     for f, o in rep.outputs.items():
         idx = np.searchsorted(all_t, o["t_ns"])
+        out_idx[f] = idx
         ok = ok_all[idx] if idx.size else np.zeros(0, bool)
         e = np.full(len(idx), np.nan)
         if idx.size:
@@ -152,6 +205,27 @@ def evaluate_replay(rep: Replay, calibration: Calibration, layout, kinematics=No
                   "median_mm": {f: s["stats_mm"][f]["median"] for f in methods},
                   "box_mm": {f: {k: s["stats_mm"][f][k] for k in ("min", "q1", "median", "q3", "max")}
                              for f in methods}}
+    # orientation and consistency; the raw local chain as the second single source (orientation and position)
+    orient, nees_v = _pose_figures(rep.outputs, out_idx, valid, T_true_all)
+    o_lab = dict(out_labels)
+    single: dict[str, Any] = {}
+    loc = (getattr(rep, "single_sources", None) or {}).get("local")
+    if loc is not None and loc["t_ns"].size:
+        T_loc, ok_loc = gt.T_base_tool(loc["t_ns"])
+        e_loc = np.full(len(ok_loc), np.nan)
+        e_loc[ok_loc] = np.linalg.norm(loc["p"][ok_loc] - T_loc[ok_loc, :3, 3], axis=1) * 1e3
+        orient["local"] = np.full(len(ok_loc), np.nan)
+        orient["local"][ok_loc] = orientation_error_deg(T_loc[ok_loc, :3, :3], loc["q"][ok_loc])
+        o_lab["local"] = labels[np.clip(np.searchsorted(grid_t, loc["t_ns"], side="right") - 1, 0, len(grid_t) - 1)]
+        single["local"] = {"n": int(ok_loc.sum()), "mae_mm": _mean(e_loc),
+                           "orientation_mae_deg": _mean(orient["local"]),
+                           "what": "the Vega measurement mapped into base by the frame chain, as the filters get it"}
+    omc_err = None
+    if "omc" in rep.outputs:
+        o = rep.outputs["omc"]
+        omc_err = np.full((len(o["t_ns"]), 3), np.nan)
+        k = valid["omc"]
+        omc_err[k] = (o["p"][k] - P_true_all[out_idx["omc"][k]]) * 1e3
     invalid = {f: int((~valid[f]).sum()) for f in methods}
     if any(invalid.values()):
         warnings.append(f"outputs without ground truth (outside the joint-state span or in a gap): {invalid}")
@@ -170,7 +244,16 @@ def evaluate_replay(rep: Replay, calibration: Calibration, layout, kinematics=No
         "mae_by_region_mm": by_region,
         "regions": {"order": order,
                     "fraction": {n: float(np.mean(labels == k)) for k, n in ((1, "BVV"), (2, "GVV"), (3, "PVV"))},
-                    "grid": "joint-state stamps", "T_omc_base": omc_base_source},
+                    "grid": "joint-state stamps", "T_omc_base": omc_base_source,
+                    "seconds": _region_seconds(grid_t, labels), "threshold_deg": float(layout.threshold_deg)},
+        "orientation_mae_deg": {f: _mean(v) for f, v in orient.items()},
+        "orientation_p95_deg": {f: (float(np.percentile(v[np.isfinite(v)], 95)) if np.isfinite(v).any() else None)
+                                for f, v in orient.items()},
+        "orientation_by_region_deg": _by_region(orient, o_lab),
+        "single_sources": single,
+        "nees": {f: {"position": summary(nees_v[f]["position"], 3), "pose": summary(nees_v[f]["pose"], 6)}
+                 for f in methods},
+        "omc_hops": hop_events(rep.outputs, omc_err, int(grid_t[0])),
         "segments": [{k: v for k, v in s.items() if k not in ("t0_ns", "t1_ns")} for s in segs],
         "duration_s": float((grid_t[-1] - grid_t[0]) * 1e-9),
         "messages": rep.messages,
@@ -181,7 +264,8 @@ def evaluate_replay(rep: Replay, calibration: Calibration, layout, kinematics=No
     }
     series = {"grid_t_ns": grid_t, "grid_p": P_grid, "grid_ok": ok_grid, "labels": labels,
               "margin_deg": np.asarray(margin.margin_deg), "outputs": rep.outputs, "errors": errors, "valid": valid,
-              "segments": segs, "seg_errors": seg_errors, "b_to_p_index": bp_index, "methods": methods}
+              "segments": segs, "seg_errors": seg_errors, "b_to_p_index": bp_index, "methods": methods,
+              "orientation_errors": orient, "nees": nees_v, "single_sources": getattr(rep, "single_sources", {})}
     return Evaluation(result, series)
 
 
