@@ -141,6 +141,24 @@ class ClosedFormFilter(StepCompat):
         self.t_ns: int | None = None
         self._pending_ns: int | None = None
 
+    def snapshot(self) -> tuple:
+        """The whole filter state, for rewind-and-replay (arrival.py): a few list copies, no deepcopy. The inner
+        per-axis covariance lists are replaced, never mutated, by every step, so copying the outer lists suffices."""
+        if self._general:
+            return (True, self._ref.snapshot(), self.t_ns, self._pending_ns)
+        return (False, self._X[:], self._C[:], self.t_ns, self._pending_ns)
+
+    def restore(self, snap: tuple) -> None:
+        """Back to a :meth:`snapshot` (it stays valid: it can be restored again)."""
+        if snap[0]:
+            self._general = True
+            self._ref.restore(snap[1])
+            self.t_ns, self._pending_ns = snap[2], snap[3]
+        else:
+            self._general = False
+            self._X, self._C = snap[1][:], snap[2][:]
+            self.t_ns, self._pending_ns = snap[3], snap[4]
+
     @property
     def initialized(self) -> bool:
         return (self._ref.t_ns if self._general else self.t_ns) is not None

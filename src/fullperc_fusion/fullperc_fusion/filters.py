@@ -220,6 +220,15 @@ class FusionFilter(StepCompat):
         self.t_ns: int | None = None
         self._pending_ns: int | None = None   # stamp of a (re-)initialisation the next update makes
 
+    def snapshot(self) -> tuple:
+        """The whole filter state, for rewind-and-replay (arrival.py)."""
+        return (self.x.copy(), self.P.copy(), self.t_ns, self._pending_ns)
+
+    def restore(self, snap: tuple) -> None:
+        """Back to a :meth:`snapshot` (copied again, so it can be restored more than once)."""
+        self.x, self.P = snap[0].copy(), snap[1].copy()
+        self.t_ns, self._pending_ns = snap[2], snap[3]
+
     @property
     def initialized(self) -> bool:
         return self.t_ns is not None
@@ -354,6 +363,13 @@ class PassThrough(StepCompat):
 
     def reset(self) -> None:
         self.t_ns = None
+
+    def snapshot(self) -> int | None:
+        """The whole state (the stamp of the newest global measurement), for rewind-and-replay."""
+        return self.t_ns
+
+    def restore(self, snap: int | None) -> None:
+        self.t_ns = snap
 
     def predict(self, t_ns: int) -> None:
         """Nothing to predict: the output is the newest global measurement."""

@@ -1,7 +1,10 @@
 """Per-target fusion pipeline: raw device poses in, fused poses out. ROS-free.
 
-This is the one class both ``fusion_node`` (live) and the offline evaluator run, so a bag replayed
-through :class:`TargetPipeline` gives exactly what the node published::
+This class is *ordered* processing: every sample waits ``2·slop + delay`` in the synchronizer, then items are
+fused in stamp order. The offline evaluator runs it; ``fusion_node`` runs :class:`arrival.ArrivalPipeline` by
+default (``processing: arrival``), the same processing without the wait, whose final estimates equal this class's
+(arrival.py); with ``processing: ordered`` the node runs this class, so a bag replayed through it gives exactly
+what the node published::
 
     pipe = TargetPipeline(TargetConfig(name="tool", filters=("cbkf", "kf")))
     for each device sample, in arrival order:
@@ -75,6 +78,8 @@ class TargetConfig:
     slop_ns: int = 4_000_000        # pair samples closer than this (below half the OMC period at 120 Hz)
     delay_ns: int = 50_000_000      # reorder / transport delay the synchronizer waits for
     max_future_ns: int = 100_000_000   # a sample stamped further ahead of the caller's clock is rejected
+    processing: str = "arrival"     # fusion_node: arrival (arrival.ArrivalPipeline) | ordered (this class)
+    history_ns: int = 200_000_000   # arrival: how far back a late sample still rewinds and replays
     orientation_std_local: float = 0.002   # [rad] reported in pose_cov when the OTS orientation is used
     orientation_std_global: float = 0.01   # [rad] when the OMC orientation is used
     monitor: MonitorParams = field(default_factory=MonitorParams)   # link monitoring (link_monitor)
@@ -90,6 +95,10 @@ class TargetConfig:
             raise ValueError(f"target '{self.name}': duplicate filter in {self.filters}")
         self.params.validate()
         self.monitor.validate()
+        if self.processing not in ("arrival", "ordered"):
+            raise ValueError(f"target '{self.name}': processing must be arrival or ordered, got {self.processing!r}")
+        if not self.history_ns > 0:
+            raise ValueError(f"target '{self.name}': history must be > 0, got {self.history_ns * 1e-9} s")
         if not self.max_future_ns > 0:
             raise ValueError(f"target '{self.name}': max_future must be > 0, got {self.max_future_ns * 1e-9} s")
 

@@ -105,6 +105,16 @@ class ApproxSync:
         """Emit everything pending (end of data, or a stream stop)."""
         return self._drain(lambda t: True)
 
+    @classmethod
+    def pair(cls, glob: list[Sample], local: list[Sample], slop_ns: int) -> list[SyncItem]:
+        """The items the rules above make of a *complete* set of samples (each list sorted by stamp, no duplicate
+        stamps within a stream) -- what :meth:`flush` emits once every one of them has been pushed. Used by
+        :mod:`arrival` to re-pair the samples after a late one; the same code as the live path, so both agree."""
+        s = cls(slop_ns, 0, max_pending=max(1, len(glob), len(local)))
+        s._t = ([x.t_ns for x in glob], [x.t_ns for x in local])
+        s._p = ([x.payload for x in glob], [x.payload for x in local])
+        return s._drain(lambda t: True)
+
     def _pop(self, stream: int, i: int) -> Sample:
         t = self._t[stream].pop(i)
         return Sample(t, self._p[stream].pop(i))

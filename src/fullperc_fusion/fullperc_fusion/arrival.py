@@ -1,0 +1,297 @@
+"""Fusion on arrival with rewind-and-replay: no reorder wait, and the same estimates as ordered processing.
+
+Why: the ordered :class:`~pipeline.TargetPipeline` waits ``2·slop + reorder_delay`` (58 ms by default) before it
+fuses a sample, because a partner or an older sample may still arrive. A tool moving at 0.1 m/s is millimetres
+away from such a pose. :class:`ArrivalPipeline` fuses every sample the moment it arrives (predict to its stamp,
+update, output) and keeps a bounded history -- ``history`` (default 0.2 s) of items, each with the snapshot of
+every filter before it -- so a sample that arrives late (out of order, or the approximate-time partner of a sample
+already fused) rewinds the filters to the state before the first item it changes and replays from there. This is
+what robot_localization's history does, for the same reason.
+
+How (every rule is the synchronizer's, :class:`~synchronizer.ApproxSync`, so pairs are the same as ordered):
+
+* A new target sample at t can only change the pairing of items whose first sample is stamped at or after
+  ``t - 2·slop`` (the pairing of a sample looks at stamps up to 2·slop after it, see synchronizer.py). Those items'
+  samples plus the new one are paired again with :meth:`ApproxSync.pair`; the first item that differs from the
+  history is where the replay starts: its snapshot is restored and the items from there on are processed with
+  ``TargetPipeline._process_item`` -- the very function ordered processing uses. Usually only the new item is
+  processed; a partner that completes a pair replays one or two items.
+* Items leave the history once their first stamp is more than ``history`` older than the newest sample: their
+  outputs are then final (:meth:`ArrivalPipeline.take_final`). A sample older than the last item that left
+  (``late``) or with a stamp its stream already had (``duplicate``) is dropped, counted and described naming
+  source and stamp, exactly like the ordered pipeline's late / duplicate samples.
+* Static links: the ordered pipeline maps an item into ``base`` with the links in use when it processes it, i.e.
+  when the newest stamp has passed ``t_first + 2·slop + reorder_delay``. The arrival pipeline remembers that
+  moment per item (the links it was "resolved" with) and replays the unresolved items when the links change, so a
+  link estimate finished mid-stream gives the same estimates as ordered processing. ``reorder_delay`` has no
+  other role here.
+* Counters that processing increments (``items``, ``waiting_for_links``, ...) are rolled back on a rewind, so a
+  replay does not count twice.
+
+Outputs. :meth:`poll` returns, in stamp order, the outputs of every item (re)processed since the last poll whose
+stamp is newer than the last one returned: the live estimate, one per filter per new item, stamps strictly
+increasing (what fusion_node publishes on pose, pose_cov, status and /tf). A correction of an item already
+returned is not returned again; it is part of the next item's estimate. :meth:`take_final` returns the outputs of
+the items that left the history: these equal ordered processing of the same samples (test_arrival.py) whenever
+every sample arrived within ``history`` -- the offline evaluator's result (evaluation/replay.py runs the ordered
+pipeline). :meth:`flush` (end of data, idle) ends the history: everything in it becomes final.
+
+Cost: a snapshot is a few list copies per filter (fast_filter.ClosedFormFilter.snapshot); a rewind restores one
+and processes the replayed items again. Filters without ``snapshot`` / ``restore`` are copied with deepcopy.
+"""
+
+from __future__ import annotations
+
+import bisect
+import copy
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Any
+
+from .pipeline import FusedOutput, TargetConfig, TargetPipeline
+from .synchronizer import GLOBAL, LOCAL, ApproxSync, Sample, SyncItem
+
+PROCESSING_MODES = ("arrival", "ordered")
+_STREAM = ("global", "local")
+
+
+@dataclass
+class _Entry:
+    """One item in the history: what was fused, the state before it, what it output and changed."""
+
+    item: SyncItem
+    te: int                                  # stamp of its first sample (the synchronizer's order)
+    snap: tuple                              # pipeline state before the item (:meth:`ArrivalPipeline._snap`)
+    outs: list[FusedOutput] = field(default_factory=list)
+    delta: Counter = field(default_factory=Counter)   # counters the processing incremented
+    view: Any = None                         # static links it is resolved with; None: the current ones
+    alive: bool = True                       # False once replaced by a rewind
+
+
+def _key(item: SyncItem) -> tuple[int | None, int | None]:
+    return (None if item.glob is None else item.glob.t_ns, None if item.local is None else item.local.t_ns)
+
+
+def _links_signature(links) -> tuple:
+    return (id(links.T_omc_base), id(links.T_base_ots), id(links.T_rig_ots), links.generation)
+
+
+class ArrivalPipeline(TargetPipeline):
+    """:class:`TargetPipeline` with processing on arrival; see the module docstring. Same input API."""
+
+    def __init__(self, config: TargetConfig) -> None:
+        super().__init__(config)
+        self.history_ns = int(config.history_ns)
+        self._entries: list[_Entry] = []
+        self._tes: list[int] = []                 # entry.te, parallel to _entries (bisect)
+        self._stamps: tuple[set[int], set[int]] = (set(), set())   # target stamps in the history, per stream
+        self._last_committed: list[int | None] = [None, None]
+        self.horizon_ns: int | None = None        # processing stamp of the last item that left the history
+        self.newest_ns: int | None = None         # newest target stamp accepted
+        self._fresh: list[_Entry] = []            # (re)processed since the last poll
+        self._published_ns: int | None = None
+        self._final: list[FusedOutput] = []
+        self._nres = 0                            # the first _nres entries are resolved (links fixed)
+        self._view = None                         # snapshot of the current static links (shallow copy)
+        self._sig = _links_signature(self.chain.links)
+        self._new_view()
+        self._resolve_ns = 2 * config.slop_ns + config.delay_ns
+
+    # ---- input ------------------------------------------------------------------------------------------------
+    def push_omc(self, body: str, t_ns: int, pose, cov=None, now_ns: int | None = None, **kw) -> bool:
+        ok = super().push_omc(body, t_ns, pose, cov, now_ns=now_ns, **kw)
+        c = self.config.chain
+        if ok and body != c.omc_target:
+            self._after_link_sample(body == c.omc_rig and c.local_chain == "tracked", t_ns)
+        return ok
+
+    def push_ots(self, tool: str, t_ns: int, pose, cov=None, now_ns: int | None = None, **kw) -> bool:
+        ok = super().push_ots(tool, t_ns, pose, cov, now_ns=now_ns, **kw)
+        c = self.config.chain
+        if ok and tool == c.ots_base and tool != c.ots_target:
+            self._after_link_sample(c.local_chain == "direct", t_ns)
+        return ok
+
+    def apply_calibration(self, cal, source: str) -> None:
+        super().apply_calibration(cal, source)
+        self._after_link_sample(False, 0)
+
+    def _enqueue(self, stream: int, what: str, t: int, payload) -> bool:
+        if t in self._stamps[stream] or self._last_committed[stream] == t:
+            self._problem("duplicate", f"{what}: duplicate stamp {t} ns; dropped", t)
+            self.counts[f"{_STREAM[stream]}_duplicate"] += 1
+            return False
+        if self.horizon_ns is not None and t < self.horizon_ns:
+            self._problem("late", f"{what}: sample at {t} ns is older than the history ({self.history_ns * 1e-9:g} s): "
+                                  f"{(self.newest_ns - t) * 1e-9:.3f} s behind the newest sample ({self.newest_ns} ns),"
+                                  f" before the last item that left the history ({self.horizon_ns} ns); dropped", t)
+            self.counts[f"{_STREAM[stream]}_late"] += 1
+            return False
+        self._stamps[stream].add(t)
+        self.counts[f"{_STREAM[stream]}_in"] += 1
+        if self.newest_ns is None or t > self.newest_ns:
+            self.newest_ns = t
+        k = bisect.bisect_left(self._tes, t - 2 * self.config.slop_ns)
+        old = self._entries[k:]
+        glob = [e.item.glob for e in old if e.item.glob is not None]
+        local = [e.item.local for e in old if e.item.local is not None]
+        new = Sample(t, payload)
+        if stream == GLOBAL:
+            bisect.insort(glob, new, key=lambda s: s.t_ns)
+        else:
+            bisect.insort(local, new, key=lambda s: s.t_ns)
+        items = ApproxSync.pair(glob, local, self.config.slop_ns)
+        j = 0
+        while j < len(old) and j < len(items) and _key(old[j].item) == _key(items[j]):
+            j += 1
+        views = {_key(e.item): e.view for e in old[j:] if e.view is not None}   # an unchanged item keeps its links
+        self._rewind(k + j)
+        for it in items[j:]:
+            self._process_entry(it, views.get(_key(it)))
+        self._resolve_and_commit()
+        return True
+
+    def _after_link_sample(self, lookup: bool, t: int) -> None:
+        """A base / rig sample: replay what the ordered pipeline would map with new links or a nearer rig pose."""
+        links = self.chain.links
+        sig = _links_signature(links)
+        start = None
+        if sig != self._sig:
+            self._sig = sig
+            self._new_view()
+            start = next((i for i, e in enumerate(self._entries) if e.view is None), None)
+        if lookup:   # tracked: nearest rig pose within rig_max_age; direct: the base tool of the same OTS frame
+            age = self.config.chain.rig_max_age_ns if self.config.chain.local_chain == "tracked" else 0
+            i = bisect.bisect_left(self._tes, t - age - self.config.slop_ns)
+            while i < len(self._entries) and (start is None or i < start):
+                loc = self._entries[i].item.local
+                if loc is not None and abs(loc.t_ns - t) <= age:
+                    start = i
+                    break
+                i += 1
+        if start is not None:
+            self._replay_from(start)
+
+    # ---- history ----------------------------------------------------------------------------------------------
+    def _new_view(self) -> None:
+        v = copy.copy(self.chain.links)
+        v.estimates = dict(self.chain.links.estimates)
+        v.sources = dict(self.chain.links.sources)
+        self._view = v
+
+    def _snap(self) -> tuple:
+        snaps = tuple(f.snapshot() if hasattr(f, "snapshot") else copy.deepcopy(f) for f in self.filters.values())
+        return snaps, self.last_local_ns, self.last_global_ns, dict(self.last_output)
+
+    def _restore(self, snap: tuple) -> None:
+        snaps, self.last_local_ns, self.last_global_ns, last = snap
+        self.last_output = dict(last)
+        for (name, f), s in zip(list(self.filters.items()), snaps, strict=True):
+            if hasattr(f, "restore"):
+                f.restore(s)
+            else:
+                self.filters[name] = copy.deepcopy(s)
+
+    def _rewind(self, i: int) -> None:
+        """Drop the entries from index ``i`` on and restore the state before entry ``i``."""
+        if i >= len(self._entries):
+            return
+        self._restore(self._entries[i].snap)
+        for e in self._entries[i:]:
+            self.counts.subtract(e.delta)
+            e.alive = False
+        self.counts["replayed_items"] += len(self._entries) - i
+        self.counts["rewinds"] += 1
+        del self._entries[i:]
+        del self._tes[i:]
+        self._nres = min(self._nres, i)
+
+    def _replay_from(self, i: int) -> None:
+        items = [e.item for e in self._entries[i:]]
+        views = [e.view for e in self._entries[i:]]
+        self._rewind(i)
+        for it, v in zip(items, views, strict=True):
+            self._process_entry(it, v)
+
+    def _process_entry(self, item: SyncItem, view=None) -> None:
+        te = min(s.t_ns for s in (item.glob, item.local) if s is not None)
+        if view is None and te + self._resolve_ns <= self.newest_ns:
+            view = self._view
+        e = _Entry(item, te, self._snap(), view=view)
+        before = self.counts.copy()
+        links = self.chain.links
+        if view is not None and view is not self._view:
+            self.chain.links = view           # the links ordered processing used for this item
+        try:
+            e.outs = self._process_item(item)
+        finally:
+            self.chain.links = links
+        e.delta = self.counts - before
+        self._entries.append(e)
+        self._tes.append(te)
+        self._fresh.append(e)
+
+    def _resolve_and_commit(self, everything: bool = False) -> None:
+        i = self._nres   # entries before are resolved; resolve from there until the first that is not yet
+        while i < len(self._entries):
+            e = self._entries[i]
+            if e.view is None:
+                if not (everything or e.te + self._resolve_ns <= self.newest_ns):
+                    break
+                e.view = self._view
+            i += 1
+        self._nres = i
+        n = 0
+        while n < len(self._entries) and (everything or self._entries[n].te < self.newest_ns - self.history_ns):
+            e = self._entries[n]
+            self._final.extend(e.outs)
+            self.horizon_ns = e.item.t_ns
+            for s, x in ((GLOBAL, e.item.glob), (LOCAL, e.item.local)):
+                if x is not None:
+                    self._stamps[s].discard(x.t_ns)
+                    self._last_committed[s] = x.t_ns
+            n += 1
+        if n:
+            del self._entries[:n]
+            del self._tes[:n]
+            self._nres = max(0, self._nres - n)
+
+    # ---- output -----------------------------------------------------------------------------------------------
+    def poll(self, now_ns: int | None = None) -> list[FusedOutput]:
+        """The live outputs since the last poll (module docstring); ``now_ns`` is not needed (nothing waits)."""
+        out: list[FusedOutput] = []
+        for e in sorted((e for e in self._fresh if e.alive and e.outs), key=lambda e: e.item.t_ns):
+            if self._published_ns is None or e.item.t_ns > self._published_ns:
+                out.extend(e.outs)
+                self._published_ns = e.item.t_ns
+        self._fresh = []
+        return out
+
+    def flush(self) -> list[FusedOutput]:
+        """End of the history: every item in it becomes final (:meth:`take_final`); returns the live outputs."""
+        self._resolve_and_commit(everything=True)
+        return self.poll()
+
+    def take_final(self) -> list[FusedOutput]:
+        """Outputs of the items that left the history since the last call (= ordered processing), stamp order."""
+        out, self._final = self._final, []
+        return out
+
+    @property
+    def pending(self) -> int:
+        """Items in the history (fused, not final yet)."""
+        return len(self._entries)
+
+    def stats(self) -> dict:
+        d = super().stats()
+        d["pending"] = self.pending
+        d["processing"] = "arrival"
+        d["history_s"] = self.history_ns * 1e-9
+        for k in ("rewinds", "replayed_items"):
+            d.setdefault(k, 0)
+        return d
+
+
+def make_pipeline(config: TargetConfig) -> TargetPipeline:
+    """The pipeline ``config.processing`` asks for: :class:`ArrivalPipeline` or the ordered TargetPipeline."""
+    return ArrivalPipeline(config) if config.processing == "arrival" else TargetPipeline(config)
