@@ -2,13 +2,18 @@
 
 Figures (medians over repeats; a "measurement" is one message the evaluator reads: an OMC/OTS pose of the
 target, base or rig, or a joint state):
-  eval_throughput_all5     evaluate_bag with omc, kf, bkf, ckf, cbkf side by side   baseline: reading only
-  eval_throughput_cbkf     the same with the cbkf filter alone                      baseline: reading only
-  eval_read_only           BagReader.messages + CDR decode of the same topics (the floor)
-ratio = value / baseline (< 1: the share of the reading-only rate that the evaluation reaches).
+  eval_throughput_all5     evaluate_bag, bag decode included, the paper's five methods side by side
+                           (omc, kf, bkf, ckf, cbkf)                                      baseline: bulk decode
+  eval_throughput_cbkf     the same with the cbkf filter alone                             baseline: bulk decode
+  eval_throughput_every    the same with every method `evaluate` runs by default, when that is more than the five
+                           (a filter registered since, e.g. fullperc)                      baseline: bulk decode
+  eval_decode_bulk         bag.reader.decoded_messages of the same topics (what evaluate reads through, one pass
+                           over the MCAP file + numpy CDR decode: the floor)              baseline: rosbags
+  eval_read_only           rosbags' reader + deserializer per message (the evaluator's reading before issue 16)
+ratio = value / baseline (for the throughputs: the share of the decoding rate that the evaluation reaches).
 
 Bag: bags/paper/G-B-P (the committed sample) when present, else a 20 s synthetic recording (same rates).
-Run: python bench/bench_eval.py
+Run: python bench/bench_eval.py [--profile]   (--profile: cProfile of one evaluate_bag, top functions on stderr)
 """
 
 from __future__ import annotations
@@ -24,10 +29,11 @@ from benchlib import emit, median_time  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 REPEATS = 3
+PAPER_FIVE = ("omc", "kf", "bkf", "ckf", "cbkf")   # "all5": the paper's Table 1 columns
 
 
 def main() -> None:
-    from fullperc_eval.bag.reader import BagReader
+    from fullperc_eval.bag.reader import BagReader, decoded_messages
     from fullperc_eval.evaluation.metrics import evaluate_bag
     from fullperc_eval.evaluation.replay import JOINT_TOPIC
     from fullperc_eval.sim.dataset import synthetic_content, write_bag
@@ -39,7 +45,8 @@ def main() -> None:
         tmp = Path(tempfile.mkdtemp(prefix="bench_eval_"))
         bag = write_bag(tmp / "synthetic", synthetic_content(20.0)[0])
     try:
-        cfg_all, _ = load_fusion_config()
+        cfg_all, _ = load_fusion_config(filters=PAPER_FIVE)
+        cfg_every, _ = load_fusion_config()          # what `evaluate` runs: the five + any filter registered since
         cfg_one, _ = load_fusion_config(filters=("cbkf",))
         topics = [f"/omc/{b}/pose" for b in ("tool", "base", "ots_rig")] + \
                  [f"/ots/{b}/pose" for b in ("tool", "base")] + [JOINT_TOPIC]
@@ -51,15 +58,35 @@ def main() -> None:
                 r.deserialize(m.data, m.msgtype)
             r.close()
 
+        def bulk():
+            r = BagReader(bag)
+            decoded_messages(r, [t for t in topics if t in r.topics])
+            r.close()
+
+        if "--profile" in sys.argv:
+            import cProfile
+            import pstats
+
+            prof = cProfile.Profile()
+            prof.runcall(evaluate_bag, bag, progress=False, config=cfg_all)
+            pstats.Stats(prof, stream=sys.stderr).sort_stats("tottime").print_stats(25)
         t_read = median_time(read_only, repeats=REPEATS)
+        t_bulk = median_time(bulk, repeats=REPEATS)
         t_all = median_time(lambda: evaluate_bag(bag, progress=False, config=cfg_all), repeats=REPEATS)
         t_one = median_time(lambda: evaluate_bag(bag, progress=False, config=cfg_one), repeats=REPEATS)
+        t_every = None
+        if tuple(cfg_every.filters) != tuple(cfg_all.filters):
+            t_every = median_time(lambda: evaluate_bag(bag, progress=False, config=cfg_every), repeats=REPEATS)
         name = bag.name if tmp is None else "synthetic 20 s"
         emit("eval_read_only", n / t_read, "measurements/s", bag=name, measurements=n)
-        emit("eval_throughput_all5", n / t_all, "measurements/s", baseline=n / t_read, bag=name, measurements=n,
-             seconds=round(t_all, 3))
-        emit("eval_throughput_cbkf", n / t_one, "measurements/s", baseline=n / t_read, bag=name, measurements=n,
+        emit("eval_decode_bulk", n / t_bulk, "measurements/s", baseline=n / t_read, bag=name, measurements=n)
+        emit("eval_throughput_all5", n / t_all, "measurements/s", baseline=n / t_bulk, bag=name, measurements=n,
+             seconds=round(t_all, 3), methods=list(cfg_all.filters))
+        emit("eval_throughput_cbkf", n / t_one, "measurements/s", baseline=n / t_bulk, bag=name, measurements=n,
              seconds=round(t_one, 3))
+        if t_every is not None:
+            emit("eval_throughput_every", n / t_every, "measurements/s", baseline=n / t_bulk, bag=name,
+                 measurements=n, seconds=round(t_every, 3), methods=list(cfg_every.filters))
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)

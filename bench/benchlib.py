@@ -36,5 +36,12 @@ def emit(name: str, value: float, unit: str, baseline: float | None = None, **ex
     return rec
 
 
+def emit_error(name: str, unit: str, why: str, **extra) -> dict:
+    """A figure that could not be measured: ``value`` null and ``error`` saying why (the name stays listed)."""
+    rec: dict = {"name": name, "value": None, "unit": unit, "error": why, **extra}
+    print(json.dumps(rec), flush=True)
+    return rec
+
+
 if __name__ == "__main__":
     sys.exit("benchlib is a library; run bench/run_all.py")

@@ -1,10 +1,11 @@
-"""Driver stand-in for bench_e2e_latency: publishes OMC and OTS poses at device rates, in real time.
+"""Driver stand-in for the live benches (fused latency, capacity): OMC and OTS poses at device rates, in real time.
 
-OMC (frame ``omc``) at ``--omc-hz``: bodies ``base`` and ``tool``; OTS (frame ``ots``) at ``--ots-hz``:
-tools ``base`` and ``tool``. Every message is stamped with the host time at which it is published
-(acquisition time == publish time for this stand-in), so the subscriber's receive time minus the fused
+OMC (frame ``omc``) at ``--omc-hz``: bodies ``base`` and every ``--tools`` name; OTS (frame ``ots``) at
+``--ots-hz``: tools ``base`` and the same names. Every message is stamped with the host time just before it is
+published (acquisition time == publish time for this stand-in), so the subscriber's receive time minus the fused
 pose's stamp is the end-to-end latency from a driver's publish to the fused pose.
-Prints one JSON line at the end: how many target samples were published per source.
+Prints one JSON line at the end: frames published per source and the achieved frame rates (a stand-in that
+cannot keep up with many tools shows it here, rather than as a loss of the node).
 """
 
 from __future__ import annotations
@@ -37,14 +38,16 @@ def main() -> int:
     ap.add_argument("--ots-hz", type=float, default=400.0)
     ap.add_argument("--duration", type=float, default=10.0)
     ap.add_argument("--wait-subscribers", type=int, default=1)
-    ap.add_argument("--stamps", help="write the target samples' stamps here (JSON: omc, ots lists)")
+    ap.add_argument("--tools", default="tool", help="comma-separated target names (default: tool)")
+    ap.add_argument("--stamps", help="write the target samples' stamps here (JSON: {omc|ots: {tool: [ns]}})")
     a = ap.parse_args()
     rclpy.init()
     node = rclpy.create_node("e2e_publisher")
     qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-    pubs = {k: node.create_publisher(PoseStamped, k, qos)
-            for k in ("/omc/base/pose", "/omc/tool/pose", "/ots/base/pose", "/ots/tool/pose")}
-    while pubs["/omc/tool/pose"].get_subscription_count() < a.wait_subscribers:
+    tools = [t for t in a.tools.split(",") if t]
+    pubs = {f"/{d}/{b}/pose": node.create_publisher(PoseStamped, f"/{d}/{b}/pose", qos)
+            for d in ("omc", "ots") for b in ("base", *tools)}
+    while min(pubs[f"/omc/{t}/pose"].get_subscription_count() for t in tools) < a.wait_subscribers:
         rclpy.spin_once(node, timeout_sec=0.05)
     time.sleep(1.0)  # discovery runs both ways; let the node match before data flows
     T_ots_omc = inv_T(T_OMC_OTS)
@@ -53,30 +56,35 @@ def main() -> int:
     t0 = time.monotonic()
     next_omc = next_ots = t0
     counts = {"omc": 0, "ots": 0}
-    stamps: dict[str, list[int]] = {"omc": [], "ots": []}
+    stamps: dict[str, dict[str, list[int]]] = {"omc": {t: [] for t in tools}, "ots": {t: [] for t in tools}}
+    T_ots_omc_q = T_to_pq(T_ots_omc)[1]
     while (now := time.monotonic()) - t0 < a.duration:
         t = now - t0
         if now >= next_omc:
-            ns = time.time_ns()
-            pubs["/omc/base/pose"].publish(pose_stamped(ns, "omc", p_base_omc, q_base_omc))
-            pubs["/omc/tool/pose"].publish(pose_stamped(ns, "omc", tool_in_omc(t), Q_ID))
+            pubs["/omc/base/pose"].publish(pose_stamped(time.time_ns(), "omc", p_base_omc, q_base_omc))
+            p = tool_in_omc(t)
+            for tool in tools:
+                ns = time.time_ns()
+                pubs[f"/omc/{tool}/pose"].publish(pose_stamped(ns, "omc", p, Q_ID))
+                stamps["omc"][tool].append(ns)
             counts["omc"] += 1
-            stamps["omc"].append(ns)
             next_omc += 1.0 / a.omc_hz
         if now >= next_ots:
-            ns = time.time_ns()
-            pubs["/ots/base/pose"].publish(pose_stamped(ns, "ots", p_base_ots, q_base_ots))
+            pubs["/ots/base/pose"].publish(pose_stamped(time.time_ns(), "ots", p_base_ots, q_base_ots))
             p_ots = apply_T(T_ots_omc, tool_in_omc(t))
-            pubs["/ots/tool/pose"].publish(pose_stamped(ns, "ots", p_ots, T_to_pq(T_ots_omc)[1]))
+            for tool in tools:
+                ns = time.time_ns()
+                pubs[f"/ots/{tool}/pose"].publish(pose_stamped(ns, "ots", p_ots, T_ots_omc_q))
+                stamps["ots"][tool].append(ns)
             counts["ots"] += 1
-            stamps["ots"].append(ns)
             next_ots += 1.0 / a.ots_hz
         time.sleep(max(0.0, min(next_omc, next_ots) - time.monotonic()))
+    elapsed = time.monotonic() - t0
     time.sleep(1.0)
     if a.stamps:
         with open(a.stamps, "w") as f:
             json.dump(stamps, f)
-    print(json.dumps(counts), flush=True)
+    print(json.dumps({**counts, "omc_hz": counts["omc"] / elapsed, "ots_hz": counts["ots"] / elapsed}), flush=True)
     node.destroy_node()
     rclpy.shutdown()
     return 0

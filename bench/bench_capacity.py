@@ -1,0 +1,84 @@
+"""Capacity: the most targets fusion_node sustains at OMC 240 Hz + OTS 400 Hz each (issue 16 item 4).
+
+A step with N targets (``t0`` .. ``tN-1``, each its own OMC body and OTS tool, the default primary filter only)
+passes when no target sample is lost (``live_fusion``: every sample after the first second is covered by a fused
+pose of its target) and the p99 of publish -> fused pose over all targets is <= 5 ms. The search goes upward
+through STEPS (from 2 targets for two processes) and stops at the first failing step (a busy machine fails early
+rather than late).
+
+Figures:
+  capacity_targets        one fusion_node process
+  capacity_targets_2proc  the targets partitioned over two processes (alternately: t0, t2, ... | t1, t3, ...)
+Raw baseline (same run): ``raw_dds_p99_ms``, the p99 of the publisher's /omc/t0/pose received here directly (the
+median over the steps) -- a count has no ratio to a latency, so it is a field, not ``baseline``.
+each with the per-step results (lost, p99, publisher's achieved rates, the node's drop counters) in ``steps``.
+Run: python bench/bench_capacity.py   (FULLPERC_BENCH_CAP_S: seconds per step, default 6;
+FULLPERC_BENCH_CAP_STEPS: e.g. "1,2,4,8,12,16")
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from benchlib import emit  # noqa: E402
+from live_fusion import run_live, target_params  # noqa: E402
+
+DURATION = float(os.environ.get("FULLPERC_BENCH_CAP_S", "6"))
+STEPS = [int(s) for s in os.environ.get("FULLPERC_BENCH_CAP_STEPS", "1,2,4,8,12,16").split(",") if s]
+P99_MAX_MS = 5.0
+MIN_RATE = 0.95      # the publisher must reach this share of the device rates, else the step says so
+
+
+def step(n: int, procs: int, domain: int) -> dict:
+    targets = [f"t{k}" for k in range(n)]
+    parts = [targets[i::procs] for i in range(procs) if targets[i::procs]]
+    res = run_live([target_params(p) for p in parts], targets, domain, DURATION)
+    lat = res.all_latency_ms
+    p99 = float(np.percentile(lat, 99)) if len(lat) else float("inf")
+    lost = int(sum(res.lost.values()))
+    rates = [round(res.publisher["omc_hz"], 1), round(res.publisher["ots_hz"], 1)]
+    publisher_ok = rates[0] >= MIN_RATE * 240 and rates[1] >= MIN_RATE * 400
+    return {"targets": n, "processes": len(parts), "lost": lost, "samples": int(sum(res.sent.values())),
+            "p50_ms": round(float(np.median(lat)), 3) if len(lat) else None,
+            "p99_ms": round(p99, 3) if np.isfinite(p99) else None,
+            "raw_p99_ms": round(float(np.percentile(res.raw_latency_ms, 99)), 3) if len(res.raw_latency_ms) else None,
+            "publisher_rates_hz": rates, "publisher_ok": publisher_ok, "node_counters": res.node_counters,
+            "nodes_alive": res.nodes_alive, "ok": lost == 0 and p99 <= P99_MAX_MS and res.nodes_alive}
+
+
+def search(procs: int, domain: int) -> tuple[int, list[dict]]:
+    best, steps = 0, []
+    for k, n in enumerate([n for n in STEPS if n >= procs]):   # two processes need two targets
+        s = step(n, procs, domain + k)
+        steps.append(s)
+        print(f"# capacity procs={procs} {s}", file=sys.stderr, flush=True)
+        if not s["ok"]:
+            break
+        best = n
+    return best, steps
+
+
+def main() -> None:
+    domain = 100 + os.getpid() % 50
+    for name, procs in (("capacity_targets", 1), ("capacity_targets_2proc", 2)):
+        best, steps = search(procs, domain + 20 * (procs - 1))
+        raw = [s["raw_p99_ms"] for s in steps if s["raw_p99_ms"] is not None]
+        failed = next((s for s in steps if not s["ok"]), None)
+        why = None
+        if failed is not None:
+            why = (f"{failed['targets']} targets: lost {failed['lost']} of {failed['samples']}, p99 "
+                   f"{failed['p99_ms']} ms (limit {P99_MAX_MS} ms)"
+                   + ("" if failed["publisher_ok"] else "; the stand-in publisher fell behind the device rates")
+                   + ("" if failed["nodes_alive"] else "; a fusion_node process died"))
+        emit(name, best, "targets", raw_dds_p99_ms=float(np.median(raw)) if raw else None,
+             criterion=f"0 lost and p99 <= {P99_MAX_MS} ms at 240 + 400 Hz per target", first_failure=why,
+             steps=steps)
+
+
+if __name__ == "__main__":
+    main()

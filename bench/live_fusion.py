@@ -1,0 +1,166 @@
+"""Shared harness of the live fusion benches (bench_e2e_latency, bench_capacity): real processes on one DDS domain.
+
+:func:`run_live` starts one or more installed ``fusion_node`` processes, subscribes here (a separate process from
+the node and the publisher) to the fused pose of every target, runs ``e2e_publisher.py`` (driver stand-in, poses
+stamped with their publish time) and returns per target the latencies (receive time - fused stamp) and the
+target samples that never reached a fused output.
+
+"Lost" is defined without assuming how the node pairs samples: a target sample stamped ``s`` is covered when a
+fused pose of its target is stamped in ``[s, s + slop]`` (a lone sample is published at its own stamp; an
+approximate-time pair at the newer of its two stamps, at most ``slop`` later). The node's own drop counters from
+``/diagnostics`` are returned beside it. The first second after the first fused pose is skipped (the static links
+are averaged from the first samples then). Every run uses LOCALHOST discovery and its own domain id.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+WARMUP_NS = 1_000_000_000
+# a /diagnostics value counts as a drop counter when its key has one of these words (late, sync_late, lost, ...)
+DROP_WORDS = {"late", "lost", "dropped", "duplicate", "future", "old", "rejected"}
+
+
+def root() -> Path:
+    return Path(os.environ.get("FULLPERC_ROOT", HERE.parent))
+
+
+def fusion_exe() -> Path:
+    return root() / "install/fullperc_fusion/lib/fullperc_fusion/fusion_node"
+
+
+def default_slop_s() -> float:
+    """The node's default ``slop`` (fusion_config), the pairing window of the coverage rule."""
+    from fullperc_fusion.fusion_config import PARAMS
+
+    return float(next(p.default for p in PARAMS if p.name == "slop"))
+
+
+@dataclass
+class LiveResult:
+    latency_ms: dict[str, np.ndarray]        # per target: receive - stamp of every fused pose after warm-up [ms]
+    raw_latency_ms: np.ndarray               # raw DDS: /omc/<first target>/pose received here directly [ms]
+    lost: dict[str, int]                     # per target: samples after warm-up not covered by a fused pose
+    sent: dict[str, int]                     # per target: samples after warm-up (OMC + OTS)
+    node_counters: dict[str, int]            # summed drop counters of the nodes' /diagnostics
+    publisher: dict                          # the publisher's summary line (frames, achieved rates)
+    nodes_alive: bool = True
+    diag: dict[str, dict[str, str]] = field(default_factory=dict)
+
+    @property
+    def all_latency_ms(self) -> np.ndarray:
+        parts = [v for v in self.latency_ms.values() if len(v)]
+        return np.concatenate(parts) if parts else np.zeros(0)
+
+
+def target_params(targets: list[str]) -> list[str]:
+    """``--ros-args`` of a node fusing ``targets`` (each its own OMC body and OTS tool of the same name)."""
+    out = ["-p", f"targets:=[{', '.join(targets)}]"]
+    for t in targets:
+        out += ["-p", f"{t}.omc_body:={t}", "-p", f"{t}.ots_tool:={t}"]
+    return out
+
+
+def run_live(nodes: list[list[str]], targets: list[str], domain: int, duration: float,
+             omc_hz: float = 240.0, ots_hz: float = 400.0) -> LiveResult:
+    """Run ``len(nodes)`` fusion_node processes (each with the given extra ``--ros-args``) against the publisher."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    os.environ.update(ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    procs = [subprocess.Popen([str(fusion_exe()), "--ros-args", "-p", "init_samples:=20", *p], env=env,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+             for p in nodes]
+    ctx = Context()
+    rclpy.init(context=ctx)
+    node = rclpy.create_node("live_bench", context=ctx)
+    fused: dict[str, list[tuple[int, int]]] = {t: [] for t in targets}
+    raw: list[tuple[int, int]] = []
+    diag: dict[str, dict[str, str]] = {}
+
+    def stamp(m) -> int:
+        return m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
+
+    def on_diag(arr) -> None:
+        for st in arr.status:
+            if "target" in st.name:
+                diag[st.name] = {kv.key: kv.value for kv in st.values}
+
+    qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+    node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 100)
+    for t in targets:
+        node.create_subscription(PoseStamped, f"/fullperc/{t}/pose",
+                                 lambda m, s=fused[t]: s.append((time.time_ns(), stamp(m))), qos)
+    node.create_subscription(PoseStamped, f"/omc/{targets[0]}/pose",
+                             lambda m: raw.append((time.time_ns(), stamp(m))), qos)
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    stop = threading.Event()
+    th = threading.Thread(target=lambda: [ex.spin_once(timeout_sec=0.05) for _ in iter(stop.is_set, True)],
+                          daemon=True)
+    th.start()
+    stamps_file = Path(tempfile.mkdtemp(prefix="live_bench_")) / "stamps.json"
+    try:
+        pub = subprocess.run([sys.executable, str(HERE / "e2e_publisher.py"), "--duration", str(duration),
+                              "--wait-subscribers", "2", "--tools", ",".join(targets), "--omc-hz", str(omc_hz),
+                              "--ots-hz", str(ots_hz), "--stamps", str(stamps_file)],
+                             env=env, capture_output=True, text=True, timeout=duration + 180)
+        time.sleep(2.5)   # one more diagnostics period after the last sample
+    finally:
+        stop.set()
+        th.join()
+        alive = all(p.poll() is None for p in procs)
+        for p in procs:
+            p.send_signal(2)
+        for p in procs:
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+        rclpy.shutdown(context=ctx)
+    if pub.returncode != 0:
+        raise RuntimeError(f"e2e_publisher failed (exit {pub.returncode}): {pub.stderr.strip()[-500:]}")
+    summary = json.loads(pub.stdout.strip().splitlines()[-1])
+    sent = json.loads(stamps_file.read_text())
+    slop_ns = int(default_slop_s() * 1e9)
+    lat: dict[str, np.ndarray] = {}
+    lost: dict[str, int] = {}
+    n_sent: dict[str, int] = {}
+    for t in targets:
+        f = np.array(fused[t], dtype=np.int64).reshape(-1, 2)
+        s = np.sort(np.array(sent["omc"][t] + sent["ots"][t], dtype=np.int64))
+        if len(f):
+            start = f[:, 1].min() + WARMUP_NS
+            f = f[f[:, 1] > start]
+            s = s[s > start]
+        lat[t] = (f[:, 0] - f[:, 1]) / 1e6
+        out = np.sort(f[:, 1])
+        k = np.searchsorted(out, s)          # first fused stamp >= s
+        covered = (k < len(out)) & (out[np.minimum(k, len(out) - 1)] <= s + slop_ns) if len(out) else \
+            np.zeros(len(s), bool)
+        lost[t] = int((~covered).sum())
+        n_sent[t] = int(len(s))
+    r = np.array(raw, dtype=np.int64).reshape(-1, 2)
+    counters: dict[str, int] = {}
+    for values in diag.values():
+        for k2, v in values.items():
+            if DROP_WORDS & set(k2.split("_")) and v.strip().lstrip("-").isdigit():
+                counters[k2] = counters.get(k2, 0) + int(v)
+    return LiveResult(lat, (r[:, 0] - r[:, 1]) / 1e6, lost, n_sent, counters, summary, alive, diag)
