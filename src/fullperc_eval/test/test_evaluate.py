@@ -17,7 +17,7 @@ from fullperc_common.runs import runs
 from fullperc_common.transforms import make_T
 from fullperc_drivers.diana_kinematics import DianaKinematics
 from fullperc_eval.bag.calibration import Calibration, CalibrationError, load_calibration, save_calibration
-from fullperc_eval.evaluation.config import METHODS, EvaluationError, replay_config
+from fullperc_eval.evaluation.config import METHODS, PAPER_METHODS, EvaluationError, replay_config
 from fullperc_eval.evaluation.ground_truth import GroundTruth
 from fullperc_eval.evaluation.metrics import evaluate_bag, transition_segments
 from fullperc_eval.evaluation.report import write_report
@@ -231,3 +231,77 @@ def test_report_writes_plots_and_html(synth_eval, tmp_path):
         assert name in text
     assert f"{synth_eval.result['mae_mm']['omc']:.2f}" in text
     assert not (tmp_path / "box_b_to_p.png").exists()     # no B->P segment on this path
+
+
+# ------------------------------------------------------------------------- orientation, NEES, single sources
+def test_orientation_error_of_exact_data_is_zero_for_every_method_and_source(synth_eval):
+    """The synthetic devices report the true orientation: any frame mix-up in the ground truth's rotation (FK,
+    calibration, the chain into base) would show here as degrees. (The paper's filters copy a source's
+    orientation; a filter that estimates it may lag behind the turning tool and is not checked here.)"""
+    ori = synth_eval.result["orientation_mae_deg"]
+    assert set(ori) == set(METHODS) | {"local"}
+    exact = {m: ori[m] for m in (*PAPER_METHODS, "local")}
+    assert all(v is not None and v < 1e-9 for v in exact.values()), exact
+
+
+def test_injected_orientation_error_is_measured_and_split_by_region(synth, synth_eval):
+    from scipy.spatial.transform import Rotation
+
+    from fullperc_eval.evaluation.metrics import evaluate_replay
+    from fullperc_eval.evaluation.replay import replay
+    from fullperc_fusion.layout import default_layout_path, load_layout
+
+    cfg, _ = replay_config()
+    rep = replay(synth[0], cfg, progress=False)
+    angle = 1.7   # deg, about an arbitrary axis in base
+    d = Rotation.from_rotvec(np.radians(angle) * np.array([0.48, -0.6, 0.64]))
+    o = rep.outputs["kf"]
+    o["q"] = (d * Rotation.from_quat(o["q"])).as_quat()
+    r = evaluate_replay(rep, load_calibration(synth[0]), load_layout(default_layout_path())).result
+    assert r["orientation_mae_deg"]["kf"] == pytest.approx(angle, abs=1e-9)
+    assert r["orientation_mae_deg"]["cbkf"] < 1e-9                    # the others untouched
+    gvv = r["orientation_by_region_deg"]["GVV"]["kf"]
+    assert gvv == pytest.approx(angle, abs=1e-9) and r["orientation_by_region_deg"]["PVV"]["kf"] is None
+    assert r["mae_mm"] == synth_eval.result["mae_mm"]                 # position figures unchanged
+
+
+def test_omc_position_nees_is_the_injected_offset_over_its_reported_variance(synth_eval):
+    """The pass-through reports global_std^2 I; its error is the constant injected offset."""
+    n = synth_eval.result["nees"]["omc"]["position"]
+    want = float(np.sum(np.square(OFFSET))) / FilterParams().global_std ** 2
+    assert n["mean"] == pytest.approx(want, rel=1e-6) and n["dof"] == 3
+    assert n["share_95"] == (1.0 if want <= n["bound"] else 0.0)
+    assert n["n"] == synth_eval.result["outputs"]["omc"]
+    assert synth_eval.result["nees"]["cbkf"]["pose"]["n"] == 0        # a copied orientation is not checked
+
+
+def test_raw_local_chain_is_a_single_source_and_the_tap_sees_the_omc_as_the_pass_through(synth, synth_eval):
+    s = synth_eval.series
+    loc = synth_eval.result["single_sources"]["local"]
+    assert loc["mae_mm"] < 1e-6                                     # exact Vega, exact static link
+    t_loc = s["single_sources"]["local"]["t_ns"] - synth[2]["t_omc_ns"][0]
+    assert loc["n"] == len(t_loc) > 0 and t_loc.max() * 1e-9 < 4.0   # only inside the OTS window
+    g, o = s["single_sources"]["global"], s["outputs"]["omc"]
+    np.testing.assert_array_equal(g["t_ns"], o["t_ns"])
+    np.testing.assert_allclose(g["p"], o["p"], atol=0)
+
+
+def test_regions_carry_the_layouts_threshold_and_the_time_spent(synth_eval):
+    from fullperc_fusion.layout import default_layout_path, load_layout
+
+    reg = synth_eval.result["regions"]
+    assert reg["threshold_deg"] == load_layout(default_layout_path()).threshold_deg
+    assert sum(reg["seconds"].values()) == pytest.approx(synth_eval.result["duration_s"], abs=1e-9)
+    for k, f in reg["fraction"].items():
+        assert reg["seconds"][k] == pytest.approx(f * synth_eval.result["duration_s"], abs=0.02)
+
+
+def test_an_injected_omc_hop_is_reported_with_its_time_and_size(tmp_path):
+    before, after, t_hop = (0.003, 0.0, 0.0), (-0.002, 0.003, 0.0), 5.0
+    content, _ = synthetic_content(8.0, omc_offset=before, omc_offset_after=after, t_offset_change_s=t_hop,
+                                   ots_window_s=(0.0, 8.0), omc_noise_m=1e-4)
+    r = evaluate_bag(write_bag(tmp_path / "hop", content), progress=False).result
+    assert len(r["omc_hops"]) == 1, r["omc_hops"]
+    h = r["omc_hops"][0]
+    assert h["t_s"] == pytest.approx(t_hop, abs=0.05)
+    assert h["jump_mm"] == pytest.approx(np.linalg.norm(np.subtract(after, before)) * 1e3, abs=0.2)

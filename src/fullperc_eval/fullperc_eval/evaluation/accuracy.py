@@ -13,10 +13,16 @@ line per seed on stderr. Then, per profile:
 * the share of task-seeds where the paper's ordering CBKF <= CKF <= BKF <= KF <= OMC holds, and where
   CBKF <= KF <= OMC holds;
 * the CBKF/OMC ratio over every task-seed: mean, sd, median, min, max;
-* Table 2 (G-B-P, B->P segment): max and median per method, mean ± sd over seeds.
+* Table 2 (G-B-P, B->P segment): max and median per method, mean ± sd over seeds;
+* orientation MAE [deg] per task and method (and of the raw local chain ``local``), mean ± sd over seeds;
+* NEES per method, pooled over every output of every task-seed: share inside the chi2 95 % bound and mean
+  (position, dof 3; full pose, dof 6, for methods that fuse the orientation);
+* the goal checks of issue 18 for :data:`GOAL_METHOD` (:func:`goal_checks`).
 
-Stdout: one JSON line per figure (``{"name", "value", "unit", "profile", ...}``, like ``bench/benchlib.py``), then
-the human tables. ``--json`` writes every per-task-seed figure and the summary.
+Stdout: one JSON line per figure (``{"name", "value", "unit", "profile", ...}``, like ``bench/benchlib.py``): the
+paper's five methods' lines first, exactly as before, then the further methods', the orientation, NEES and goal
+lines; then the human tables. ``--json`` writes every per-task-seed figure and the summary (the former keys
+unchanged; ``goals`` added).
 """
 
 from __future__ import annotations
@@ -37,8 +43,10 @@ from fullperc_eval.sim.dataset import generate
 from fullperc_eval.sim.scene import PROFILES, load_scene_config
 from fullperc_eval.sim.tasks import TASKS, default_plans_path, plans_file_of
 
-from .config import METHODS
+from .accuracy_goals import GOAL_METHOD, format_goals, goal_checks, goal_lines
+from .config import METHODS, PAPER_METHODS
 from .evaluate_all import TASK_ORDER
+from .tables import _grid
 from .twin_report import parse_seeds
 
 ORDER_FULL = ("cbkf", "ckf", "bkf", "kf", "omc")   # CBKF <= CKF <= BKF <= KF <= OMC
@@ -79,7 +87,11 @@ def run_seed(profile: str, seed: int, cache: str, fusion_config: str | None, key
     for t in TASK_ORDER:
         r = evaluate_bag(d / t, fusion_config=fusion_config, progress=False).result
         rows.append({"task": t, "seed": seed, "profile": profile, "mae_mm": r["mae_mm"],
-                     "mae_by_region_mm": r["mae_by_region_mm"], "b_to_p": r["b_to_p"]})
+                     "mae_by_region_mm": r["mae_by_region_mm"], "b_to_p": r["b_to_p"],
+                     "orientation_mae_deg": r.get("orientation_mae_deg"),
+                     "orientation_by_region_deg": r.get("orientation_by_region_deg"),
+                     "nees": {m: {k: {x: v[k][x] for x in ("n", "share_95", "mean")} for k in ("position", "pose")}
+                              for m, v in (r.get("nees") or {}).items()}})
     return {"profile": profile, "seed": seed, "rows": rows, "generated": len(missing),
             "sim_s": t1 - t0, "eval_s": time.monotonic() - t1}
 
@@ -89,12 +101,46 @@ def _ms(v: list[float]) -> tuple[float, float]:
     return (float(a.mean()), float(a.std(ddof=1)) if a.size > 1 else 0.0) if a.size else (float("nan"), float("nan"))
 
 
+def _methods(rows: list[dict[str, Any]], key: str = "mae_mm") -> list[str]:
+    """The methods the rows carry under ``key``, in METHODS order (rows of an older run may lack a new filter)."""
+    have = {m for r in rows for m in (r.get(key) or {})}
+    return [m for m in METHODS if m in have] + sorted(have - set(METHODS))
+
+
+def pooled_nees(rows: list[dict[str, Any]]) -> dict[str, dict[str, dict[str, float | int | None]]]:
+    """Per method and kind (position / pose): the share inside the 95 % bound and the mean NEES over every output
+    of every task-seed (each task-seed weighted by its number of outputs)."""
+    out: dict[str, dict[str, dict[str, float | int | None]]] = {}
+    for m in _methods(rows, "nees"):
+        out[m] = {}
+        for kind in ("position", "pose"):
+            parts = [(r["nees"][m][kind]) for r in rows if (r.get("nees") or {}).get(m)]
+            parts = [x for x in parts if x and x.get("n")]
+            n = sum(x["n"] for x in parts)
+            out[m][kind] = {"n": n, "share_95": sum(x["share_95"] * x["n"] for x in parts) / n if n else None,
+                            "mean": sum(x["mean"] * x["n"] for x in parts) / n if n else None}
+    return out
+
+
 def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """Table 1 mean ± sd, ordering shares, CBKF/OMC distribution and Table 2 of one profile's task-seeds."""
-    t1 = {t: {m: _ms([r["mae_mm"][m] for r in rows if r["task"] == t]) for m in METHODS} for t in TASK_ORDER}
+    """Table 1 mean ± sd, ordering shares, CBKF/OMC distribution and Table 2 of one profile's task-seeds; the
+    orientation table, the pooled NEES and the goal checks (:func:`goal_checks`) when the rows carry them."""
+    ms = _methods(rows)
+    t1 = {t: {m: _ms([r["mae_mm"].get(m) for r in rows if r["task"] == t]) for m in ms} for t in TASK_ORDER}
     ratio = np.array([r["mae_mm"]["cbkf"] / r["mae_mm"]["omc"] for r in rows])
     gbp = [r for r in rows if r["task"] == "G-B-P" and r.get("b_to_p")]
-    t2 = {k: {m: _ms([r["b_to_p"][k][m] for r in gbp]) for m in METHODS} for k in ("max_mm", "median_mm")}
+    t2 = {k: {m: _ms([r["b_to_p"][k].get(m) for r in gbp]) for m in ms} for k in ("max_mm", "median_mm")}
+    extra: dict[str, Any] = {}
+    oms = _methods(rows, "orientation_mae_deg")
+    if oms:
+        extra["table1_orientation_deg"] = {t: {m: _ms([(r.get("orientation_mae_deg") or {}).get(m)
+                                                       for r in rows if r["task"] == t]) for m in oms}
+                                           for t in TASK_ORDER}
+        extra["orientation_by_region_deg"] = {
+            reg: {m: _ms([((r.get("orientation_by_region_deg") or {}).get(reg) or {}).get(m) for r in rows])
+                  for m in oms} for reg in ("BVV", "GVV", "PVV")}
+    if any(r.get("nees") for r in rows):
+        extra["nees"] = pooled_nees(rows)
     return {"n_task_seeds": len(rows), "seeds": sorted({r["seed"] for r in rows}), "table1_mae_mm": t1,
             "share_full_order": float(np.mean([holds(r["mae_mm"], ORDER_FULL) for r in rows])),
             "share_cbkf_kf_omc": float(np.mean([holds(r["mae_mm"], ORDER_MAIN) for r in rows])),
@@ -102,14 +148,21 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
             "cbkf_over_omc": {"mean": float(ratio.mean()), "sd": float(ratio.std(ddof=1)) if ratio.size > 1 else 0.0,
                               "median": float(np.median(ratio)), "min": float(ratio.min()),
                               "max": float(ratio.max())},
-            "table2_gbp_b_to_p_mm": t2, "table2_n": len(gbp)}
+            "table2_gbp_b_to_p_mm": t2, "table2_n": len(gbp), **extra}
 
 
-def json_lines(profile: str, s: dict[str, Any]) -> list[dict[str, Any]]:
+def _r4(v: float | None) -> float | None:
+    return None if v is None or not np.isfinite(v) else round(float(v), 4)
+
+
+def json_lines(profile: str, s: dict[str, Any], goals: list[dict[str, Any]] | None = None) -> list[dict[str, Any]]:
+    """The JSON lines of one profile: the paper's five methods' lines first, in the order and form they always had,
+    then those of every further method, the orientation, the NEES and the ``goals`` given."""
     out = []
     for t, per in s["table1_mae_mm"].items():
         for m, (mu, sd) in per.items():
-            out.append({"name": f"mae_{m}_{t}", "value": round(mu, 4), "sd": round(sd, 4), "unit": "mm"})
+            if m in PAPER_METHODS:
+                out.append({"name": f"mae_{m}_{t}", "value": round(mu, 4), "sd": round(sd, 4), "unit": "mm"})
     out.append({"name": "share_full_order", "value": round(s["share_full_order"], 4), "unit": "fraction"})
     out.append({"name": "share_cbkf_kf_omc", "value": round(s["share_cbkf_kf_omc"], 4), "unit": "fraction"})
     out.append({"name": "share_cbkf_le_omc", "value": round(s["share_cbkf_le_omc"], 4), "unit": "fraction"})
@@ -117,18 +170,62 @@ def json_lines(profile: str, s: dict[str, Any]) -> list[dict[str, Any]]:
         out.append({"name": f"cbkf_over_omc_{k}", "value": round(v, 4), "unit": "ratio"})
     for k, per in s["table2_gbp_b_to_p_mm"].items():
         for m, (mu, sd) in per.items():
-            out.append({"name": f"b_to_p_{k.removesuffix('_mm')}_{m}", "value": round(mu, 4), "sd": round(sd, 4),
-                        "unit": "mm"})
+            if m in PAPER_METHODS:
+                out.append({"name": f"b_to_p_{k.removesuffix('_mm')}_{m}", "value": round(mu, 4), "sd": round(sd, 4),
+                            "unit": "mm"})
+    # added lines (issue 18): further methods, orientation, NEES, goals -- after every line of the paper's five
+    for t, per in s["table1_mae_mm"].items():
+        for m, (mu, sd) in per.items():
+            if m not in PAPER_METHODS:
+                out.append({"name": f"mae_{m}_{t}", "value": _r4(mu), "sd": _r4(sd), "unit": "mm"})
+    for k, per in s["table2_gbp_b_to_p_mm"].items():
+        for m, (mu, sd) in per.items():
+            if m not in PAPER_METHODS:
+                out.append({"name": f"b_to_p_{k.removesuffix('_mm')}_{m}", "value": _r4(mu), "sd": _r4(sd),
+                            "unit": "mm"})
+    for t, per in (s.get("table1_orientation_deg") or {}).items():
+        for m, (mu, sd) in per.items():
+            out.append({"name": f"orientation_mae_{m}_{t}", "value": _r4(mu), "sd": _r4(sd), "unit": "deg"})
+    for m, kinds in (s.get("nees") or {}).items():
+        for kind, v in kinds.items():
+            if v["n"]:
+                out.append({"name": f"nees_{kind}_share95_{m}", "value": _r4(v["share_95"]), "unit": "fraction",
+                            "n": v["n"]})
+                out.append({"name": f"nees_{kind}_mean_{m}", "value": _r4(v["mean"]), "unit": "nees", "n": v["n"]})
+    out += goal_lines(goals or [])
     for rec in out:
         rec.update(profile=profile, seeds=len(s["seeds"]))
     return out
 
 
-def format_summary(profile: str, s: dict[str, Any]) -> str:
+def _ms_table(title: str, table: dict[str, dict[str, tuple[float, float]]], digits: int = 2) -> list[str]:
+    """A mean ± sd table, every column padded to its widest cell (figures right-aligned)."""
+    cols = list(dict.fromkeys(m for per in table.values() for m in per))
+    body = [[t] + [("-" if not np.isfinite(per[m][0]) else f"{per[m][0]:.{digits}f} ± {per[m][1]:.{digits}f}")
+                   if m in per else "-" for m in cols] for t, per in table.items()]
+    return [title, *_grid(["task"] + [m.upper() for m in cols], body)]
+
+
+def format_nees(s: dict[str, Any]) -> list[str]:
+    nees = s.get("nees") or {}
+    body = []
+    for kind, dof in (("position", 3), ("pose", 6)):
+        have = [m for m in nees if nees[m][kind]["n"]]
+        if have:
+            body.append([f"{kind} (dof {dof})"] + [f"{100 * nees[m][kind]['share_95']:.1f}%/{nees[m][kind]['mean']:.3g}"
+                                                  if m in have else "-" for m in nees])
+    if not body:
+        return []
+    return ["NEES pooled over every output: share inside the chi2 95 % bound / mean (honest: 95 % / dof)",
+            *_grid([""] + [m.upper() for m in nees], body)]
+
+
+def format_summary(profile: str, s: dict[str, Any], goals: list[dict[str, Any]] | None = None) -> str:
     seeds = s["seeds"]
+    ms = list(next(iter(s["table1_mae_mm"].values())))
     lines = [f"profile {profile}: Table 1, MAE [mm] mean ± sd over {len(seeds)} seeds "
              f"({seeds[0]}-{seeds[-1]}), {s['n_task_seeds']} task-seeds",
-             f"{'task':<9}" + "".join(f"{m.upper():>14}" for m in METHODS) + "   CBKF/OMC"]
+             f"{'task':<9}" + "".join(f"{m.upper():>14}" for m in ms) + "   CBKF/OMC"]
     for t, per in s["table1_mae_mm"].items():
         r = per["cbkf"][0] / per["omc"][0] if per["omc"][0] else float("nan")
         lines.append(f"{t:<9}" + "".join(f"{mu:8.2f} ± {sd:4.2f}" for mu, sd in per.values()) + f"   {r:8.2f}")
@@ -139,10 +236,18 @@ def format_summary(profile: str, s: dict[str, Any]) -> str:
               f"CBKF/OMC over task-seeds: mean {c['mean']:.2f} ± {c['sd']:.2f}, median {c['median']:.2f}, "
               f"min {c['min']:.2f}, max {c['max']:.2f} (paper: mean 0.51, 0.46-0.66)",
               f"Table 2 (G-B-P, B->P segment, {s['table2_n']} seeds), error [mm] mean ± sd:",
-              f"{'':<9}" + "".join(f"{m.upper():>14}" for m in METHODS)]
+              f"{'':<9}" + "".join(f"{m.upper():>14}" for m in ms)]
     for k, per in s["table2_gbp_b_to_p_mm"].items():
         lines.append(f"{k.removesuffix('_mm'):<9}" + "".join(f"{mu:8.2f} ± {sd:4.2f}" for mu, sd in per.values()))
     lines.append(f"{'paper':<9}max 6.36 8.32 6.76 2.02 2.02 | median 5.81 5.77 5.56 0.25 0.25")
+    if s.get("table1_orientation_deg"):
+        lines += ["", *_ms_table("Orientation MAE [deg] mean ± sd over seeds (LOCAL = raw Vega chain in base):",
+                                 s["table1_orientation_deg"], 3)]
+    nees = format_nees(s)
+    if nees:
+        lines += ["", *nees]
+    if goals:
+        lines += ["", *format_goals(goals)]
     return "\n".join(lines)
 
 
@@ -168,24 +273,28 @@ def main(argv: list[str] | None = None) -> int:
             r = f.result()
             results.append(r)
             ratio = [x["mae_mm"]["cbkf"] / x["mae_mm"]["omc"] for x in r["rows"]]
+            extra = [x["mae_mm"][GOAL_METHOD] / x["mae_mm"]["cbkf"] for x in r["rows"]
+                     if x["mae_mm"].get(GOAL_METHOD) is not None]
             print(f"[{len(results)}/{len(jobs)}] profile {r['profile']} seed {r['seed']}: "
                   f"{'generated ' + str(r['generated']) + ' bags' if r['generated'] else 'cached bags'} "
                   f"{r['sim_s']:.0f} s, evaluated {r['eval_s']:.0f} s; CBKF/OMC mean {np.mean(ratio):.2f}, "
-                  f"{time.monotonic() - t0:.0f} s so far", file=sys.stderr, flush=True)
-    summary, text = {}, []
+                  + (f"{GOAL_METHOD.upper()}/CBKF mean {np.mean(extra):.2f}, " if extra else "")
+                  + f"{time.monotonic() - t0:.0f} s so far", file=sys.stderr, flush=True)
+    summary, text, goals = {}, [], {}
     for p in profiles:
         rows = [x for r in sorted(results, key=lambda r: r["seed"]) if r["profile"] == p for x in r["rows"]]
         summary[p] = summarize(rows)
-        for rec in json_lines(p, summary[p]):
+        goals[p] = goal_checks(p, summary[p])
+        for rec in json_lines(p, summary[p], goals[p]):
             print(json.dumps(rec))
-        text.append(format_summary(p, summary[p]))
+        text.append(format_summary(p, summary[p], goals[p]))
     print()
     print("\n\n".join(text))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         with open(args.json, "w") as f:
             json.dump({"profiles": list(profiles), "seeds": seeds, "fusion_config": args.fusion_config,
-                       "twin_hash": keys, "summary": summary,
+                       "twin_hash": keys, "summary": summary, "goals": goals,
                        "task_seeds": [x for r in results for x in r["rows"]]}, f, indent=1, default=float)
             f.write("\n")
         print(f"wrote {args.json}")

@@ -1,0 +1,109 @@
+"""``make accuracy``'s summary with the issue-18 additions (evaluation/accuracy.py, accuracy_goals.py).
+
+Hand-made task-seed rows; every expected value is recomputed here from those rows by the goal's definition.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from fullperc_eval.evaluation.accuracy import format_summary, json_lines, pooled_nees, summarize
+from fullperc_eval.evaluation.accuracy_goals import format_goals, goal_checks
+from fullperc_eval.evaluation.evaluate_all import TASK_ORDER
+
+PAPER = ("omc", "kf", "bkf", "ckf", "cbkf")
+
+
+def _rows(with_new: bool, seeds=(0, 1, 2)) -> list[dict]:
+    rows = []
+    for seed in seeds:
+        rng = np.random.default_rng(seed)
+        for k, t in enumerate(TASK_ORDER):
+            mae = dict(zip(PAPER, sorted(rng.uniform(1.0, 4.0, 5), reverse=True), strict=True))
+            r = {"task": t, "seed": seed, "profile": "x", "mae_mm": mae, "mae_by_region_mm": {}, "b_to_p": None}
+            if t == "G-B-P":
+                r["b_to_p"] = {"max_mm": dict(mae), "median_mm": {m: v / 2 for m, v in mae.items()}}
+            if with_new:
+                mae["fullperc"] = mae["cbkf"] * (0.7 + 0.05 * k) if k != 3 else mae["omc"] * 1.08
+                if t == "G-B-P":
+                    r["b_to_p"]["max_mm"]["fullperc"] = r["b_to_p"]["median_mm"]["fullperc"] = 1.0
+                r["orientation_mae_deg"] = {**{m: 1.0 + 0.1 * k for m in PAPER}, "fullperc": 0.2 + 0.01 * seed,
+                                            "local": 0.25 if k != 2 else 0.1}
+                r["orientation_by_region_deg"] = {g: dict(r["orientation_mae_deg"]) for g in ("BVV", "GVV", "PVV")}
+                n = 100 * (k + 1)
+                r["nees"] = {m: {"position": {"n": n, "share_95": 0.5 + 0.05 * k, "mean": 3.0 + k},
+                                 "pose": {"n": 0, "share_95": None, "mean": None}} for m in (*PAPER, "fullperc")}
+                r["nees"]["fullperc"]["pose"] = {"n": n, "share_95": 0.93, "mean": 6.1}
+            rows.append(r)
+    return rows
+
+
+def _seed_mean(rows, task, m, key="mae_mm"):
+    return float(np.mean([r[key][m] for r in rows if r["task"] == task]))
+
+
+def test_goals_are_computed_by_their_definitions():
+    rows = _rows(True)
+    s = summarize(rows)
+    g = {x["goal"]: x for x in goal_checks("paper", s)}
+    f = np.mean([_seed_mean(rows, t, "fullperc") for t in TASK_ORDER])
+    c = np.mean([_seed_mean(rows, t, "cbkf") for t in TASK_ORDER])
+    assert g["position_vs_cbkf"]["value"] == pytest.approx(1 - f / c)
+    assert g["position_vs_cbkf"]["ok"] is bool(1 - f / c >= 0.20)
+    assert "position_vs_omc" not in g                        # the spec-profile goal
+    ratios = {t: _seed_mean(rows, t, "fullperc", "orientation_mae_deg")
+              / min(_seed_mean(rows, t, "omc", "orientation_mae_deg"), _seed_mean(rows, t, "local",
+                                                                                  "orientation_mae_deg"))
+              for t in TASK_ORDER}
+    worst = max(ratios, key=ratios.get)
+    assert worst == TASK_ORDER[2]                            # where the raw local chain is best (0.1 deg)
+    assert g["orientation_vs_single_sources"]["value"] == pytest.approx(ratios[worst])
+    assert g["orientation_vs_single_sources"]["ok"] is False and "LOCAL" in g["orientation_vs_single_sources"]["detail"]
+    n = np.array([100 * (k + 1) for k in range(6)] * 3)
+    share = np.array([0.5 + 0.05 * k for k in range(6)] * 3)
+    assert g["nees_position_share95"]["value"] == pytest.approx(float((n * share).sum() / n.sum()))
+    assert g["nees_pose_share95"]["ok"] is True
+    sp = {x["goal"]: x for x in goal_checks("spec", s)}
+    omc = {t: _seed_mean(rows, t, "fullperc") / _seed_mean(rows, t, "omc") for t in TASK_ORDER}
+    assert sp["position_vs_omc"]["value"] == pytest.approx(max(omc.values()))
+    assert sp["position_vs_omc"]["ok"] is False and TASK_ORDER[3] in sp["position_vs_omc"]["detail"]
+    assert "position_vs_cbkf" not in sp
+    text = "\n".join(format_goals(goal_checks("paper", s)))
+    assert "MISSED orientation_vs_single_sources" in text
+
+
+def test_goals_without_the_method_are_not_met_but_not_available():
+    s = summarize(_rows(False))
+    g = goal_checks("paper", s) + goal_checks("spec", s)
+    assert g and all(x["ok"] is None and x["value"] is None for x in g)
+
+
+def test_json_lines_of_the_papers_five_are_unchanged_by_a_new_method():
+    """The lines of the paper's five methods come first, identical whether a further filter is evaluated or not;
+    the new method's lines, orientation, NEES and goals only follow them."""
+    before = json_lines("paper", summarize(_rows(False)))
+    rows = _rows(True)
+    s = summarize(rows)
+    after = json_lines("paper", s, goal_checks("paper", s))
+    assert after[:len(before)] == before
+    names = [x["name"] for x in after[len(before):]]
+    assert "mae_fullperc_G-B-P" in names and "orientation_mae_local_P-G-B" in names
+    assert "nees_pose_share95_fullperc" in names and "goal_position_vs_cbkf_fullperc" in names
+    assert not any(n.startswith(f"mae_{m}_") for n in names for m in PAPER)
+    json.dumps(after, allow_nan=False)
+
+
+def test_pooled_nees_weights_by_outputs_and_summary_prints_the_new_tables():
+    rows = _rows(True, seeds=(0,))
+    p = pooled_nees(rows)
+    n = np.array([100 * (k + 1) for k in range(6)])
+    assert p["kf"]["position"]["mean"] == pytest.approx(float((n * (3.0 + np.arange(6))).sum() / n.sum()))
+    assert p["kf"]["pose"] == {"n": 0, "share_95": None, "mean": None}
+    s = summarize(rows)
+    text = format_summary("paper", s, goal_checks("paper", s))
+    assert "Orientation MAE [deg]" in text and "LOCAL" in text and "FULLPERC" in text
+    assert "NEES pooled" in text and "Issue 18 goals for FULLPERC" in text
+    assert s["table1_orientation_deg"]["G-B-P"]["fullperc"][0] == pytest.approx(0.2)
