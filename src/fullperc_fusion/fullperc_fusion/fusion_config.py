@@ -149,7 +149,17 @@ PARAMS: tuple[Param, ...] = (
     Param("max_future", _T.max_future_ns * 1e-9, "float", _pos, "must be finite and > 0", "s",
           "a sample stamped more than this ahead of the node clock is rejected (named on /diagnostics)"),
     Param("idle_flush", 0.5, "float", _pos, "must be finite and > 0", "s",
-          "without target samples for this long: process everything pending"),
+          "without target samples for this long: process everything pending (arrival: the history becomes final)"),
+    Param("processing", _T.processing, "str", lambda v: v in ("arrival", "ordered"), "arrival or ordered", "",
+          "arrival: fuse each sample when it arrives, rewind and replay for late ones | ordered: wait slop + "
+          "reorder_delay, then fuse in stamp order"),
+    Param("history", _T.history_ns * 1e-9, "float", _pos, "must be finite and > 0", "s",
+          "arrival: a sample up to this much older than the newest is still fused in order (rewind and replay); "
+          "older: dropped, named on /diagnostics"),
+    Param("lag_warn", 0.1, "float", _pos, "must be finite and > 0", "s",
+          "processing lag (node clock - stamp of the newest fused sample) above this -> WARN (overload)"),
+    Param("publish_final", True, "bool", None, "", "",
+          "arrival: publish /fullperc/<target>/final, the primary filter's estimates once final (= offline)"),
     Param("stale_timeout", 1.0, "float", _pos, "must be finite and > 0", "s",
           "silence after which /diagnostics reports a source as silent"),
     Param("problem_hold", _H.hold_s, "float", _pos, "must be finite and > 0", "s",
@@ -319,6 +329,7 @@ def target_config(get: Get | dict[str, Any], target: str, filters: tuple[str, ..
         return TargetConfig(name=target, chain=chain, filters=tuple(filters), params=filter_params(vals),
                             slop_ns=int(vals["slop"] * 1e9), delay_ns=int(vals["reorder_delay"] * 1e9),
                             max_future_ns=int(round(vals["max_future"] * 1e9)),
+                            processing=vals["processing"], history_ns=int(round(vals["history"] * 1e9)),
                             monitor=monitor_params(vals))
     except ParameterError:
         raise

@@ -9,6 +9,8 @@ Publishes:
   /fullperc/<target>/pose_cov  PoseWithCovarianceStamped (same stamp/frame)
   /fullperc/<target>/status    fullperc_msgs/FusionStatus
   /fullperc/<target>/<filter>/pose and .../status  for every filter listed in ``filters`` (side by side)
+  /fullperc/<target>/final     PoseStamped (``processing: arrival``, ``publish_final``): the primary filter's estimate
+                               of each item once it left the history -- final, equal to the offline evaluator's
   /tf                          tf2_msgs/TFMessage ``base`` -> ``<target>`` per fused output of the primary filter
                                (stamp = fused stamp); with ``tf.enabled`` (default true)
   /tf_static                   (transient local) ``omc`` -> ``base`` (T_omc_base) and ``base`` -> ``ots``
@@ -18,7 +20,11 @@ Publishes:
   /diagnostics                 one status per target: initialization, rejected input and why, silent sources,
                                and the alarms of fusion_health (WARN: hop rate, implausible bias of the global
                                source; ERROR: every sample of a source rejected), naming target and source;
-                               WARN when the link monitor sees a bump of the static link (link and size named)
+                               WARN when the link monitor sees a bump of the static link (link and size named);
+                               overload: queue_depth(_max), lag_ms / lag_max_ms (node clock - stamp of the newest
+                               fused sample), callback_delay_max_ms, <omc|ots>_frames_lost / _samples_lost of the
+                               target's sources (TrackingQuality frame-number gaps; visible frames whose pose never
+                               came); WARN when the lag exceeds ``lag_warn`` or samples were lost (problem_hold)
 Services:
   ~/initialize (std_srvs/Trigger) re-estimates the static links of every target from the next samples
                (``static_links``: average of init_samples, or calibrate over calibration.duration).
@@ -37,7 +43,7 @@ mapping the offline evaluator uses), documented in config/fusion.yaml; names of 
   noise.accel, noise.bias_walk, noise.global_std, noise.local_std, init.pos_std, init.vel_std,
   init.bias_std, hop_gate, hop_to_bias, max_gap (see filters.FilterParams)
   slop [s], reorder_delay [s], clock stamps|host, max_future [s] 0.1, idle_flush [s], stale_timeout [s],
-  problem_hold [s]
+  problem_hold [s], processing arrival|ordered, history [s] 0.2, lag_warn [s] 0.1, publish_final true
   qos_reliability reliable|best_effort, qos_depth
   alarm.hop_window [s] 2.0, alarm.hop_max 5, alarm.bias_max [m] 0.02, alarm.reject_timeout [s] 1.0
   calibration_file '' (calibration YAML loaded at start; a bad file stops the node naming file and field),
@@ -47,14 +53,19 @@ mapping the offline evaluator uses), documented in config/fusion.yaml; names of 
   link_monitor.window [s] 1.0, link_monitor.recalibrate false
   tf.enabled true, tf.diana_base [x y z qx qy qz qw] (optional)
 
-``clock``: with ``stamps`` (default) the synchronizer's notion of "now" is the newest stamp received,
+``processing``: with ``arrival`` (default, :mod:`arrival`) every sample is fused and published when it arrives
+(pose, pose_cov, status, /tf: the newest estimate, stamps strictly increasing); a late sample rewinds and replays
+within ``history``; ``slop`` pairs as before, ``reorder_delay`` and ``clock`` only decide which static links an
+item is mapped with (as in ordered processing) and nothing waits. With ``ordered`` the rest of this paragraph applies.
+``clock``: with ``stamps`` the synchronizer's notion of "now" is the newest stamp received,
 so output depends only on the data (live, replayed bags, simulated time alike); after ``idle_flush``
 seconds without any target sample everything pending is flushed. With ``host`` "now" is the node
 clock, for deployments where the stamps are on that clock and latency must not depend on traffic.
 
 ``max_future`` (time guard, either clock mode): a sample stamped more than this ahead of the node clock is
 rejected before it reaches the pipeline's synchronizer (``rejected_future`` on /diagnostics, naming the source,
-the stamp and how far ahead), so one bad stamp cannot move the watermark an hour ahead and stall the output. The
+the stamp and how far ahead), so one bad stamp cannot move the watermark (ordered) or the history (arrival) an hour
+ahead and stall the output; with arrival processing a sample older than the history is dropped as ``late``, named. The
 node clock follows /clock under ``use_sim_time`` (replays keep working); while that clock has not started
 (time 0) nothing is checked.
 """
@@ -63,6 +74,7 @@ from __future__ import annotations
 
 import sys
 import time
+from functools import partial
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
@@ -79,14 +91,15 @@ from fullperc_common.node_main import run_node
 from fullperc_common.params import ParameterError, declare
 from fullperc_common.ros_conv import ns_to_stamp, pose_msg, pose_to_pq, stamp_to_ns, vector3
 from fullperc_common.tf import Broadcaster, StaticBroadcaster, transform_stamped
-from fullperc_msgs.msg import FusionStatus, Region
+from fullperc_msgs.msg import FusionStatus, Region, TrackingQuality
 
+from .arrival import ArrivalPipeline, make_pipeline
 from .calibration import CalibrationBodies
 from .calibration_io import save_calibration
 from .calibration_run import CalibrationRun, summary
 from .frame_chain import links_needed, pose_to_T
 from .fusion_config import calibration_settings, health_params, primary_and_extra, read_values, spec, target_config
-from .fusion_health import GLOBAL, LOCAL, TargetHealth
+from .fusion_health import GLOBAL, LOCAL, InputLoad, SourceLoss, TargetHealth
 from .pipeline import FusedOutput, TargetPipeline
 
 # Diagnostics.set takes an int level (the diagnostic_msgs constants are bytes in rclpy).
@@ -109,6 +122,8 @@ class FusionNode(Node):
         self._idle_flush = vals["idle_flush"]
         self._stale = vals["stale_timeout"]
         self._problem_hold = vals["problem_hold"]
+        self._lag_warn = vals["lag_warn"]
+        self._load = InputLoad()
         self._cal_duration = vals["calibration.duration"]
         self._cal_output = vals["calibration.output"]
         self._cal_timeout = vals["calibration.timeout"]
@@ -124,6 +139,9 @@ class FusionNode(Node):
         self._diag = diag.Diagnostics(self, hardware_id="fullperc_fusion")
         self.pipes: dict[str, TargetPipeline] = {}
         self._pubs: dict[tuple[str, str], tuple] = {}
+        self._final_pubs: dict[str, object] = {}
+        self._loss: dict[tuple[str, str], SourceLoss] = {}   # (dev, target body): frames / samples never received
+        self._loss_seen: dict[tuple[str, str], tuple[int, float]] = {}
         self._region: dict[str, int] = {}
         self._last_rx: dict[str, dict[str, float]] = {}
         self._problem_seen: dict[str, dict[str, tuple[int, float]]] = {}
@@ -135,7 +153,7 @@ class FusionNode(Node):
         routes_omc: dict[str, list[str]] = {}
         routes_ots: dict[str, list[str]] = {}
         for t in targets:
-            self.pipes[t] = TargetPipeline(target_config(vals, t, filters))
+            self.pipes[t] = make_pipeline(target_config(vals, t, filters))
             c = self.pipes[t].config.chain
             self.health[t] = TargetHealth(t, {GLOBAL: f"OMC body '{c.omc_target}'",
                                               LOCAL: f"OTS tool '{c.ots_target}'"}, health)
@@ -150,6 +168,13 @@ class FusionNode(Node):
                 self.create_publisher(PoseStamped, f"/fullperc/{t}/pose", qos),
                 self.create_publisher(PoseWithCovarianceStamped, f"/fullperc/{t}/pose_cov", qos),
                 self.create_publisher(FusionStatus, f"/fullperc/{t}/status", qos))
+            if vals["publish_final"] and isinstance(self.pipes[t], ArrivalPipeline):
+                self._final_pubs[t] = self.create_publisher(PoseStamped, f"/fullperc/{t}/final", qos)
+            for dev, body in (("omc", c.omc_target), ("ots", c.ots_target)):
+                if (dev, body) not in self._loss:
+                    self._loss[(dev, body)] = SourceLoss()
+                    self.create_subscription(TrackingQuality, f"/{dev}/{body}/quality",
+                                             lambda m, k=(dev, body): self._on_quality(k, m), qos)
             for f in self._extra:
                 self._pubs[(t, f)] = (
                     self.create_publisher(PoseStamped, f"/fullperc/{t}/{f}/pose", qos), None,
@@ -163,8 +188,7 @@ class FusionNode(Node):
         self._input_subs: list[tuple[str, str, object]] = []
         for dev, routes in (("omc", self._targets_of_omc), ("ots", self._targets_of_ots)):
             for b in routes:
-                sub = self.create_subscription(PoseStamped, f"/{dev}/{b}/pose",
-                                               lambda m, d=dev, b=b: self._on_input(d, b, m), qos)
+                sub = self.create_subscription(PoseStamped, f"/{dev}/{b}/pose", partial(self._on_input, dev, b), qos)
                 self._input_subs.append((dev, b, sub))
         self.create_service(Trigger, "~/initialize", self._on_initialize)
         # own (reentrant) group: the answer waits for the collection, and the default group's callbacks (the data)
@@ -198,18 +222,51 @@ class FusionNode(Node):
         return declare(self, name, default, description=p.description)
 
     # ---- input ------------------------------------------------------------------------------
-    def _on_input(self, dev: str, body: str, msg: PoseStamped) -> None:
-        """One executor callback: this message plus everything queued on every input, in stamp order."""
+    def _on_input(self, dev: str, body: str, msg: PoseStamped, info=None) -> None:
+        """One executor callback: this message plus everything queued on every input, in stamp order (a link
+        body's sample before a target sample of the same stamp: the same device frame, mapped with it)."""
+        wall = time.time_ns()
         batch = [(stamp_to_ns(msg.header.stamp), dev, body, msg)]
         for d, b, sub in self._input_subs:
             batch.extend((stamp_to_ns(m.header.stamp), d, b, m) for m in take_queued(sub))
-        batch.sort(key=lambda x: x[0])
+        batch.sort(key=lambda x: (x[0], (x[1], x[2]) in self._loss))
         touched: set[str] = set()
         for _t, d, b, m in batch:
             touched.update(self._on_pose(d, b, m))
         for t in touched:
             self._publish(t, self.pipes[t].poll(self._now_ns()))
+            self._publish_final(t)
             self._watch_links(t)
+        received = info.get("received_timestamp") if isinstance(info, dict) else None
+        clock = self.get_clock().now().nanoseconds   # 0: sim time not started, no lag known
+        self._load.callback(len(batch) - 1, None if not received else wall - int(received),
+                            clock - batch[-1][0] if clock else None)
+        for d, b, m in ((d, b, m) for _t, d, b, m in batch if (d, b) in self._loss):
+            self._loss[(d, b)].pose(stamp_to_ns(m.header.stamp))
+
+    def _on_quality(self, key: tuple[str, str], msg: TrackingQuality) -> None:
+        self._loss[key].quality(int(msg.frame_number), stamp_to_ns(msg.header.stamp), bool(msg.visible))
+
+    def _publish_final(self, target: str) -> None:
+        """/fullperc/<target>/final: the primary filter's estimates of the items that left the history."""
+        pipe = self.pipes[target]
+        if not isinstance(pipe, ArrivalPipeline):
+            return
+        outs = pipe.take_final()
+        pub = self._final_pubs.get(target)
+        if pub is None:
+            return
+        for o in outs:
+            if o.filter != self._primary:
+                continue
+            ps = PoseStamped()
+            ps.header.stamp = ns_to_stamp(o.t_ns)
+            ps.header.frame_id = "base"
+            try:
+                ps.pose = pose_msg(o.p, o.q)
+            except ValueError:
+                continue
+            pub.publish(ps)
 
     def _on_pose(self, dev: str, body: str, msg: PoseStamped) -> list[str]:
         """Push one pose into the pipelines of the targets it feeds; returns those targets."""
@@ -252,6 +309,11 @@ class FusionNode(Node):
             self._finish_calibration()
         idle = time.monotonic() - self._last_target_rx > self._idle_flush
         for t, pipe in self.pipes.items():
+            if isinstance(pipe, ArrivalPipeline):   # nothing waits; after idle_flush the history becomes final
+                if idle and pipe.pending:
+                    self._publish(t, pipe.flush())
+                    self._publish_final(t)
+                continue
             if pipe.sync.pending == 0:
                 continue
             self._publish(t, pipe.flush() if (idle and self._clock_mode == "stamps") else pipe.poll(self._now_ns()))
@@ -464,7 +526,36 @@ class FusionNode(Node):
             o = pipe.last_output.get(self._primary)
             if o is not None:
                 values.update(bias_mm=np.round(1e3 * o.bias, 3).tolist(), last_stamp_ns=o.t_ns, nis=round(o.nis, 3))
+            level = self._overload(t, now, level, msgs, values)
             self._diag.set(f"target {t}", level, "; ".join(msgs) or "ok", values)
+        self._load.reset_period()
+
+    def _overload(self, target: str, now: float, level: int, msgs: list[str], values: dict) -> int:
+        """Queue depth, processing lag, callback delay and lost samples of ``target`` (WARN: lag above lag_warn,
+        samples lost within problem_hold)."""
+        values.update(self._load.values())
+        lag = self._load.lag_max_ns
+        if lag is not None and lag * 1e-9 > self._lag_warn:
+            level = max(level, WARN)
+            msgs.append(f"overload: processing lag {lag * 1e-6:.0f} ms > lag_warn {self._lag_warn * 1e3:g} ms (node "
+                        f"clock - stamp of the newest fused sample; up to {self._load.depth_max} samples waiting)")
+        c = self.pipes[target].config.chain
+        for dev, body, name in (("omc", c.omc_target, f"OMC body '{c.omc_target}'"),
+                                ("ots", c.ots_target, f"OTS tool '{c.ots_target}'")):
+            loss = self._loss.get((dev, body))
+            if loss is None:
+                continue
+            values[f"{dev}_frames_lost"] = loss.frames_lost
+            values[f"{dev}_samples_lost"] = loss.samples_lost
+            n, when = self._loss_seen.get((dev, body), (0, -1e9))
+            if loss.lost > n:
+                self._loss_seen[(dev, body)] = (loss.lost, now)
+                n, when = loss.lost, now
+            if n and now - when < self._problem_hold:
+                level = max(level, WARN)
+                msgs.append(f"lost samples of the {name}: {loss.frames_lost} frames missing (frame-number gaps), "
+                            f"{loss.samples_lost} visible frames whose pose never arrived")
+        return level
 
 
 def main(args=None) -> int:
