@@ -16,6 +16,7 @@ import pytest
 from fullperc_eval.bag.errors import BagError
 from fullperc_eval.bag.fast_decode import DecodeError, decode_joint_states, decode_pose_stamped, read_raw
 from fullperc_eval.bag.reader import BagReader, DecodedMessage, decoded_messages
+from fullperc_eval.bag.reader import decoded_messages_reference as _reference
 from fullperc_eval.bag.types import fullperc_typestore
 from fullperc_eval.bag.writer import BagWriter
 
@@ -27,21 +28,6 @@ T0 = 1_700_000_000_000_000_000
 
 def _stamp(m) -> int:
     return int(m.header.stamp.sec) * 1_000_000_000 + int(m.header.stamp.nanosec)
-
-
-def _reference(r: BagReader, topics: list[str]) -> list[DecodedMessage]:
-    """What decoded_messages must return, built from rosbags' reader and deserializer one message at a time."""
-    out = []
-    for m in r.messages(topics):
-        msg = r.deserialize(m.data, m.msgtype)
-        if m.msgtype == POSE:
-            pp, qq = msg.pose.position, msg.pose.orientation
-            out.append(DecodedMessage(m.topic, m.timestamp, _stamp(msg), msg.header.frame_id,
-                                      p=np.array([pp.x, pp.y, pp.z]), q=np.array([qq.x, qq.y, qq.z, qq.w])))
-        else:
-            out.append(DecodedMessage(m.topic, m.timestamp, _stamp(msg), "", names=list(msg.name),
-                                      position=np.asarray(msg.position, dtype=float)))
-    return out
 
 
 def _assert_same(got: list[DecodedMessage], ref: list[DecodedMessage]) -> None:
