@@ -262,7 +262,7 @@ def render_html(ev, images: list[str]) -> str:
     reg = r["regions"]
     cfg = r.get("config", {})
     parts = [f"<h1>fullperc evaluation: {html.escape(r['task'])}</h1>",
-             f"<p class='headline'>{html.escape(headline(r))}</p>",
+             f"<p class='headline'>{html.escape(headline(r, str(r.get('target') or 'tool')))}</p>",
              f"<p>bag <code>{html.escape(r['bag'])}</code>, {r['duration_s']:.1f} s, {r['messages']} messages read; "
              f"regions of the true path: <b>{html.escape(reg['order'])}</b>; calibration: "
              f"{html.escape(r['calibration_source'] or '-')}</p>"]
