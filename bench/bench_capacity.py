@@ -48,7 +48,8 @@ def step(n: int, procs: int, domain: int) -> dict:
             "p99_ms": round(p99, 3) if np.isfinite(p99) else None,
             "raw_p99_ms": round(float(np.percentile(res.raw_latency_ms, 99)), 3) if len(res.raw_latency_ms) else None,
             "publisher_rates_hz": rates, "publisher_ok": publisher_ok, "node_counters": res.node_counters,
-            "nodes_alive": res.nodes_alive, "ok": lost == 0 and p99 <= P99_MAX_MS and res.nodes_alive}
+            "node_load": res.node_load(), "nodes_alive": res.nodes_alive,
+            "ok": lost == 0 and p99 <= P99_MAX_MS and res.nodes_alive}
 
 
 def search(procs: int, domain: int) -> tuple[int, list[dict]]:

@@ -56,7 +56,7 @@ def main() -> None:
         emit("fused_latency_p50", np.median(lat), "ms", baseline=np.median(raw), **common)
         emit("fused_latency_p99", np.percentile(lat, 99), "ms", baseline=np.percentile(raw, 99), **common)
     emit("fused_dropped", res.lost["tool"], "count", target_samples=res.sent["tool"],
-         node_counters=res.node_counters, **common)
+         node_counters=res.node_counters, node_load=res.node_load(), **common)
 
 
 if __name__ == "__main__":

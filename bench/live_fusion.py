@@ -29,6 +29,8 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 WARMUP_NS = 1_000_000_000
 # a /diagnostics value counts as a drop counter when its key has one of these words (late, sync_late, lost, ...)
+LOAD_KEYS = ("processing", "queue_depth", "queue_depth_max", "lag_ms", "lag_max_ms", "callback_delay_max_ms",
+             "items", "rewinds", "replayed_items", "pending")
 DROP_WORDS = {"late", "lost", "dropped", "duplicate", "future", "old", "rejected"}
 
 
@@ -57,6 +59,11 @@ class LiveResult:
     publisher: dict                          # the publisher's summary line (frames, achieved rates)
     nodes_alive: bool = True
     diag: dict[str, dict[str, str]] = field(default_factory=dict)
+
+    def node_load(self) -> dict[str, dict[str, str]]:
+        """Per /diagnostics target entry: the node's own load figures (queue depth, processing lag, rewinds), as
+        the node last reported them -- the measured reason when latency or loss misses its goal."""
+        return {name: {k: v for k, v in vals.items() if k in LOAD_KEYS} for name, vals in self.diag.items()}
 
     @property
     def all_latency_ms(self) -> np.ndarray:
