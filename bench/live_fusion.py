@@ -8,8 +8,10 @@ target samples that never reached a fused output.
 "Lost" is defined without assuming how the node pairs samples: a target sample stamped ``s`` is covered when a
 fused pose of its target is stamped in ``[s, s + slop]`` (a lone sample is published at its own stamp; an
 approximate-time pair at the newer of its two stamps, at most ``slop`` later). The node's own drop counters from
-``/diagnostics`` are returned beside it. The first second after the first fused pose is skipped (the static links
-are averaged from the first samples then). Every run uses LOCALHOST discovery and its own domain id.
+``/diagnostics`` are returned beside it; a pose not received within 2.5 s after the last sample was published
+counts as lost (a node with a backlog of seconds does not serve the OR). The first second after the first fused
+pose is skipped (the static links are averaged from the first samples then). Every run uses LOCALHOST discovery
+and its own domain id.
 """
 
 from __future__ import annotations
@@ -69,6 +71,17 @@ class LiveResult:
     def all_latency_ms(self) -> np.ndarray:
         parts = [v for v in self.latency_ms.values() if len(v)]
         return np.concatenate(parts) if parts else np.zeros(0)
+
+
+def uncovered(sent_ns: np.ndarray, fused_ns: np.ndarray, slop_ns: int) -> int:
+    """How many sample stamps ``s`` of ``sent_ns`` have no fused stamp in ``[s, s + slop_ns]`` (the lost rule)."""
+    out = np.sort(np.asarray(fused_ns, dtype=np.int64))
+    s = np.asarray(sent_ns, dtype=np.int64)
+    if not len(out):
+        return int(len(s))
+    k = np.searchsorted(out, s)                       # first fused stamp >= s
+    covered = (k < len(out)) & (out[np.minimum(k, len(out) - 1)] <= s + slop_ns)
+    return int((~covered).sum())
 
 
 def target_params(targets: list[str]) -> list[str]:
@@ -158,11 +171,7 @@ def run_live(nodes: list[list[str]], targets: list[str], domain: int, duration: 
             f = f[f[:, 1] > start]
             s = s[s > start]
         lat[t] = (f[:, 0] - f[:, 1]) / 1e6
-        out = np.sort(f[:, 1])
-        k = np.searchsorted(out, s)          # first fused stamp >= s
-        covered = (k < len(out)) & (out[np.minimum(k, len(out) - 1)] <= s + slop_ns) if len(out) else \
-            np.zeros(len(s), bool)
-        lost[t] = int((~covered).sum())
+        lost[t] = uncovered(s, f[:, 1], slop_ns)
         n_sent[t] = int(len(s))
     r = np.array(raw, dtype=np.int64).reshape(-1, 2)
     counters: dict[str, int] = {}
