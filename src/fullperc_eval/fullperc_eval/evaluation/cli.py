@@ -33,7 +33,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--calibration", help="calibration YAML (default: <bag>/calibration.yaml)")
     ap.add_argument("--layout", help="camera layout YAML (default: fullperc_fusion's or_layout.yaml)")
     ap.add_argument("--fusion-config", help="fusion_node params file (default: fullperc_fusion's fusion.yaml)")
-    ap.add_argument("--target", default="tool", help="fused target name (default: tool)")
+    ap.add_argument("--target", default="tool",
+                    help="fused target name (default: tool, the arm-held target, truth from the Diana's joints; any "
+                         "other needs its simulator truth /sim/truth/<target> in the bag, e.g. the twin's instrument)")
     ap.add_argument("--quiet", action="store_true", help="no progress output")
     ap.add_argument("--live", action="store_true",
                     help="evaluate the fused poses recorded live (/fullperc/<target>/...) instead of re-running")

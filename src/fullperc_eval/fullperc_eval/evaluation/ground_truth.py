@@ -17,15 +17,28 @@ the OMC data would pull the truth towards the OMC (hiding its bias), fitting it 
 OTS-using filters a head start. An optional ``T_omc_base`` (true pose of the base marker in ``omc``) is used only
 to place the truth in the layout frame for the region labels; without it the evaluator takes the average of the
 recorded raw OMC base-marker poses, whose millimetre-level error is irrelevant for labelling.
+
+**Targets without a robot** (the twin's hand-held ``instrument``, :mod:`fullperc_eval.sim.walker`) have no encoders:
+their truth is the simulator's, recorded in the bag as ``/sim/truth/<target>`` (PoseStamped in ``base``;
+simulator-only, no real recording has it). :class:`TruthTrack` interpolates it like the joint states (position
+linearly, orientation by slerp). :func:`target_truth` picks the source: the arm-held target (``tool``) always
+uses the Diana's forward kinematics, as before; any other target needs its truth topic.
 """
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
 
 from fullperc_eval.bag.calibration import Calibration
+from fullperc_eval.bag.errors import BagError
+from fullperc_eval.bag.reader import BagReader
 
 DEFAULT_MAX_GAP_NS = 50_000_000   # joint states further apart than this are not interpolated across
+ARM_TARGET = "tool"               # the target on the Diana's flange: truth from its joint states
+TRUTH_PREFIX = "/sim/truth"       # /sim/truth/<target>: the simulator's truth of a target without a robot
 
 
 class GroundTruth:
@@ -86,3 +99,78 @@ class GroundTruth:
     def position_base(self, t_ns) -> tuple[np.ndarray, np.ndarray]:
         T, valid = self.T_base_tool(t_ns)
         return T[:, :3, 3], valid
+
+
+class TruthTrack:
+    """A target's recorded true poses in ``base`` (``/sim/truth/<target>``), the same interface as :class:`GroundTruth`.
+
+    ``t_ns`` (N,) stamps, ``T`` (N, 4, 4) poses. Between two samples at most ``max_gap_ns`` apart: position linearly,
+    orientation by slerp (exact enough at the simulator's 120 Hz: a walking hand turns well under a degree between
+    samples); elsewhere invalid (NaN).
+    """
+
+    def __init__(self, t_ns, T, max_gap_ns: int = DEFAULT_MAX_GAP_NS) -> None:
+        t = np.asarray(t_ns, dtype=np.int64).reshape(-1)
+        T = np.asarray(T, dtype=float)
+        if T.shape != (len(t), 4, 4):
+            raise ValueError(f"truth track: expected t (N,) and T (N, 4, 4), got {t.shape} and {T.shape}")
+        if t.size < 2:
+            raise ValueError(f"truth track: need at least 2 samples, got {t.size}")
+        order = np.argsort(t, kind="stable")
+        t, T = t[order], T[order]
+        keep = np.concatenate([[True], np.diff(t) > 0])
+        self.t_ns, self.T = t[keep], T[keep]
+        if not np.all(np.isfinite(self.T)):
+            raise ValueError("truth track contains NaN/inf")
+        self.max_gap_ns = int(max_gap_ns)
+        self._slerp = Slerp((self.t_ns - self.t_ns[0]).astype(float), Rotation.from_matrix(self.T[:, :3, :3]))
+
+    def T_base_tool(self, t_ns) -> tuple[np.ndarray, np.ndarray]:
+        """(M, 4, 4) true poses in ``base`` (NaN where invalid) and the validity mask."""
+        t = np.asarray(t_ns, dtype=np.int64).reshape(-1)
+        ts = self.t_ns
+        i = np.clip(np.searchsorted(ts, t, side="right"), 1, len(ts) - 1)   # ts[i-1] <= t < ts[i] inside the span
+        valid = (t >= ts[0]) & (t <= ts[-1]) & ((ts[i] - ts[i - 1] <= self.max_gap_ns) | (t == ts[i - 1]))
+        out = np.full((len(t), 4, 4), np.nan)
+        if valid.any():
+            tv, iv = t[valid], i[valid]
+            w = ((tv - ts[iv - 1]) / (ts[iv] - ts[iv - 1]))[:, None]
+            T = np.tile(np.eye(4), (len(tv), 1, 1))
+            T[:, :3, 3] = self.T[iv - 1, :3, 3] * (1 - w) + self.T[iv, :3, 3] * w
+            T[:, :3, :3] = self._slerp((tv - ts[0]).astype(float)).as_matrix()
+            out[valid] = T
+        return out, valid
+
+    def position_base(self, t_ns) -> tuple[np.ndarray, np.ndarray]:
+        T, valid = self.T_base_tool(t_ns)
+        return T[:, :3, 3], valid
+
+
+def load_truth_track(bag: str | Path, target: str) -> TruthTrack:
+    """``/sim/truth/<target>`` of ``bag`` as a :class:`TruthTrack`; ValueError when the bag has none."""
+    topic = f"{TRUTH_PREFIX}/{target}"
+    reader = BagReader(bag)
+    if topic not in reader.topics or reader.topics[topic].count == 0:
+        raise ValueError(f"bag {str(reader.path)!r} has no {topic}: target '{target}' has no robot, and its ground "
+                         "truth is the simulator's (only bags of the twin have it)")
+    t, T = [], []
+    try:
+        reader.open()
+        for m in reader.messages([topic]):
+            msg = reader.deserialize(m.data, m.msgtype)
+            p, q = msg.pose.position, msg.pose.orientation
+            Tk = np.eye(4)
+            Tk[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+            Tk[:3, 3] = (p.x, p.y, p.z)
+            t.append(int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec))
+            T.append(Tk)
+    except BagError as e:
+        raise ValueError(str(e)) from None
+    finally:
+        reader.close()
+    return TruthTrack(t, np.asarray(T))
+
+
+def target_truth(bag: str | Path, target: str) -> TruthTrack | None:
+    """The truth of ``target`` when it is not the arm-held one (None: use the Diana's joints, :class:`GroundTruth`)."""
+    return None if target == ARM_TARGET else load_truth_track(bag, target)

@@ -44,7 +44,7 @@ from fullperc_fusion.pipeline import TargetConfig
 
 from .config import METHODS, EvaluationError, replay_config
 from .consistency import FUSED_ORIENTATION, nees, summary
-from .ground_truth import GroundTruth
+from .ground_truth import GroundTruth, TruthTrack, target_truth
 from .headline import hop_events
 from .orientation import orientation_error_deg, pose_error
 from .replay import Replay, live_replay, replay
@@ -124,10 +124,14 @@ class Evaluation:
     series: dict[str, Any]                 # arrays for the plots
 
 
-def evaluate_replay(rep: Replay, calibration: Calibration, layout, kinematics=None) -> Evaluation:
-    """Errors against the ground truth, region labels, Table 1 / Table 2 figures of one replay."""
+def evaluate_replay(rep: Replay, calibration: Calibration, layout, kinematics=None,
+                    truth: TruthTrack | None = None) -> Evaluation:
+    """Errors against the ground truth, region labels, Table 1 / Table 2 figures of one replay.
+
+    ``truth``: the target's recorded truth (a target without a robot, :func:`.ground_truth.target_truth`); None:
+    the Diana's forward kinematics of the recorded joint states."""
     try:
-        gt = GroundTruth(rep.joint_t_ns, rep.joint_q, calibration, kinematics)
+        gt = truth if truth is not None else GroundTruth(rep.joint_t_ns, rep.joint_q, calibration, kinematics)
     except ValueError as e:
         raise EvaluationError(f"{rep.bag}: {e}") from None
     # region labels of the true path on the joint-state grid, in the layout (omc) frame
@@ -291,11 +295,18 @@ def evaluate_bag(bag: str | Path, *, calibration: str | Path | None = None, layo
         lay = load_layout(layout if layout is not None else default_layout_path())
     except (LayoutError, FileNotFoundError) as e:
         raise EvaluationError(f"layout: {e}") from None
+    try:
+        truth = target_truth(bag, target)   # None: the arm-held target, truth from the Diana's joints
+    except ValueError as e:
+        raise EvaluationError(str(e)) from None
     if live:
         rep = live_replay(bag, target=target, primary=str(flat.get("filter", "cbkf")))
     else:
         rep = replay(bag, config, idle_flush_s=float(flat.get("idle_flush", 0.5)), progress=progress)
-    ev = evaluate_replay(rep, cal, lay)
+    if truth is not None:
+        rep.task = f"{rep.task} {target}"   # its own path, not the task's region order: named by target
+    ev = evaluate_replay(rep, cal, lay, truth=truth)
+    ev.result["target"] = target
     ev.result["config"] = {"fusion_config": flat.get("_source", "<given>"), "layout": str(lay.source),
                            "filter_params": {k: v for k, v in vars(config.params).items()},
                            "slop_s": config.slop_ns * 1e-9, "reorder_delay_s": config.delay_ns * 1e-9,

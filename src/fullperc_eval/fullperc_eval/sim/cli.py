@@ -31,6 +31,7 @@ from .live import LiveServer
 from .run import simulate
 from .scene import DEFAULT_PROFILE, PROFILES, VegaBump, build_scene
 from .tasks import TASKS, TaskPlanningError, plan_task
+from .walker import add_hand_held
 
 
 def _addr(s: str) -> tuple[str, int]:
@@ -136,7 +137,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"sim: {e}", file=sys.stderr, flush=True)
         return 3
     scene = scene.with_diana_base(plan.T_omc_diana_base).with_vega_bump(bump)
-    run = simulate(scene, plan.arc, task=args.task)
+    run = add_hand_held(simulate(scene, plan.arc, task=args.task), scene)
     run.info["profile"] = scene.config.get("_profile", "base")
     print(json.dumps({"event": "plan", "task": args.task, "seed": args.seed, "profile": args.profile,
                       "joint": plan.arc.joint,

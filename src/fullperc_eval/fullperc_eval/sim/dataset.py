@@ -6,10 +6,14 @@ Each task becomes ``<out>/<task>/`` holding what a ``record`` of the live system
 topics with the drivers' types, frames, units and stamps -- plus the calibration the evaluator needs:
 
 * ``/omc/<body>/pose`` (PoseStamped, frame ``omc``; only when tracked) and ``/omc/<body>/quality``
-  (TrackingQuality, every frame) for the bodies ``base``, ``ots_rig``, ``tool``;
+  (TrackingQuality, every frame) for the bodies ``base``, ``ots_rig``, ``tool`` (and the second target's);
 * ``/ots/<tool>/pose`` (frame ``ots``; only when visible) and ``/ots/<tool>/quality`` for ``tool``, ``base``;
 * ``/diana/joint_states`` (JointState, ``joint1..joint7``, frame ``diana_base``) and ``/diana/flange_pose``
   (PoseStamped, FK of the nominal DH table, frame ``diana_base``);
+* the second target (:mod:`.walker`, ``instrument``): ``/omc/instrument/{pose,quality}``,
+  ``/ots/instrument/{pose,quality}`` like the tool's, and its ground truth ``/sim/truth/instrument`` (PoseStamped
+  in ``base`` at the OMC frame stamps, received at its stamp). **Simulator only**: no real recording has it; the
+  evaluator uses it for every target but the arm-held ``tool`` (whose truth is the Diana's forward kinematics);
 * ``calibration.yaml``: T_base_diana_base, T_flange_tool, T_omc_base -- the simulator's true values
   (see :mod:`fullperc_eval.evaluation.ground_truth` for why the evaluator does not estimate them);
 * ``metadata.yaml`` ``custom_data``: generator, task, seed, profile (the evaluator takes the task name from here).
@@ -38,7 +42,7 @@ from fullperc_common.transforms import T_to_pq, inv_T, make_T
 from fullperc_drivers.diana_kinematics import JOINT_NAMES, DianaKinematics
 from fullperc_eval.bag.calibration import Calibration, save_calibration
 from fullperc_eval.bag.errors import BagError
-from fullperc_eval.bag.metadata import load_metadata
+from fullperc_eval.bag.metadata import load_metadata, write_metadata
 from fullperc_eval.bag.qos import make_qos
 from fullperc_eval.bag.writer import BagWriter
 from fullperc_fusion.layout import default_layout_path, load_layout
@@ -52,6 +56,7 @@ DIANA_LATENCY_NS = 1_000_000           # joint state push -> host (UDP on the ro
 # The generator's name as recorded in every bag it writes (metadata custom_data, calibration source): the
 # committed sample bags carry it, and generate() replaces only bags with this name; not a module path.
 GENERATOR = "fullperc_eval.dataset"
+TRUTH_PREFIX = "/sim/truth"            # /sim/truth/<target>: simulator-only ground truth of a target without a robot
 PORT_STATUS_OK = 0x31                  # NDI PSTAT: occupied | initialized | enabled (what the Vega reports)
 
 
@@ -95,6 +100,7 @@ class BagContent:
     diana: JointStream
     calibration: Calibration
     custom_data: dict[str, str] = field(default_factory=dict)
+    truth: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)   # target -> (t_ns, T_base (F,4,4))
 
 
 def _types(ts):
@@ -169,11 +175,85 @@ def write_bag(path: str | Path, content: BagContent, *, compression: str = "zstd
                 position=Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
                 orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))))))
             seq += 1
+        for name, (t_tr, T_tr) in content.truth.items():
+            topic = f"{TRUTH_PREFIX}/{name}"
+            w.add_topic(topic, "geometry_msgs/msg/PoseStamped", [make_qos(depth=10)])
+            for tk, T in zip(np.asarray(t_tr, dtype=np.int64).tolist(), T_tr, strict=True):
+                p, q = T_to_pq(T)
+                events.append((tk, seq, topic, PoseStamped(header=header(tk, "base"), pose=Pose(
+                    position=Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
+                    orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))))))
+                seq += 1
         events.sort(key=lambda e: (e[0], e[1]))
         for recv, _, topic, msg in events:
             w.write_msg(topic, recv, msg)
     save_calibration(path, content.calibration)
     return path
+
+
+def write_truth_bag(path: str | Path, truth: dict[str, tuple[np.ndarray, np.ndarray]],
+                    custom_data: dict[str, str] | None = None) -> Path:
+    """A bag holding only ``/sim/truth/<target>`` (PoseStamped in ``base``, received at the stamp) per target.
+
+    The live simulator writes its second target's truth like this (host-clock stamps), and the demo merges it into
+    the recording with :func:`merge_bag`: the target has no robot, so nothing on the wire carries its truth.
+    """
+    path = Path(path)
+    w = BagWriter(path, storage="mcap", compression="zstd", custom_data=custom_data or {}, flush_interval=3600.0)
+    PoseStamped, Header, Time, Pose, Point, Quaternion, _, _ = _types(w.typestore)
+    with w:
+        for name in truth:
+            w.add_topic(f"{TRUTH_PREFIX}/{name}", "geometry_msgs/msg/PoseStamped", [make_qos(depth=10)])
+        events = []
+        for name, (t_tr, T_tr) in truth.items():
+            for tk, T in zip(np.asarray(t_tr, dtype=np.int64).tolist(), T_tr, strict=True):
+                p, q = T_to_pq(T)
+                events.append((tk, f"{TRUTH_PREFIX}/{name}", PoseStamped(
+                    header=Header(stamp=Time(sec=tk // 1_000_000_000, nanosec=tk % 1_000_000_000), frame_id="base"),
+                    pose=Pose(position=Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
+                              orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))))))
+        for tk, topic, msg in sorted(events, key=lambda e: e[0]):
+            w.write_msg(topic, tk, msg)
+    return path
+
+
+def merge_bag(dst: str | Path, src: str | Path) -> Path:
+    """Move the storage files of bag ``src`` into bag ``dst`` (same storage) and list them in its metadata.yaml.
+
+    rosbag2 bags may span several files (``relative_file_paths``); readers (rosbags, ``ros2 bag``) read them as one
+    bag. The topics of ``src`` must not already be in ``dst``. ``src`` is removed.
+    """
+    dst, src = Path(dst), Path(src)
+    di, si = load_metadata(dst), load_metadata(src)
+    if di["storage_identifier"] != si["storage_identifier"]:
+        raise BagError(f"cannot merge a {si['storage_identifier']} bag into a {di['storage_identifier']} bag")
+    have = {e["topic_metadata"]["name"] for e in di["topics_with_message_count"]}
+    clash = have & {e["topic_metadata"]["name"] for e in si["topics_with_message_count"]}
+    if clash:
+        raise BagError(f"cannot merge {src} into {dst}: both hold {sorted(clash)}")
+    files = list(di.get("files") or [])
+    for rel in si["relative_file_paths"]:
+        new = f"{src.name}_{rel}"
+        if (dst / new).exists():
+            raise BagError(f"cannot merge {src} into {dst}: {dst / new} exists")
+        shutil.move(str(src / rel), str(dst / new))
+        di["relative_file_paths"].append(new)
+        entry = next((dict(f) for f in si.get("files") or [] if f.get("path") == rel), None)
+        if entry is not None:
+            entry["path"] = new
+            files.append(entry)
+    di["files"] = files
+    di["topics_with_message_count"] += si["topics_with_message_count"]
+    di["message_count"] = int(di.get("message_count", 0)) + int(si.get("message_count", 0))
+    ends = [int(i["starting_time"]["nanoseconds_since_epoch"]) + int(i["duration"]["nanoseconds"]) for i in (di, si)
+            if int(i.get("message_count", 0))]
+    starts = [int(i["starting_time"]["nanoseconds_since_epoch"]) for i in (di, si) if int(i.get("message_count", 0))]
+    if starts:
+        di["starting_time"] = {"nanoseconds_since_epoch": min(starts)}
+        di["duration"] = {"nanoseconds": max(ends) - min(starts)}
+    write_metadata(dst, {"rosbag2_bagfile_information": di})
+    shutil.rmtree(src)
+    return dst
 
 
 # ------------------------------------------------------------------------------------------- synthetic
@@ -287,9 +367,10 @@ def content_from_sim(run, epoch_ns: int = EPOCH_NS, wire_precision: bool = True)
                        latency_ns=int(round(v.latency_s * 1e9)), frame_number=v.frame_number,
                        port_status=PORT_STATUS_OK, qos_depth=50)
     diana = JointStream(np.asarray(run.diana.t_ns, np.int64) + epoch_ns, run.diana.q, run.diana.dq)
+    truth = {n: (np.asarray(tr.t_ns, np.int64) + epoch_ns, tr.T_base_tool) for n, tr in run.extra_truth.items()}
     return BagContent(omc, ots, diana, sim_calibration(run),
                       {"generator": GENERATOR, "task": str(run.task), "seed": str(run.seed),
-                       "profile": str(run.info.get("profile", "base"))})
+                       "profile": str(run.info.get("profile", "base"))}, truth)
 
 
 def sim_calibration(run) -> Calibration:

@@ -8,9 +8,9 @@ So live and offline data are the same measurements.
 Streams (wire formats: :mod:`fullperc_drivers.streams`):
   * OMC: one UDP datagram per frame (``encode_omc``) to ``omc_addr`` (default 127.0.0.1:3883), sent
     ``latency`` after capture; ``timestamp_ns`` is the capture time on the device clock (host clock +
-    ``device_clock_offset_ns``), ``latency_s`` capture -> send, bodies ``base``, ``ots_rig``, ``tool`` with
-    the ids of scene.yaml, position in mm, quaternion x y z w, mean marker error in mm, tracked flag,
-    markers used (untracked bodies carry zeros and tracked = 0: no NaN on the wire);
+    ``device_clock_offset_ns``), ``latency_s`` capture -> send, bodies ``base``, ``ots_rig``, ``tool`` (and the second
+    target's, ``instrument``) with the ids of scene.yaml, position in mm, quaternion x y z w, mean marker error in
+    mm, tracked flag, markers used (untracked bodies carry zeros and tracked = 0: no NaN on the wire);
   * Diana: one UDP datagram per joint-state sample (``encode_diana``) to ``diana_addr`` (default
     127.0.0.1:3884), stamped with the sample time on the device clock;
   * NDI Vega: the Combined-API emulator (:class:`fullperc_eval.emulators.vega_server.VegaEmulator`) on TCP
@@ -46,12 +46,13 @@ from .scene import OMC_BODIES
 _REGION = {1: "BVV", 2: "GVV", 3: "PVV"}
 
 
-def _roms() -> dict[str, bytes]:
-    """The NDI tool definitions the driver uploads (fullperc_drivers/config/{tool,base}.rom); missing ones left out."""
+def _roms(extra: dict[str, str] | None = None) -> dict[str, bytes]:
+    """The NDI tool definitions the driver uploads (fullperc_drivers/config/{tool,base}.rom, and ``extra``: tool name
+    -> ROM file there, the second target's); missing ones left out."""
     out: dict[str, bytes] = {}
-    for name in ("tool", "base"):
+    for name, file in {"tool": "tool.rom", "base": "base.rom", **(extra or {})}.items():
         try:
-            out[name] = share_path("fullperc_drivers", "config", f"{name}.rom").read_bytes()
+            out[name] = share_path("fullperc_drivers", "config", file).read_bytes()
         except FileNotFoundError:
             pass
     return out
@@ -85,6 +86,11 @@ class LiveServer:
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sent = {"omc": 0, "diana": 0}
         self._ids = {n: i + 1 for i, n in enumerate(OMC_BODIES)}
+        second = run.info.get("second_target")   # the hand-held instrument (sim.walker): its id and NDI tool
+        self._extra_roms = {}
+        if second:
+            self._ids[second["name"]] = int(second["omc_id"])
+            self._extra_roms[second["name"]] = second["rom_file"]
 
     # ------------------------------------------------------------------------------------------ clock
     def host_ns(self, t_sim_ns) -> int:
@@ -116,7 +122,7 @@ class LiveServer:
         kw = {}
         if self.frustum is not None:
             kw["frustum"] = self.frustum
-        self.vega = VegaEmulator(pose_source=self._vega_source, tools=_roms(),
+        self.vega = VegaEmulator(pose_source=self._vega_source, tools=_roms(self._extra_roms),
                                  frame_rate_hz=float(self.run.info.get("ots_rate_hz", 60.0)) * self.speed,
                                  host=self.vega_host, port=int(self.vega_port), **kw).start()
 
