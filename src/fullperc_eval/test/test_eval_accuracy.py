@@ -107,3 +107,32 @@ def test_pooled_nees_weights_by_outputs_and_summary_prints_the_new_tables():
     assert "Orientation MAE [deg]" in text and "LOCAL" in text and "FULLPERC" in text
     assert "NEES pooled" in text and "Issue 18 goals for FULLPERC" in text
     assert s["table1_orientation_deg"]["G-B-P"]["fullperc"][0] == pytest.approx(0.2)
+
+
+def test_main_keeps_every_former_key_and_adds_the_goals(tmp_path, monkeypatch, capsys):
+    """The whole ``make accuracy`` path on hand-made per-seed results (no simulation): accuracy.json keeps the
+    keys others read and gains ``goals``; the goal lines are printed."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from fullperc_eval.evaluation import accuracy as acc
+
+    def fake_run_seed(profile, seed, cache, fusion_config, key):
+        rows = [dict(r, profile=profile) for r in _rows(True, seeds=(seed,))]
+        return {"profile": profile, "seed": seed, "rows": rows, "generated": 0, "sim_s": 0.0, "eval_s": 0.0}
+
+    monkeypatch.setattr(acc, "run_seed", fake_run_seed)
+    monkeypatch.setattr(acc, "ProcessPoolExecutor", ThreadPoolExecutor)
+    monkeypatch.setattr(acc, "twin_hash", lambda p: f"hash-{p}")
+    out = tmp_path / "accuracy.json"
+    assert acc.main(["--seeds", "0-1", "--profile", "both", "--json", str(out), "--cache", str(tmp_path)]) == 0
+    d = json.loads(out.read_text())
+    assert {"profiles", "seeds", "fusion_config", "twin_hash", "summary", "task_seeds"} <= set(d)
+    for p in d["profiles"]:
+        s = d["summary"][p]
+        assert {"n_task_seeds", "seeds", "table1_mae_mm", "share_full_order", "share_cbkf_kf_omc",
+                "share_cbkf_le_omc", "cbkf_over_omc", "table2_gbp_b_to_p_mm", "table2_n"} <= set(s)
+        assert {g["goal"] for g in d["goals"][p]} >= {"orientation_vs_single_sources", "nees_position_share95"}
+    assert {g["goal"] for g in d["goals"]["paper"]} >= {"position_vs_cbkf"}
+    assert {g["goal"] for g in d["goals"]["spec"]} >= {"position_vs_omc"}
+    text = capsys.readouterr().out
+    assert '"name": "goal_position_vs_cbkf_fullperc"' in text and "Issue 18 goals for FULLPERC" in text
