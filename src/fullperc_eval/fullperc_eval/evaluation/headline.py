@@ -75,10 +75,13 @@ def headline(r: dict[str, Any], target: str = "tool") -> str:
             s += f", {_pct(mae[best], mae['omc'])} below the raw OMC ({mae['omc']:.2f} mm)"
         elif best == "omc":
             s += " -- no fusion method beat the raw OMC in this run"
-        ori = {m: v for m, v in (r.get("orientation_mae_deg") or {}).items() if v is not None}
+        ori_all = r.get("orientation_mae_deg") or {}
+        ori = {m: v for m, v in ori_all.items() if v is not None and m in r["mae_mm"]}
         if ori:
             ob = min(ori, key=lambda m: ori[m])
             s += f"; best orientation: {ob.upper()}, {ori[ob]:.3f} deg"
+            if ori_all.get("local") is not None:
+                s += f" (the raw local chain, only where the Vega sees the tool: {ori_all['local']:.3f} deg)"
         parts.append(s + ".")
     hops = r.get("omc_hops") or []
     if hops:
