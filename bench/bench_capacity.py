@@ -9,6 +9,9 @@ rather than late).
 Figures:
   capacity_targets        one fusion_node process
   capacity_targets_2proc  the targets partitioned over two processes (alternately: t0, t2, ... | t1, t3, ...)
+Also ``cpu_share_per_target``: the node processes' CPU time while data flowed per second and target (median over
+the steps), and ``targets_per_core_by_cpu`` = 1 / that share: how many targets one core could take on CPU time
+alone, without the scheduling delays a shared machine adds.
 Raw baseline (same run): ``raw_dds_p99_ms``, the p99 of the publisher's /omc/t0/pose received here directly (the
 median over the steps) -- a count has no ratio to a latency, so it is a field, not ``baseline``.
 each with the per-step results (lost, p99, publisher's achieved rates, the node's drop counters) in ``steps``.
@@ -19,6 +22,7 @@ FULLPERC_BENCH_CAP_STEPS: e.g. "1,2,4,8,12,16")
 from __future__ import annotations
 
 import os
+import subprocess
 import sys
 from pathlib import Path
 
@@ -37,7 +41,12 @@ MIN_RATE = 0.95      # the publisher must reach this share of the device rates, 
 def step(n: int, procs: int, domain: int) -> dict:
     targets = [f"t{k}" for k in range(n)]
     parts = [targets[i::procs] for i in range(procs) if targets[i::procs]]
-    res = run_live([target_params(p) for p in parts], targets, domain, DURATION)
+    try:
+        res = run_live([target_params(p) for p in parts], targets, domain, DURATION)
+    except (RuntimeError, subprocess.TimeoutExpired) as e:     # e.g. nodes never subscribed: the step failed
+        return {"targets": n, "processes": len(parts), "ok": False, "error": f"{type(e).__name__}: {e}"[:300],
+                "lost": None, "samples": None, "p99_ms": None, "raw_p99_ms": None, "publisher_ok": True,
+                "nodes_alive": False}
     lat = res.all_latency_ms
     p99 = float(np.percentile(lat, 99)) if len(lat) else float("inf")
     lost = int(sum(res.lost.values()))
@@ -49,6 +58,8 @@ def step(n: int, procs: int, domain: int) -> dict:
             "raw_p99_ms": round(float(np.percentile(res.raw_latency_ms, 99)), 3) if len(res.raw_latency_ms) else None,
             "publisher_rates_hz": rates, "publisher_ok": publisher_ok, "node_counters": res.node_counters,
             "node_load": res.node_load(), "nodes_alive": res.nodes_alive,
+            "node_cpu_s": [round(c, 2) for c in res.node_cpu_s], "seconds": DURATION,
+            "cpu_us_per_fused_pose": round(1e6 * sum(res.node_cpu_s) / res.fused_total, 1) if res.fused_total else None,
             "ok": lost == 0 and p99 <= P99_MAX_MS and res.nodes_alive}
 
 
@@ -71,12 +82,19 @@ def main() -> None:
         raw = [s["raw_p99_ms"] for s in steps if s["raw_p99_ms"] is not None]
         failed = next((s for s in steps if not s["ok"]), None)
         why = None
-        if failed is not None:
+        if failed is not None and "error" in failed:
+            why = f"{failed['targets']} targets: {failed['error']}"
+        elif failed is not None:
             why = (f"{failed['targets']} targets: lost {failed['lost']} of {failed['samples']}, p99 "
                    f"{failed['p99_ms']} ms (limit {P99_MAX_MS} ms)"
                    + ("" if failed["publisher_ok"] else "; the stand-in publisher fell behind the device rates")
                    + ("" if failed["nodes_alive"] else "; a fusion_node process died"))
+        # CPU a target costs one process (CPU time, not wall time: less sensitive to other load than latency)
+        shares = [sum(s["node_cpu_s"]) / s["seconds"] / s["targets"] for s in steps if s.get("node_cpu_s")]
+        share = float(np.median(shares)) if shares else None
         emit(name, best, "targets", raw_dds_p99_ms=float(np.median(raw)) if raw else None,
+             cpu_share_per_target=round(share, 3) if share else None,
+             targets_per_core_by_cpu=int(1 / share) if share else None,
              criterion=f"0 lost and p99 <= {P99_MAX_MS} ms at 240 + 400 Hz per target", first_failure=why,
              steps=steps)
 

@@ -56,7 +56,10 @@ def main() -> None:
         emit("fused_latency_p50", np.median(lat), "ms", baseline=np.median(raw), **common)
         emit("fused_latency_p99", np.percentile(lat, 99), "ms", baseline=np.percentile(raw, 99), **common)
     emit("fused_dropped", res.lost["tool"], "count", target_samples=res.sent["tool"],
-         node_counters=res.node_counters, node_load=res.node_load(), **common)
+         node_counters=res.node_counters, node_load=res.node_load(),
+         node_cpu_share=round(res.node_cpu_s[0] / DURATION, 3) if res.node_cpu_s else None,
+         cpu_us_per_fused_pose=round(1e6 * res.node_cpu_s[0] / res.fused_total, 1) if res.fused_total else None,
+         **common)
 
 
 if __name__ == "__main__":

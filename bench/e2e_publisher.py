@@ -37,7 +37,11 @@ def main() -> int:
     ap.add_argument("--omc-hz", type=float, default=240.0)
     ap.add_argument("--ots-hz", type=float, default=400.0)
     ap.add_argument("--duration", type=float, default=10.0)
-    ap.add_argument("--wait-subscribers", type=int, default=1)
+    ap.add_argument("--wait-subscribers", type=int, default=1,
+                    help="subscribers /omc/<first tool>/pose must have before data flows (every other target "
+                         "topic: 1)")
+    ap.add_argument("--wait-base", type=int, default=1,
+                    help="subscribers /omc/base/pose and /ots/base/pose must have (one per fusion process)")
     ap.add_argument("--tools", default="tool", help="comma-separated target names (default: tool)")
     ap.add_argument("--stamps", help="write the target samples' stamps here (JSON: {omc|ots: {tool: [ns]}})")
     a = ap.parse_args()
@@ -47,7 +51,8 @@ def main() -> int:
     tools = [t for t in a.tools.split(",") if t]
     pubs = {f"/{d}/{b}/pose": node.create_publisher(PoseStamped, f"/{d}/{b}/pose", qos)
             for d in ("omc", "ots") for b in ("base", *tools)}
-    while min(pubs[f"/omc/{t}/pose"].get_subscription_count() for t in tools) < a.wait_subscribers:
+    need = {f"/omc/{tools[0]}/pose": a.wait_subscribers, "/omc/base/pose": a.wait_base, "/ots/base/pose": a.wait_base}
+    while any(p.get_subscription_count() < need.get(topic, 1) for topic, p in pubs.items()):
         rclpy.spin_once(node, timeout_sec=0.05)
     time.sleep(1.0)  # discovery runs both ways; let the node match before data flows
     T_ots_omc = inv_T(T_OMC_OTS)

@@ -61,6 +61,8 @@ class LiveResult:
     publisher: dict                          # the publisher's summary line (frames, achieved rates)
     nodes_alive: bool = True
     diag: dict[str, dict[str, str]] = field(default_factory=dict)
+    node_cpu_s: list[float] = field(default_factory=list)   # CPU seconds of each node process while data flowed
+    fused_total: int = 0                     # fused poses received over the whole run (warm-up included)
 
     def node_load(self) -> dict[str, dict[str, str]]:
         """Per /diagnostics target entry: the node's own load figures (queue depth, processing lag, rewinds), as
@@ -71,6 +73,15 @@ class LiveResult:
     def all_latency_ms(self) -> np.ndarray:
         parts = [v for v in self.latency_ms.values() if len(v)]
         return np.concatenate(parts) if parts else np.zeros(0)
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of process ``pid`` [s] (Linux /proc; 0.0 where unavailable)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return 0.0
 
 
 def uncovered(sent_ns: np.ndarray, fused_ns: np.ndarray, slop_ns: int) -> int:
@@ -136,11 +147,14 @@ def run_live(nodes: list[list[str]], targets: list[str], domain: int, duration: 
                           daemon=True)
     th.start()
     stamps_file = Path(tempfile.mkdtemp(prefix="live_bench_")) / "stamps.json"
+    cpu0 = [cpu_seconds(p.pid) for p in procs]
     try:
         pub = subprocess.run([sys.executable, str(HERE / "e2e_publisher.py"), "--duration", str(duration),
-                              "--wait-subscribers", "2", "--tools", ",".join(targets), "--omc-hz", str(omc_hz),
-                              "--ots-hz", str(ots_hz), "--stamps", str(stamps_file)],
+                              "--wait-subscribers", "2", "--wait-base", str(len(nodes)), "--tools", ",".join(targets),
+                              "--omc-hz", str(omc_hz), "--ots-hz", str(ots_hz), "--stamps", str(stamps_file)],
                              env=env, capture_output=True, text=True, timeout=duration + 180)
+        # CPU while data flowed (the publisher's discovery wait and 1 s pauses add idle time only)
+        cpu = [cpu_seconds(p.pid) - c for p, c in zip(procs, cpu0, strict=True)]
         time.sleep(2.5)   # one more diagnostics period after the last sample
     finally:
         stop.set()
@@ -179,4 +193,5 @@ def run_live(nodes: list[list[str]], targets: list[str], domain: int, duration: 
         for k2, v in values.items():
             if DROP_WORDS & set(k2.split("_")) and v.strip().lstrip("-").isdigit():
                 counters[k2] = counters.get(k2, 0) + int(v)
-    return LiveResult(lat, (r[:, 0] - r[:, 1]) / 1e6, lost, n_sent, counters, summary, alive, diag)
+    return LiveResult(lat, (r[:, 0] - r[:, 1]) / 1e6, lost, n_sent, counters, summary, alive, diag, cpu,
+                      sum(len(v) for v in fused.values()))
