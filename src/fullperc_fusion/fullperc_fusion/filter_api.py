@@ -80,6 +80,8 @@ class Step:
     hop: bool = False
     reset: bool = False            # this sample (re-)initialised the state; no update was made
     m: np.ndarray | None = None    # diagonal of M (biased kinds)
+    q: np.ndarray | None = None    # fused orientation x y z w, for filters that estimate it (fullperc); else None
+    pose_cov: np.ndarray | None = None   # its 6x6 pose covariance [x y z, rx ry rz] (module docstring), with q
 
     @property
     def pos_cov(self) -> np.ndarray:
@@ -146,6 +148,11 @@ def split_update(kind: str, measurements) -> tuple[Measurement | None, Measureme
 @runtime_checkable
 class Filter(Protocol):
     """What the pipeline needs of a filter. Register an implementation in :mod:`filter_registry`.
+
+    Optional: a filter with ``uses_models = True`` gets, for every sample without a device covariance, the model
+    covariance of :mod:`measurement_models` (OMC quality and view margin, Vega distance and calibrated link);
+    the others get ``cov=None`` and use their fixed noise. A :class:`Step` with ``q`` (and ``pose_cov``) is a
+    fused orientation: the pipeline outputs it instead of copying a source's.
 
     * ``predict(t_ns)``: move the state to ``t_ns`` (non-decreasing; ValueError when time goes backwards).
       On a filter that has no state yet, or after a gap it does not bridge, it only records the stamp.

@@ -14,6 +14,7 @@ from functools import partial
 from .fast_filter import ClosedFormFilter
 from .filter_api import Filter
 from .filters import FilterParams, PassThrough
+from .fullperc_filter import FullpercFilter
 
 FilterFactory = Callable[[FilterParams | None], Filter]
 
@@ -25,6 +26,8 @@ FILTERS: dict[str, FilterFactory] = {
     "bkf": partial(ClosedFormFilter, "bkf"),
     "kf": partial(ClosedFormFilter, "kf"),
     "omc": PassThrough,                      # the raw global source, for comparison
+    # ours (issue 18): CBKF's compensated position + per-measurement model covariance + orientation on SO(3)
+    "fullperc": FullpercFilter,
 }
 
 

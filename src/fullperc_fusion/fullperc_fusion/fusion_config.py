@@ -30,13 +30,16 @@ from fullperc_common.params import ParameterError
 
 from .calibration import CalibrationError, CalibrationSettings, StaticThresholds
 from .calibration_io import load_calibration
-from .filters import FilterParams
+from .filter_registry import FILTERS
 from .frame_chain import LOCAL_CHAINS, STATIC_LINK_MODES, BadSample, ChainConfig, pose_to_T
+from .fullperc_filter import FullpercParams
 from .fusion_health import HealthParams
 from .link_monitor import MonitorParams
 from .pipeline import FILTER_NAMES, TargetConfig
 
-PAPER_ORDER = tuple(reversed(FILTER_NAMES))   # every method, in the column order of the paper's Table 1
+# every method: the paper's five in the column order of its Table 1 (omc, kf, bkf, ckf, cbkf: the first five of
+# the registry reversed), then every further registered filter (fullperc) in registry order
+PAPER_ORDER = tuple(reversed(FILTER_NAMES[:5])) + FILTER_NAMES[5:]
 KINDS = ("str", "int", "float", "bool", "str_list", "pose7")
 
 Get = Callable[[str, Any], Any]
@@ -71,7 +74,7 @@ def _nonneg(v) -> bool:
     return math.isfinite(v) and v >= 0
 
 
-_F = FilterParams()
+_F = FullpercParams()
 _C = ChainConfig()
 _T = TargetConfig()
 _H = HealthParams()
@@ -140,6 +143,26 @@ PARAMS: tuple[Param, ...] = (
           "a flagged hop goes into the bias (compensated filters)"),
     Param("max_gap", _F.max_gap_s, "float", _pos, "must be finite and > 0", "s",
           "longer silence of both sources re-initialises p and v"),
+    Param("fullperc.ang_accel_noise", _F.ang_accel_noise, "float", _nonneg, "must be finite and >= 0", "rad^2/s^3",
+          "fullperc: white angular-acceleration density q_alpha"),
+    Param("fullperc.rot_bias_walk", _F.rot_bias_walk, "float", _nonneg, "must be finite and >= 0", "rad^2/s",
+          "fullperc: random walk of the OMC's orientation bias"),
+    Param("fullperc.rot_global_std", _F.rot_global_std, "float", _pos, "must be finite and > 0", "rad",
+          "fullperc: OMC orientation noise per axis when a sample has no covariance"),
+    Param("fullperc.rot_local_std", _F.rot_local_std, "float", _pos, "must be finite and > 0", "rad",
+          "fullperc: OTS orientation noise per axis when a sample has no covariance"),
+    Param("fullperc.init_rot_std", _F.init_rot_std, "float", _nonneg, "must be finite and >= 0", "rad",
+          "fullperc: prior std of the orientation"),
+    Param("fullperc.init_angvel_std", _F.init_angvel_std, "float", _nonneg, "must be finite and >= 0", "rad/s",
+          "fullperc: prior std of the angular velocity"),
+    Param("fullperc.init_rot_bias_std", _F.init_rot_bias_std, "float", _nonneg, "must be finite and >= 0", "rad",
+          "fullperc: prior std of the OMC's orientation bias"),
+    Param("fullperc.sys_time", _F.sys_time, "float", _pos, "must be finite and > 0", "s",
+          "fullperc: correlation time of the OMC's systematic position error (Gauss-Markov bias part)"),
+    Param("fullperc.sys_std", _F.sys_std, "float", _pos, "must be finite and > 0", "m",
+          "fullperc: its per-axis std for an OMC sample without a model (no quality)"),
+    Param("fullperc.layout_file", "", "str", None, "", "",
+          "fullperc: OR layout for the OMC model's view margin; '' = the installed or_layout.yaml, 'none' = none"),
     Param("slop", _T.slop_ns * 1e-9, "float", _nonneg, "must be finite and >= 0", "s",
           "pair OMC and OTS samples closer than this"),
     Param("reorder_delay", _T.delay_ns * 1e-9, "float", _nonneg, "must be finite and >= 0", "s",
@@ -267,12 +290,35 @@ def read_values(get: Get, targets: list[str] | None = None) -> dict[str, Any]:
     return vals
 
 
-def filter_params(vals: dict[str, Any]) -> FilterParams:
-    return FilterParams(
+def filter_params(vals: dict[str, Any]) -> FullpercParams:
+    """The filters' parameters: the paper's (:class:`FilterParams`) and fullperc's orientation ones in one object
+    (:class:`FullpercParams` is a FilterParams; the paper's filters read only their own fields)."""
+    return FullpercParams(
         accel_noise=vals["noise.accel"], bias_walk=vals["noise.bias_walk"], global_std=vals["noise.global_std"],
         local_std=vals["noise.local_std"], init_pos_std=vals["init.pos_std"], init_vel_std=vals["init.vel_std"],
         init_bias_std=vals["init.bias_std"], hop_gate=vals["hop_gate"], hop_to_bias=vals["hop_to_bias"],
-        max_gap_s=vals["max_gap"]).validate()
+        max_gap_s=vals["max_gap"], ang_accel_noise=vals["fullperc.ang_accel_noise"],
+        rot_bias_walk=vals["fullperc.rot_bias_walk"], rot_global_std=vals["fullperc.rot_global_std"],
+        rot_local_std=vals["fullperc.rot_local_std"], init_rot_std=vals["fullperc.init_rot_std"],
+        init_angvel_std=vals["fullperc.init_angvel_std"],
+        init_rot_bias_std=vals["fullperc.init_rot_bias_std"], sys_time=vals["fullperc.sys_time"],
+        sys_std=vals["fullperc.sys_std"]).validate()
+
+
+def model_layout(vals: dict[str, Any], filters: tuple[str, ...]):
+    """The layout for the OMC model's view margin when a filter uses the models (``fullperc.layout_file``), else
+    None. A file that cannot be read raises ParameterError naming the parameter."""
+    if not any(getattr(FILTERS[f], "uses_models", False) for f in filters if f in FILTERS):
+        return None
+    path = vals["fullperc.layout_file"]
+    if path.strip().lower() == "none":
+        return None
+    from .layout import LayoutError, default_layout_path, load_layout
+
+    try:
+        return load_layout(path or default_layout_path())
+    except (LayoutError, FileNotFoundError) as e:
+        raise ParameterError(f"parameter 'fullperc.layout_file' = {path!r}: {e}") from None
 
 
 def health_params(vals: dict[str, Any]) -> HealthParams:
@@ -330,7 +376,7 @@ def target_config(get: Get | dict[str, Any], target: str, filters: tuple[str, ..
                             slop_ns=int(vals["slop"] * 1e9), delay_ns=int(vals["reorder_delay"] * 1e9),
                             max_future_ns=int(round(vals["max_future"] * 1e9)),
                             processing=vals["processing"], history_ns=int(round(vals["history"] * 1e9)),
-                            monitor=monitor_params(vals))
+                            monitor=monitor_params(vals), layout=model_layout(vals, tuple(filters)))
     except ParameterError:
         raise
     except ValueError as e:   # checks of the dataclasses beyond the table's

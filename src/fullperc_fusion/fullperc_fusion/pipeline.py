@@ -42,9 +42,17 @@ Once the local link is set (``static`` / ``direct`` chains), the OTS's sightings
 output and, with ``monitor.recalibrate``, re-estimates the static links in calibrate mode (the old links stay in
 use meanwhile). A refused calibrate-mode collection is counted as ``calibration_refused`` with its reason.
 
-The fused orientation is not filtered (the paper fuses position): it is the orientation of the best
-source in the item -- the local (OTS) one when present, else the global one -- mapped into ``base``,
-and ``orientation_source`` says which. The ``omc`` pass-through always carries the global one.
+The paper's filters do not filter the orientation (the paper fuses position): their output's orientation is that
+of the best source in the item -- the local (OTS) one when present, else the global one -- mapped into ``base``,
+and ``orientation_source`` says which. The ``omc`` pass-through always carries the global one. A filter whose
+Step carries ``q`` (``fullperc``) outputs its fused orientation and its own 6x6 pose covariance, with
+``orientation_source`` = both bits.
+
+Model covariances: a filter with ``uses_models`` (``fullperc``) is fed the same samples with the covariances of
+:mod:`measurement_models` -- the OMC's from its TrackingQuality (``push_omc(quality=...)`` or
+:meth:`TargetPipeline.push_omc_quality`, matched by stamp) and the view margin at the body in
+``TargetConfig.layout``, the local one from the Vega's distance model plus the calibrated link through the lever
+arm. The paper's filters get exactly the measurements they got before (``cov`` only when a device gave one).
 """
 
 from __future__ import annotations
@@ -61,7 +69,10 @@ from .filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, BadMeasurement, Measurement
 from .filter_registry import FILTERS, make_filter
 from .filters import FilterParams
 from .frame_chain import BadSample, ChainConfig, FrameChain, pose_to_T
+from .layout import Layout
 from .link_monitor import LinkMonitor, MonitorParams
+from .margin import margin_at
+from .measurement_models import local_covariance, omc_covariance, omc_systematic_var, rotate_cov
 from .synchronizer import GLOBAL, LOCAL, ApproxSync, SyncItem
 
 FILTER_NAMES: tuple[str, ...] = tuple(FILTERS)   # ("cbkf", "ckf", "bkf", "kf", "omc"): filter_registry.FILTERS
@@ -83,6 +94,7 @@ class TargetConfig:
     orientation_std_local: float = 0.002   # [rad] reported in pose_cov when the OTS orientation is used
     orientation_std_global: float = 0.01   # [rad] when the OMC orientation is used
     monitor: MonitorParams = field(default_factory=MonitorParams)   # link monitoring (link_monitor)
+    layout: Layout | None = None    # OR layout (omc frame) for the OMC model's view margin; None: margin unknown
 
     def __post_init__(self) -> None:
         self.filters = tuple(self.filters)
@@ -146,6 +158,9 @@ class TargetPipeline:
         self.monitor = LinkMonitor(config.monitor, "T_base_ots", f"OTS tool '{c.ots_base}'")
         self._monitor_src: np.ndarray | None = None   # the T_base_ots the monitor's reference was made from
         self._refusals_seen = 0
+        # the model covariances (measurement_models) are built only when a filter uses them (fullperc)
+        self._models = any(getattr(f, "uses_models", False) for f in self.filters.values())
+        self._omc_quality: dict[int, dict] = {}   # stamp -> TrackingQuality of the OMC target body (fit_error ...)
 
     # ---- input ------------------------------------------------------------------------------
     def _problem(self, key: str, msg: str, t_ns: int | None) -> None:
@@ -185,10 +200,14 @@ class TargetPipeline:
             self._problem("rejected_cov", f"{what}: {e}", t)
             return None
 
-    def push_omc(self, body: str, t_ns: int, pose, cov=None, now_ns: int | None = None) -> bool:
+    def push_omc(self, body: str, t_ns: int, pose, cov=None, now_ns: int | None = None,
+                 quality: dict | None = None) -> bool:
         """One OMC sample of ``body`` (pose of the body in ``omc``, optional 6x6 covariance in ``omc``).
-        False if rejected or unused. ``now_ns``: the caller's clock, for the time guard (module docstring)."""
+        False if rejected or unused. ``now_ns``: the caller's clock, for the time guard (module docstring).
+        ``quality``: the sample's TrackingQuality fields (:meth:`push_omc_quality`), for the OMC model."""
         c = self.config.chain
+        if quality is not None:
+            self.push_omc_quality(body, t_ns, quality)
         if body not in (c.omc_target, c.omc_base, c.omc_rig):
             return False
         v = self._validate(f"OMC body '{body}'", t_ns, pose, cov, now_ns)
@@ -219,6 +238,20 @@ class TargetPipeline:
         if tool == c.ots_target:
             return self._enqueue(LOCAL, f"OTS tool '{tool}'", t, (T, C))
         return True
+
+    def push_omc_quality(self, body: str, t_ns: int, quality: dict) -> None:
+        """The TrackingQuality of one OMC sample of ``body`` (``fit_error`` [m], ``markers_used``), before or after
+        its pose: it is looked up by stamp when the sample is fused, for the OMC model covariance
+        (:func:`measurement_models.omc_covariance`; only filters with ``uses_models``). Other bodies are ignored."""
+        if body != self.config.chain.omc_target or not self._models:
+            return
+        try:
+            self._omc_quality[int(t_ns)] = {k: float(v) for k, v in dict(quality).items()}
+        except (TypeError, ValueError):
+            return   # a malformed quality only means the model's defaults
+        if len(self._omc_quality) > 512:   # a body whose poses never come (not tracked): keep the newest
+            for k in sorted(self._omc_quality)[:256]:
+                del self._omc_quality[k]
 
     def _enqueue(self, stream: int, what: str, t: int, payload: tuple[np.ndarray, np.ndarray | None]) -> bool:
         r = self.sync.push(stream, t, payload)
@@ -294,6 +327,7 @@ class TargetPipeline:
         try:
             mg = None if Tg is None else _measurement(SOURCE_GLOBAL, item.glob.t_ns, Tg, *item.glob.payload)
             ml = None if Tl is None else _measurement(SOURCE_LOCAL, item.local.t_ns, Tl, *item.local.payload)
+            ms_model = self._model_measurements(item, mg, ml, Tg, Tl, eq) if self._models else None
         except BadMeasurement as e:   # a valid device covariance that mapping into base made invalid
             self._problem("rejected_cov", f"item at {item.t_ns} ns: covariance in base: {e}", item.t_ns)
             return []
@@ -309,20 +343,24 @@ class TargetPipeline:
         for name, f in self.filters.items():
             try:
                 f.predict(t_item)
-                st: Step | None = f.update(*ms)
+                st: Step | None = f.update(*(ms_model if ms_model is not None and getattr(f, "uses_models", False)
+                                             else ms))
             except (ValueError, FloatingPointError, np.linalg.LinAlgError) as e:
                 self._problem("filter_error", f"filter {name}: {e}", item.t_ns)
                 continue
             if st is None:
                 continue
-            if name == "omc" or ml is None:
-                mq, osrc, ostd = mg, SOURCE_GLOBAL, self.config.orientation_std_global
+            if st.q is not None and st.pose_cov is not None:   # the filter fused the orientation (fullperc)
+                q, cov, osrc = st.q, st.pose_cov, SOURCE_GLOBAL | SOURCE_LOCAL
             else:
-                mq, osrc, ostd = ml, SOURCE_LOCAL, self.config.orientation_std_local
-            cov = np.zeros((6, 6))
-            cov[0:3, 0:3] = st.pos_cov
-            cov[3:6, 3:6] = np.eye(3) * ostd**2 if mq.cov is None else mq.cov[3:6, 3:6]
-            q = mq.q
+                if name == "omc" or ml is None:
+                    mq, osrc, ostd = mg, SOURCE_GLOBAL, self.config.orientation_std_global
+                else:
+                    mq, osrc, ostd = ml, SOURCE_LOCAL, self.config.orientation_std_local
+                cov = np.zeros((6, 6))
+                cov[0:3, 0:3] = st.pos_cov
+                cov[3:6, 3:6] = np.eye(3) * ostd**2 if mq.cov is None else mq.cov[3:6, 3:6]
+                q = mq.q
             if not (np.all(np.isfinite(st.p)) and np.all(np.isfinite(cov)) and np.all(np.isfinite(q))):
                 f.reset()
                 self._problem("nonfinite_output", f"filter {name}: non-finite estimate; filter reset", st.t_ns)
@@ -339,6 +377,40 @@ class TargetPipeline:
             outs.append(o)
         self.counts["items"] += 1
         return outs
+
+    def _model_measurements(self, item: SyncItem, mg: Measurement | None, ml: Measurement | None,
+                            Tg: np.ndarray | None, Tl: np.ndarray | None, eq: str) -> list[Measurement]:
+        """The item's measurements with the model covariances of :mod:`measurement_models` (``uses_models``).
+
+        Global: a device covariance when one was pushed (already in base), else the OMC model (white part) from the
+        sample's quality (:meth:`push_omc_quality`; defaults without) and the view margin at the body in the layout;
+        ``extras`` carry the quality and ``sys_var``, the variance of the OMC's systematic position error here.
+        Local: the device covariance or the Vega's distance model, mapped into base, plus the calibrated static
+        link's covariance through the lever arm (``static`` chain with a calibrated T_base_ots; else no link term).
+        """
+        out = []
+        if mg is not None:
+            T_dev = item.glob.payload[0]
+            qual = self._omc_quality.pop(mg.t_ns, None) or {}
+            for k in [k for k in self._omc_quality if k < mg.t_ns]:
+                del self._omc_quality[k]
+            C = mg.cov
+            if C is None:
+                lay = self.config.layout
+                margin = margin_at(lay, T_dev[:3, 3])[0] if lay is not None else None
+                RA = Tg[:3, :3] @ T_dev[:3, :3].T
+                C = rotate_cov(omc_covariance(qual.get("fit_error"), margin), RA)
+            else:
+                margin = None
+            out.append(Measurement(mg.t_ns, SOURCE_GLOBAL, mg.p, mg.q, C,
+                                   extras={**qual, "sys_var": omc_systematic_var(qual.get("fit_error"), margin)[0]}))
+        if ml is not None:
+            T_dev, C_dev = item.local.payload[0], item.local.payload[1]
+            A = Tl @ inv_T(T_dev)   # T_base_tool = A T_ots_tool: the whole chain in front of the tool
+            est = self.chain.links.estimates.get("T_base_ots") if eq == "static" else None
+            C = local_covariance(A, T_dev, None if est is None else est.cov, device_cov=C_dev)
+            out.append(Measurement(ml.t_ns, SOURCE_LOCAL, ml.p, ml.q, C))
+        return out
 
     # ---- state for diagnostics ----------------------------------------------------------------
     def stats(self) -> dict:

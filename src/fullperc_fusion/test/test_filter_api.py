@@ -210,7 +210,7 @@ def test_update_refuses_two_of_a_source_and_a_measurement_older_than_the_gap():
 # ------------------------------------------------------------------------------------------ registry
 
 def test_the_registry_is_the_one_list():
-    assert FILTER_NAMES == tuple(FILTERS) == ("cbkf", "ckf", "bkf", "kf", "omc")
+    assert FILTER_NAMES == tuple(FILTERS) == ("cbkf", "ckf", "bkf", "kf", "omc", "fullperc")
     for name in FILTERS:
         f = make_filter(name, FilterParams(global_std=1e-3))
         assert isinstance(f, Filter) and f.kind == name and f.params.global_std == 1e-3

@@ -11,8 +11,8 @@ import yaml
 
 from fullperc_common.params import ParameterError
 from fullperc_fusion import fusion_config as fc
-from fullperc_fusion.filters import FilterParams
 from fullperc_fusion.frame_chain import ChainConfig
+from fullperc_fusion.fullperc_filter import FullpercParams
 from fullperc_fusion.fusion_health import HealthParams
 from fullperc_fusion.link_monitor import MonitorParams
 from fullperc_fusion.pipeline import TargetConfig
@@ -36,7 +36,7 @@ def _write(tmp_path, params: dict, top: str = "fusion_node"):
 def test_shipped_file_gives_the_built_in_defaults():
     """fusion.yaml says every value equals the node's built-in default."""
     cfg, values = fc.load_fusion_config()
-    _same_config(cfg, TargetConfig(name="tool", chain=ChainConfig(), filters=fc.PAPER_ORDER, params=FilterParams()))
+    _same_config(cfg, TargetConfig(name="tool", chain=ChainConfig(), filters=fc.PAPER_ORDER, params=FullpercParams()))
     assert values["_source"].endswith("fusion.yaml")
     for p in fc.PARAMS:
         assert values[p.name] == fc.convert(p, None), p.name

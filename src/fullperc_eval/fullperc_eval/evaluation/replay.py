@@ -86,6 +86,26 @@ def _task_name(reader: BagReader) -> str:
     return reader.path.name
 
 
+def omc_quality_by_stamp(reader: BagReader, config: TargetConfig) -> dict[int, dict[str, float]]:
+    """H3 hook (issue 18, fullperc): the OMC target body's TrackingQuality by header stamp, for
+    ``push_omc(quality=...)``, so a filter with ``uses_models`` gets the OMC model covariance offline as live.
+    Empty when no configured filter uses the models or the bag has no quality topic."""
+    from fullperc_fusion.filter_registry import FILTERS
+
+    topic = f"/omc/{config.chain.omc_target}/quality"
+    if topic not in reader.topics or not any(getattr(FILTERS.get(f), "uses_models", False) for f in config.filters):
+        return {}
+    out: dict[int, dict[str, float]] = {}
+    reader.open()
+    try:
+        for m in reader.messages([topic]):
+            q = reader.deserialize(m.data, m.msgtype)
+            out[_stamp_ns(q.header)] = {"fit_error": float(q.fit_error), "markers_used": float(q.markers_used)}
+    finally:
+        reader.close()
+    return out
+
+
 def replay(bag: str | Path, config: TargetConfig, idle_flush_s: float = 0.5, progress: bool = True) -> Replay:
     """Run the pipeline over the raw measurements of ``bag`` the way fusion_node would have."""
     t_start = time.perf_counter()
@@ -115,6 +135,7 @@ def replay(bag: str | Path, config: TargetConfig, idle_flush_s: float = 0.5, pro
     total = sum(reader.topics[t].count for t in present)
 
     pipe = TargetPipeline(config)
+    omc_quality = omc_quality_by_stamp(reader, config)   # H3 hook: OMC quality for fullperc's model covariance
     tap = SourceTap()   # hook: records the measurements the filters get (raw local chain for the evaluation)
     pipe.filters[SourceTap.NAME] = tap
     outs = {f: Outputs() for f in config.filters}
@@ -173,7 +194,7 @@ def replay(bag: str | Path, config: TargetConfig, idle_flush_s: float = 0.5, pro
                 last_target_recv = m.timestamp
             if dev == "omc":
                 body = omc_topics[m.topic]
-                pipe.push_omc(body, t_ns, pose)
+                pipe.push_omc(body, t_ns, pose, quality=omc_quality.get(t_ns) if body == c.omc_target else None)
                 if body == c.omc_base:
                     base_poses.append(pose)
             else:

@@ -1,0 +1,209 @@
+"""Measurement noise models (issue 18 item 2): the 6x6 pose covariance of an OMC and of a local (Vega) sample.
+
+Only the ``fullperc`` filter uses these (``uses_models``); the paper's four keep their fixed noise. Every model is
+a small pure function with its equation in the docstring; the constants are device specifications or statistics of
+the RAW sensors against the Diana ground truth (never of a filter's output), each with its origin below.
+
+Convention (:mod:`filter_api`): ROS order [x y z, rx ry rz]; position in metres in the parent frame, rotation a
+small rotation vector about the parent's axes, R_true = Exp(dtheta) R_est.
+
+Raw-sensor statistics used below ("raw stats"): the 6 ``bags/spec`` twin bags (device-specification noise),
+every tracked /omc/tool and /ots/tool sample mapped into ``base`` by the node's frame chain, compared with the
+Diana forward kinematics; the OMC's view margin from :func:`margin.margin_at` on ``config/or_layout.yaml``
+(script of the H3 report, /tmp/h3/raw_stats.py). Per-axis variance regressed on [1, fit_error^2, 300/margin]:
+
+* OMC total error (white + systematic): sqrt(a) = 0.12 mm, k_fit = 0.96 (the ``paper`` profile bags, whose
+  cameras are worse calibrated, give k_fit = 0.79: the fit-error term carries over between calibrations, the
+  margin term grows with the miscalibration); margin term 0.38 mm at 300 deg; rotation: k_rot_fit = 17.2 rad/m in
+  both profiles, margin term 1.3 mrad at 300 deg;
+* OMC white part (frame-to-frame: consecutive differences / sqrt 2, same regression): floor 0.02 mm, margin term
+  0.076 mm at 300 deg, fit gain 0.25; robust (MAD) white jitter 0.036 mm per axis in both profiles;
+* time structure of the OMC error (rms per-axis increment over a lag L): spec 0.041 / 0.10 / 0.17 mm at
+  L = 8 ms / 1 s / 10 s, paper 0.09 / 1.06 / 1.84 mm: beyond the white jitter the error is systematic and
+  decorrelates on the order of a second of motion (distortion along the path, camera-set changes);
+* Vega tool (chain included) per axis 0.13 mm mid-volume, 0.17-0.19 mm at the ends of the 0.95-2.4 m volume;
+  orientation ~2.2 mrad per axis.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+# The paper's GVV threshold (§5: theta ~ 50 deg, k = 6 -> ~300 deg): the margin at which the OMC's margin
+# term has its reference value.
+MARGIN_REF_DEG = 300.0
+
+
+@dataclass(frozen=True)
+class OmcModelParams:
+    """Constants of :func:`omc_covariance` and :func:`omc_systematic_var`; origin of each in the module docstring
+    ("raw stats"). The systematic error's correlation time (~1 s, the structure function's knee) is the filter's
+    ``FullpercParams.sys_time``.
+
+    white_std        [m]      per-axis white floor
+    white_fit_gain   [-]      per-axis white std per metre of the device's RMS marker fit error
+    white_margin_std [m]      per-axis white std of the view-margin term at ``margin_ref`` degrees
+    fit_gain         [-]      per-axis systematic std per metre of fit error
+    margin_std       [m]      per-axis systematic std of the view-margin term at ``margin_ref``
+    margin_ref       [deg]    reference margin (the paper's GVV threshold)
+    margin_min       [deg]    margins below this count as this (a point one camera pair barely sees)
+    marker_lever     [m]      rotation std = position std / lever: 1 / 17.2 rad/m, the rotation-on-fit-error
+                              gain of both profiles (a ~60 mm marker body)
+    rot_margin_std   [rad]    per-axis systematic rotation std of the margin term at ``margin_ref``
+    default_fit      [m]      fit error assumed when the device reports none (-1): the spec bags' median
+    """
+
+    white_std: float = 0.02e-3
+    white_fit_gain: float = 0.25
+    white_margin_std: float = 0.076e-3
+    fit_gain: float = 0.96
+    margin_std: float = 0.38e-3
+    margin_ref: float = MARGIN_REF_DEG
+    margin_min: float = 30.0
+    marker_lever: float = 1.0 / 17.2
+    rot_margin_std: float = 1.3e-3
+    default_fit: float = 0.09e-3
+
+
+@dataclass(frozen=True)
+class LocalModelParams:
+    """Constants of :func:`vega_covariance`.
+
+    std_ref      [m]    per-axis std at ``d_ref``: NDI Polaris Vega 0.12 mm RMS (3-D) volumetric -> 0.12/sqrt(3)
+    d_ref        [m]    middle of the Vega's characterised volume (0.95-2.4 m)
+    exponent     [-]    stereo triangulation: depth error ~ d^2 / (baseline f) at constant pixel noise
+    rot_std_ref  [rad]  per-axis orientation std at ``d_ref`` (raw stats, ~2.2 mrad; a ~30 mm tool)
+    """
+
+    std_ref: float = 0.12e-3 / np.sqrt(3.0)
+    d_ref: float = 1.675
+    exponent: float = 2.0
+    rot_std_ref: float = 2.2e-3
+
+
+def margin_factor(margin_deg: float | None, ref_deg: float = MARGIN_REF_DEG, min_deg: float = 30.0) -> float:
+    """f(M) = M_ref / max(M, M_min): the margin term's variance scale; 1 without a margin (None or non-finite).
+
+    The paper's model (§4): a point seen by fewer camera pairs, at worse convergence angles, has a smaller summed
+    margin M and is triangulated from fewer rays, so its error is larger. The summed margin grows roughly with
+    the number of valid pairs; a least-squares solution over k rays has a variance ~1/k: variance ~ 1/M.
+    """
+    if margin_deg is None or not np.isfinite(margin_deg):
+        return 1.0
+    return float(ref_deg / max(float(margin_deg), min_deg))
+
+
+def _fit(fit_error: float | None, params: OmcModelParams) -> float:
+    if fit_error is None or not np.isfinite(fit_error) or fit_error < 0:
+        return params.default_fit
+    return float(fit_error)
+
+
+def omc_covariance(fit_error: float | None, margin_deg: float | None,
+                   params: OmcModelParams = OmcModelParams()) -> np.ndarray:
+    """6x6 measurement covariance R of one OMC body pose (isotropic, so the same in any frame).
+
+        position, the WHITE (frame-to-frame) part:   sigma_p^2 = w^2 + (k_w e)^2 + m_w^2 f(M)
+        rotation, white + systematic:                sigma_r^2 = sigma_p^2 / lever^2 + s_r^2   (omc_systematic_var)
+        C = diag(sigma_p^2 I3, sigma_r^2 I3)
+
+    e the device's RMS marker fit error [m] (``default_fit`` when unknown: None or < 0), M the view margin at the
+    point [deg] (:func:`margin_factor`). Fewer, worse-placed cameras and rays that disagree (large fit error) make
+    every frame's triangulation noisier; a rotation error of a rigid body is its marker error over the lever.
+
+    Why the position gets its white part only: the rest of the OMC's position error is systematic (the same for
+    about a second along the path, module docstring); a filter given it as white R would average it away, which
+    it cannot be. ``fullperc`` models it as a bias state (Gauss-Markov, variance :func:`omc_systematic_var`).
+    Why the rotation gets both: its systematic part jumps (one marker's camera set changes: a step of ~0.3 mm over
+    a 60 mm lever is 5 mrad) and reverts within frames (raw stats: single-frame innovations of 4-8 mrad at a
+    white level of 0.7 mrad, spec bags); a bias state cannot follow that, so it counts as noise of the sample.
+    """
+    e = _fit(fit_error, params)
+    f = margin_factor(margin_deg, params.margin_ref, params.margin_min)
+    vp = params.white_std**2 + (params.white_fit_gain * e) ** 2 + params.white_margin_std**2 * f
+    vr = vp / params.marker_lever**2 + omc_systematic_var(fit_error, margin_deg, params)[1]
+    return np.diag([vp, vp, vp, vr, vr, vr])
+
+
+def omc_systematic_var(fit_error: float | None, margin_deg: float | None,
+                       params: OmcModelParams = OmcModelParams()) -> tuple[float, float]:
+    """Per-axis variance of the OMC's systematic error (position [m^2], rotation [rad^2]) at this sample.
+
+        s_p^2 = (k_fit e)^2 + m^2 f(M),   s_r^2 = (k_fit e / lever)^2 + m_r^2 f(M)
+
+    The stationary variance of the Gauss-Markov bias of ``fullperc`` (correlation time ``FullpercParams.sys_time``).
+    Margin-adaptive: where few cameras see the body or their rays disagree, the OMC's systematic error is larger.
+    """
+    e = _fit(fit_error, params)
+    f = margin_factor(margin_deg, params.margin_ref, params.margin_min)
+    vp = (params.fit_gain * e) ** 2 + params.margin_std**2 * f
+    vr = (params.fit_gain * e / params.marker_lever) ** 2 + params.rot_margin_std**2 * f
+    return vp, vr
+
+
+def vega_covariance(distance_m: float, params: LocalModelParams = LocalModelParams()) -> np.ndarray:
+    """6x6 covariance of one Vega tool pose in the ``ots`` frame, from the tool's distance d to the Vega.
+
+        s(d) = (d / d_ref)^exponent
+        C = diag((std_ref s)^2 I3, (rot_std_ref s)^2 I3)
+
+    Isotropic for simplicity (a stereo bar's depth axis is worse than its lateral ones; the NDI figure is an
+    RMS over all three). d is floored at 0.1 m so a degenerate pose does not give a zero covariance.
+    """
+    s = (max(float(distance_m), 0.1) / params.d_ref) ** params.exponent
+    vp = (params.std_ref * s) ** 2
+    vr = (params.rot_std_ref * s) ** 2
+    return np.diag([vp, vp, vp, vr, vr, vr])
+
+
+def rotate_cov(cov: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """C' = J C J^T, J = diag(R, R): a pose covariance expressed in a parent frame turned by R."""
+    J = np.zeros((6, 6))
+    J[0:3, 0:3] = J[3:6, 3:6] = R
+    out = J @ cov @ J.T
+    return 0.5 * (out + out.T)
+
+
+def skew(a) -> np.ndarray:
+    """[a]x, the cross-product matrix: skew(a) @ b = a x b."""
+    x, y, z = (float(v) for v in a)
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def link_covariance_at(link_cov: np.ndarray, lever_arm) -> np.ndarray:
+    """Covariance a static link T_a_b (6x6, tangent of :mod:`calibration`) adds to a pose T_a_b · T_b_c.
+
+    With the link's error p_ab = p̄_ab + dp, R_ab = Exp(dphi) R̄_ab (parent frame a), the chained pose is, to
+    first order,
+
+        p_ac = p̄_ac + dp + dphi x l,   l = p_ac - p_ab (the lever arm: from the link's origin to the point),
+        R_ac = Exp(dphi) R̄_ac,
+
+    so the chained pose's error is J [dp; dphi] with J = [[I, -[l]x], [0, I]] and C = J C_link J^T. The link's
+    rotation error times the lever arm is what dominates a Vega 1.5 m from the tool.
+    """
+    J = np.eye(6)
+    J[0:3, 3:6] = -skew(lever_arm)
+    out = J @ np.asarray(link_cov, dtype=float) @ J.T
+    return 0.5 * (out + out.T)
+
+
+def local_covariance(T_base_ots: np.ndarray, T_ots_tool: np.ndarray, link_cov: np.ndarray | None,
+                     params: LocalModelParams = LocalModelParams(), device_cov: np.ndarray | None = None) -> np.ndarray:
+    """6x6 covariance in ``base`` of a local sample T_base_tool = T_base_ots · T_ots_tool.
+
+        C = J_R C_dev J_R^T + J_l C_link J_l^T,   C_dev = C_vega(|p_ots_tool|) (or the device's own covariance)
+
+    J_R = diag(R_base_ots, R_base_ots) (:func:`rotate_cov`), J_l of :func:`link_covariance_at` with the lever arm
+    l = R_base_ots p_ots_tool. The two errors are independent (the Vega's noise now, the calibration's then).
+    ``link_cov`` None (links given as parameters or averaged without a covariance): the device term alone.
+    """
+    R = T_base_ots[:3, :3]
+    p = T_ots_tool[:3, 3]
+    C_dev = vega_covariance(float(np.linalg.norm(p)), params) if device_cov is None else device_cov
+    C = rotate_cov(C_dev, R)
+    if link_cov is not None:
+        C = C + link_covariance_at(link_cov, R @ p)
+    return 0.5 * (C + C.T)

@@ -1,0 +1,241 @@
+"""fullperc filter (issue 18 item 4): SO(3) helpers, orientation update, error-state reset, NEES consistency on
+data simulated from the filter's own model, hop handling, snapshot/restore."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation as Rot
+from scipy.stats import chi2
+
+from fullperc_fusion.filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, BadMeasurement, Filter, Measurement
+from fullperc_fusion.filter_registry import make_filter
+from fullperc_fusion.fullperc_filter import FullpercFilter, FullpercParams, N, R_to_quat, quat_to_R, so3_exp, so3_log
+
+MS = 1_000_000
+DT = 1 / 120
+
+
+def test_so3_helpers_match_scipy():
+    rng = np.random.default_rng(0)
+    for w in [*rng.normal(size=(20, 3)), np.zeros(3), np.array([1e-9, 0, 0]), np.array([0, 0, np.pi - 1e-6])]:
+        R = so3_exp(w)
+        np.testing.assert_allclose(R, Rot.from_rotvec(w).as_matrix(), atol=1e-12)
+        np.testing.assert_allclose(so3_log(R), Rot.from_matrix(R).as_rotvec(), atol=1e-7)
+        q = R_to_quat(R)
+        ref = Rot.from_matrix(R).as_quat()
+        assert min(np.abs(q - ref).max(), np.abs(q + ref).max()) < 1e-12 and q[3] >= 0
+        np.testing.assert_allclose(quat_to_R(q), R, atol=1e-12)
+
+
+def test_registered_and_implements_the_seam():
+    f = make_filter("fullperc")
+    assert isinstance(f, Filter) and isinstance(f, FullpercFilter) and f.kind == "fullperc" and f.uses_models
+    assert isinstance(f.params, FullpercParams)
+    with pytest.raises(ValueError, match="rot_global_std"):
+        FullpercParams(rot_global_std=0.0).validate()
+
+
+def _m(t, src, p, q=None, cov=None, **extras):
+    return Measurement(t, src, p, q, cov, extras=extras)
+
+
+def test_orientation_converges_to_a_known_rotation_and_velocity():
+    """A target turning at a constant 0.5 rad/s about a tilted axis, exact measurements: the fused orientation
+    follows it to < 0.1 mrad and the angular velocity is estimated."""
+    axis = np.array([1.0, 2.0, 2.0]) / 3.0
+    w_true = 0.5 * axis
+    R0 = Rot.from_euler("zyx", [30, -20, 10], degrees=True).as_matrix()
+    f = FullpercFilter()
+    for k in range(600):
+        t = k * round(DT * 1e9)
+        R = so3_exp(w_true * t * 1e-9) @ R0
+        q = R_to_quat(R)
+        f.predict(t)
+        st = f.update(_m(t, SOURCE_GLOBAL, [0.1, 0.2, 0.3], q), _m(t, SOURCE_LOCAL, [0.1, 0.2, 0.3], q))
+    err = so3_log(quat_to_R(st.q) @ R.T)
+    assert np.linalg.norm(err) < 1e-4
+    np.testing.assert_allclose(f.s.w, w_true, atol=1e-3)
+    assert st.pose_cov.shape == (6, 6) and np.all(np.linalg.eigvalsh(st.pose_cov) > 0)
+
+
+def test_a_rotation_offset_of_the_global_source_goes_into_its_orientation_bias():
+    """OMC orientation = Exp(beta) R with a fixed beta of 20 mrad, Vega exact: beta is learnt, the fused
+    orientation follows the Vega, and when the Vega is gone the compensated OMC still gives the true one."""
+    beta = np.array([0.02, -0.01, 0.005])
+    R = Rot.from_euler("x", 40, degrees=True).as_matrix()
+    f = FullpercFilter()
+    for k in range(1200):
+        t = k * 8 * MS
+        f.predict(t)
+        ms = [_m(t, SOURCE_GLOBAL, [0, 0, 0.5], R_to_quat(so3_exp(beta) @ R))]
+        if k < 600:
+            ms.append(_m(t, SOURCE_LOCAL, [0, 0, 0.5], R_to_quat(R)))
+        st = f.update(*ms)
+    np.testing.assert_allclose(f.rot_bias, beta, atol=2e-4)
+    assert np.linalg.norm(so3_log(quat_to_R(st.q) @ R.T)) < 3e-4
+
+
+def test_error_state_reset_of_one_update():
+    """One update by hand: Kalman correction dx, injection R = Exp(dtheta) R, and P = G P+ G^T with
+    G_thth = I - [dtheta/2]x (the reset of the multiplicative error state)."""
+    f = FullpercFilter()
+    f.update(_m(0, SOURCE_LOCAL, [0, 0, 0], [0, 0, 0, 1]))
+    f.predict(10 * MS)
+    P0, R0 = f.s.P.copy(), f.s.R.copy()
+    q_meas = R_to_quat(so3_exp(np.array([0.03, -0.02, 0.01])))
+    cov = np.diag([1e-8] * 3 + [1e-5] * 3)
+    m = _m(10 * MS, SOURCE_LOCAL, [1e-3, 0, 0], q_meas, cov)
+    H, y, Rm = f._rows(m, 10 * MS)
+    S = H @ P0 @ H.T + Rm
+    K = np.linalg.solve(S, H @ P0).T
+    dx = K @ y
+    IKH = np.eye(N) - K @ H
+    Pp = IKH @ P0 @ IKH.T + K @ Rm @ K.T
+    G = np.eye(N)
+    d = dx[9:12]
+    G[9:12, 9:12] = np.eye(3) - 0.5 * np.array([[0, -d[2], d[1]], [d[2], 0, -d[0]], [-d[1], d[0], 0]])
+    f.update(m)
+    np.testing.assert_allclose(f.s.R, so3_exp(d) @ R0, atol=1e-14)
+    np.testing.assert_allclose(f.s.P, G @ Pp @ G.T, rtol=1e-9, atol=1e-20)
+    assert np.linalg.norm(d) > 0.01           # a real correction, not a no-op
+    # after the reset the error state is zero-mean again: the same measurement now has a smaller innovation
+    _, y2, _ = f._rows(m, 10 * MS)
+    assert np.linalg.norm(y2[3:]) < 0.2 * np.linalg.norm(y[3:])
+
+
+def _simulate(seed, seconds=30.0):
+    """Truth and measurements drawn from the filter's own model (module docstring of fullperc_filter)."""
+    pr = FullpercParams()
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(6, 6))
+    Cg = A @ A.T * 2e-9 + np.diag([1e-8] * 3 + [4e-6] * 3)       # correlated, ~0.1-0.2 mm, ~2-3 mrad
+    B = rng.normal(size=(6, 6))
+    Cl = B @ B.T * 5e-10 + np.diag([4e-9] * 3 + [2e-6] * 3)
+    p, v = np.array([0.3, -0.1, 0.4]), np.zeros(3)
+    R, w = np.eye(3), np.zeros(3)
+    b = rng.normal(0, pr.init_bias_std, 3)
+    g = rng.normal(0, pr.sys_std, 3)             # the Gauss-Markov part (no sys_var given: sys_std)
+    phi = np.exp(-DT / pr.sys_time)
+    beta = rng.normal(0, pr.init_rot_bias_std, 3)
+    dt = DT
+
+    def cv_noise(q):
+        Q = q * np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]])
+        return rng.multivariate_normal(np.zeros(2), Q, size=3)   # rows: axis, cols: (pos, vel)
+
+    out = []
+    for k in range(int(seconds / dt)):
+        t = round(k * dt * 1e9)
+        if k:
+            n = cv_noise(pr.accel_noise)
+            p, v = p + v * dt + n[:, 0], v + n[:, 1]
+            n = cv_noise(pr.ang_accel_noise)
+            R, w = so3_exp(n[:, 0]) @ so3_exp(w * dt) @ R, w + n[:, 1]
+            b = b + rng.normal(0, np.sqrt(pr.bias_walk * dt), 3)
+            g = phi * g + rng.normal(0, pr.sys_std * np.sqrt(1 - phi * phi), 3)
+            beta = beta + rng.normal(0, np.sqrt(pr.rot_bias_walk * dt), 3)
+        ng = rng.multivariate_normal(np.zeros(6), Cg)
+        ms = [_m(t, SOURCE_GLOBAL, p + b + g + ng[:3], R_to_quat(so3_exp(ng[3:]) @ so3_exp(beta) @ R), Cg)]
+        if k % 2 == 0:
+            nl = rng.multivariate_normal(np.zeros(6), Cl)
+            ms.append(_m(t, SOURCE_LOCAL, p + nl[:3], R_to_quat(so3_exp(nl[3:]) @ R), Cl))
+        out.append((t, ms, p.copy(), R.copy()))
+    return out
+
+
+def test_nees_is_consistent_on_data_from_its_own_model():
+    """6-dof pose NEES against the output's pose covariance: the share inside the chi^2(6) 95 % bound is ~95 %."""
+    inside, n = 0, 0
+    bound = chi2.ppf(0.95, 6)
+    for seed in (1, 2):
+        f = FullpercFilter()
+        for k, (t, ms, p, R) in enumerate(_simulate(seed)):
+            f.predict(t)
+            st = f.update(*ms)
+            if k < 600:          # 5 s burn-in: the prior (5 mm, 50 mrad) is not the truth's distribution
+                continue
+            e = np.r_[p - st.p, so3_log(R @ quat_to_R(st.q).T)]
+            nees = float(e @ np.linalg.solve(st.pose_cov, e))
+            inside += nees <= bound
+            n += 1
+    share = inside / n
+    assert 0.92 <= share <= 0.98, share
+
+
+def test_hop_of_the_global_source_goes_into_the_bias():
+    """Both sources for 2 s, then the OMC alone; a 3 mm step of the OMC (a camera-set change) is flagged and goes
+    into b: the fused position moves by far less than the step."""
+    f = FullpercFilter()
+    p = np.array([0.1, 0.2, 0.3])
+    q = R_to_quat(np.eye(3))
+    hops, out = [], []
+    for k in range(400):
+        t = k * 8 * MS
+        zg = p + (np.array([3e-3, 0, 0]) if k >= 300 else 0)
+        ms = [_m(t, SOURCE_GLOBAL, zg, q)]
+        if k < 250:
+            ms.append(_m(t, SOURCE_LOCAL, p, q))
+        f.predict(t)
+        st = f.update(*ms)
+        hops.append(st.hop)
+        out.append(st.p)
+    assert hops[300] and not any(hops[250:300]) and sum(hops) <= 3
+    assert np.linalg.norm(out[-1] - p) < 0.5e-3
+    assert f.bias[0] > 2.5e-3
+
+
+def test_rotation_hop_goes_into_the_orientation_bias():
+    f = FullpercFilter()
+    R = np.eye(3)
+    step = so3_exp(np.array([0.0, 0.0, 0.03]))     # a 30 mrad jump of the OMC's orientation
+    out = []
+    for k in range(400):
+        t = k * 8 * MS
+        Rg = step @ R if k >= 300 else R
+        ms = [_m(t, SOURCE_GLOBAL, [0, 0, 0], R_to_quat(Rg))]
+        if k < 250:
+            ms.append(_m(t, SOURCE_LOCAL, [0, 0, 0], R_to_quat(R)))
+        f.predict(t)
+        st = f.update(*ms)
+        out.append(st)
+    assert out[300].hop
+    assert np.linalg.norm(so3_log(quat_to_R(out[-1].q) @ R.T)) < 5e-3
+
+
+def test_snapshot_and_restore_replay_identically():
+    data = _simulate(3, seconds=2.0)
+    f = FullpercFilter()
+    for t, ms, _, _ in data[:100]:
+        f.predict(t)
+        f.update(*ms)
+    snap = f.snapshot()
+    first = []
+    for t, ms, _, _ in data[100:]:
+        f.predict(t)
+        first.append(f.update(*ms))
+    for _ in range(2):       # the snapshot stays usable
+        f.restore(snap)
+        for (t, ms, _, _), a in zip(data[100:], first, strict=True):
+            f.predict(t)
+            s = f.update(*ms)
+            np.testing.assert_array_equal(s.p, a.p)
+            np.testing.assert_array_equal(s.q, a.q)
+            np.testing.assert_array_equal(s.P, a.P)
+    with pytest.raises(TypeError):
+        f.restore(object())
+
+
+def test_position_only_sample_and_bad_input():
+    f = FullpercFilter()
+    st = f.update(_m(0, SOURCE_LOCAL, [0, 0, 0]))            # no orientation yet
+    assert st.reset and st.q is None and st.pose_cov is None
+    f.predict(8 * MS)
+    st = f.update(_m(8 * MS, SOURCE_LOCAL, [0, 0, 0], [0, 0, 0, 1]))
+    assert st.q is not None
+    with pytest.raises(BadMeasurement):
+        _m(16 * MS, SOURCE_GLOBAL, [0, 0, 0], None, np.full((6, 6), np.nan))
+    with pytest.raises(BadMeasurement, match="positive definite"):
+        _m(16 * MS, SOURCE_GLOBAL, [0, 0, 0], None, -np.eye(6))
+    with pytest.raises(ValueError, match="backwards"):
+        f.predict(0)
