@@ -80,7 +80,7 @@ def test_demo_runs_and_prints_the_table(demo):
 def test_no_process_left_behind(demo):
     p, _ = demo
     pids = [int(x) for x in re.findall(r"started \w+ \(pid (\d+)\)", p.stdout)]
-    assert len(pids) == 7
+    assert len(pids) == 7   # one graph for both targets: no process per target
     for pid in pids:
         assert not Path(f"/proc/{pid}").exists() or "Z" in Path(f"/proc/{pid}/stat").read_text().split()[2]
 
@@ -206,6 +206,62 @@ def test_fusion_continues_on_omc_alone_and_recovers(demo):
     # (the target itself has left the Vega's volume by then in this task, so visible may be false)
     q = _read(run_dir / "bag", ["/ots/tool/quality"])["/ots/tool/quality"]
     assert sum(1 for m in q if _ns(m.header) > on_ns) > 30, "the target tool was not re-loaded after the outage"
+
+
+# ------------------------------------------------------------------------------- the second target (instrument)
+INSTRUMENT = "instrument"
+
+
+def test_the_bag_holds_both_targets(demo):
+    _, run_dir = demo
+    topics = [f"/omc/{INSTRUMENT}/pose", f"/ots/{INSTRUMENT}/pose", f"/fullperc/{INSTRUMENT}/pose",
+              f"/fullperc/{INSTRUMENT}/ckf/pose", f"/sim/truth/{INSTRUMENT}", "/fullperc/tool/pose"]
+    got = _read(run_dir / "bag", topics)
+    for t in topics:
+        assert len(got[t]) > 100, t
+    for t in (f"/fullperc/{INSTRUMENT}/pose", f"/sim/truth/{INSTRUMENT}"):
+        assert {m.header.frame_id for m in got[t]} == {"base"}, t
+        stamps = np.array([_ns(m.header) for m in got[t]])
+        assert np.all(np.diff(stamps) > 0), f"{t}: stamps not strictly increasing"
+    # the fused instrument follows its truth: within the OMC's millimetres wherever the fused pose has truth
+    from fullperc_eval.evaluation.ground_truth import load_truth_track
+
+    track = load_truth_track(run_dir / "bag", INSTRUMENT)
+    fused = got[f"/fullperc/{INSTRUMENT}/ckf/pose"] + got[f"/fullperc/{INSTRUMENT}/pose"]
+    P = np.array([[m.pose.position.x, m.pose.position.y, m.pose.position.z] for m in fused])
+    truth, ok = track.position_base(np.array([_ns(m.header) for m in fused]))
+    assert ok.mean() > 0.95
+    assert np.median(np.linalg.norm(P[ok] - truth[ok], axis=1)) < 0.02
+
+
+def test_the_instrument_is_labelled_and_evaluated(demo):
+    p, run_dir = demo
+    from fullperc_eval.evaluation.ground_truth import load_truth_track
+    from fullperc_fusion.layout import default_layout_path, load_layout
+    from fullperc_fusion.margin import label_points
+
+    assert f"region {INSTRUMENT}:" in p.stdout, "margin_node did not label the instrument live"
+    msgs = _read(run_dir / "bag", [f"/fullperc/{INSTRUMENT}/region"])[f"/fullperc/{INSTRUMENT}/region"]
+    msgs = [m for m in msgs if m.label in LETTER]
+    assert {LETTER[m.label] for m in msgs} == {"B", "G", "P"}
+    # the labels are of the fused estimate: mostly those of the true position (they differ near boundaries)
+    from fullperc_eval.bag.calibration import load_calibration
+
+    cal = load_calibration(run_dir / "calibration.yaml")
+    truth, ok = load_truth_track(run_dir / "bag", INSTRUMENT).position_base(np.array([_ns(m.header) for m in msgs]))
+    P = truth[ok] @ cal.T_omc_base[:3, :3].T + cal.T_omc_base[:3, 3]
+    true_labels = label_points(load_layout(default_layout_path()), P)[0]
+    assert np.mean(np.array([m.label for m in msgs])[ok] == true_labels) > 0.8
+    off = json.loads((run_dir / "report" / INSTRUMENT / "eval.json").read_text())
+    live = json.loads((run_dir / "report" / INSTRUMENT / "eval_live.json").read_text())
+    assert off["target"] == INSTRUMENT and f"B-G-P {INSTRUMENT}" in p.stdout
+    # the raw OMC and the plain KF, offline and live: millimetres, as the OMC's error; no tight agreement asked for:
+    # with two targets fusion_node needs ~0.9 of a core here, and on a loaded machine DDS drops samples the recorder
+    # kept (seen: 0.21 mm on the OMC column at load 7). The compensated filters are not compared: on a walking
+    # target their bias after a hop is not stable against a few dropped samples (README, "two targets").
+    for method in ("omc", "kf"):
+        assert off["mae_mm"][method] < 5.0 and live["mae_mm"][method] < 5.0, (method, off["mae_mm"], live["mae_mm"])
+        assert abs(off["mae_mm"][method] - live["mae_mm"][method]) <= max(0.5, 0.25 * off["mae_mm"][method]), method
 
 
 if __name__ == "__main__":

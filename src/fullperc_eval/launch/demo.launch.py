@@ -5,7 +5,9 @@ supervisor where `launch` is not available); test_launch_matches_graph.py keeps 
 Arguments: task (P-B-G-P), seed (0), speed (1.0), profile (paper | spec), calibration_file ('' = fusion_node
 calibrates itself), out (demo_out/launch), ports omc_port (3883), diana_port (3884), vega_port (8765). After the
 simulator finishes, the whole launch shuts down; evaluate
-the bag with `ros2 run fullperc_eval evaluate <out>/bag --calibration <out>/calibration.yaml`.
+the bag with `ros2 run fullperc_eval evaluate <out>/bag --calibration <out>/calibration.yaml` (the hand-held
+`instrument` needs its truth: merge <out>/truth into the bag with fullperc_eval.sim.dataset.merge_bag, then
+`--target instrument`).
 """
 
 from launch import LaunchDescription
@@ -22,6 +24,10 @@ RECORD_TOPICS = [
     "/diana/joint_states", "/diana/flange_pose", "/fullperc/tool/pose", "/fullperc/tool/pose_cov",
     "/fullperc/tool/status", "/fullperc/tool/ckf/pose", "/fullperc/tool/bkf/pose", "/fullperc/tool/kf/pose",
     "/fullperc/tool/omc/pose", "/fullperc/tool/region", "/diagnostics", "/tf", "/tf_static",
+    "/omc/instrument/pose", "/omc/instrument/quality", "/ots/instrument/pose", "/ots/instrument/quality",
+    "/fullperc/instrument/pose", "/fullperc/instrument/pose_cov", "/fullperc/instrument/status",
+    "/fullperc/instrument/ckf/pose", "/fullperc/instrument/bkf/pose", "/fullperc/instrument/kf/pose",
+    "/fullperc/instrument/omc/pose", "/fullperc/instrument/region",
 ]
 
 
@@ -35,12 +41,12 @@ def generate_launch_description():
                   arguments=["-o", PathJoinSubstitution([out, "bag"]), "--topics", *RECORD_TOPICS])
     fusion = Node(package="fullperc_fusion", executable="fusion_node", name="fusion_node",
                   parameters=[{"filter": "cbkf", "filters": ["ckf", "bkf", "kf", "omc"],
-                               "calibration_file": C("calibration_file")}])
+                               "calibration_file": C("calibration_file"), "targets": ["tool", "instrument"]}])
     margin = Node(package="fullperc_fusion", executable="margin_node", name="margin_node",
-                  parameters=[{"targets": ["tool"]}])
+                  parameters=[{"targets": ["tool", "instrument"]}])
     omc = Node(package="fullperc_drivers", executable="omc_driver", name="omc_driver",
                parameters=[{"backend": "stream", "stream_port": C("omc_port"),
-                            "bodies": ["base", "ots_rig", "tool"]}])
+                            "bodies": ["base", "ots_rig", "tool", "instrument"]}])
     diana = Node(package="fullperc_drivers", executable="diana_state", name="diana_state",
                  parameters=[{"backend": "stream", "stream_port": C("diana_port")}])
     # launch has no readiness gates: the task starts once ndi_driver tracks plus 2 s, which usually covers DDS
@@ -49,10 +55,12 @@ def generate_launch_description():
         cmd=["ros2", "run", "fullperc_eval", "sim", "--task", C("task"), "--seed", C("seed"), "--speed", C("speed"),
              "--omc-addr", ["127.0.0.1:", C("omc_port")], "--diana-addr", ["127.0.0.1:", C("diana_port")],
              "--vega-port", C("vega_port"), "--start-when-tracking", "120", "--start-delay", "2.0",
-             "--calibration-out", PathJoinSubstitution([out, "calibration.yaml"]), "--profile", C("profile")],
+             "--calibration-out", PathJoinSubstitution([out, "calibration.yaml"]), "--profile", C("profile"),
+             "--truth-out", PathJoinSubstitution([out, "truth"])],
         name="sim", output="screen")
     ndi = Node(package="fullperc_drivers", executable="ndi_driver", name="ndi_driver",
                parameters=[{"transport": "tcp", "host": "127.0.0.1", "port": C("vega_port"),
-                            "tools": ["tool", "base"], "tool_roms": ["tool.rom", "base.rom"]}])
+                            "tools": ["tool", "base", "instrument"],
+                            "tool_roms": ["tool.rom", "base.rom", "tool_d.rom"]}])
     done = RegisterEventHandler(OnProcessExit(target_action=sim, on_exit=[EmitEvent(event=Shutdown())]))
     return LaunchDescription([*args, record, fusion, margin, omc, diana, sim, ndi, done])

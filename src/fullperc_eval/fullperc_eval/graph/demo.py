@@ -9,8 +9,12 @@ shuts everything down, and then evaluates the recorded bag twice:
 * **offline**: ``evaluate`` re-runs all five methods over the recorded raw driver topics;
 * **live**: the fused poses ``fusion_node`` actually published (``evaluate --live``).
 
-Both are compared with the Diana's ground truth (forward kinematics of the recorded joint states and the
-simulator's calibration). The report (plots, HTML, JSON) goes to ``<out>/report``.
+Two targets are fused, labelled and recorded: the arm-held ``tool`` and the twin's hand-held ``instrument`` (a staff
+member walks it through the room, :mod:`fullperc_eval.sim.walker`). The tool is compared with the Diana's ground truth
+(forward kinematics of the recorded joint states and the simulator's calibration); the instrument, which has no
+robot, with the simulator's truth, which the simulator writes to ``<out>/truth`` and the demo merges into the bag
+(``/sim/truth/instrument``, a second storage file of the bag). The reports (plots, HTML, JSON) go to
+``<out>/report`` (tool) and ``<out>/report/instrument``.
 
 ``profile`` picks the twin profile the simulator plays (``paper`` or ``spec``: ``make demo PROFILE=spec``);
 ``calibration`` a static-link calibration YAML (written by ``calibrate`` or ``~/calibrate``) that ``fusion_node``
@@ -33,10 +37,12 @@ from pathlib import Path
 
 import yaml
 
+from fullperc_eval.bag.reader import BagReader
 from fullperc_eval.evaluation.config import EvaluationError
 from fullperc_eval.evaluation.metrics import evaluate_bag
 from fullperc_eval.evaluation.report import write_report
 from fullperc_eval.evaluation.tables import format_table1, format_table2, write_json
+from fullperc_eval.sim.dataset import TRUTH_PREFIX, merge_bag
 
 from .supervisor import execute_graph
 
@@ -105,27 +111,42 @@ def run_demo(task: str, seed: str, out: Path, root: Path, speed: str = "1.0",
     cal = out / "calibration.yaml"
     if cal.exists():
         shutil.copy(cal, bag / "calibration.yaml")
-    print(f"\ndemo: graph finished in {time.monotonic() - t0:.0f} s; evaluating {bag}", flush=True)
+    truth = out / "truth"
+    targets = ["tool"]
+    if (truth / "metadata.yaml").exists():   # the hand-held instrument's simulator truth: into the bag
+        merge_bag(bag, truth)
+        targets += sorted(t.rsplit("/", 1)[1] for t in BagReader(bag).topics if t.startswith(TRUTH_PREFIX + "/"))
+    print(f"\ndemo: graph finished in {time.monotonic() - t0:.0f} s; evaluating {bag} (targets {', '.join(targets)})",
+          flush=True)
+    results = {}
     try:
-        offline = evaluate_bag(bag, progress=False, fusion_config=fusion_config)
-        live = evaluate_bag(bag, progress=False, live=True, fusion_config=fusion_config)
+        for target in targets:
+            results[target] = (evaluate_bag(bag, progress=False, fusion_config=fusion_config, target=target),
+                               evaluate_bag(bag, progress=False, live=True, fusion_config=fusion_config,
+                                            target=target))
     except EvaluationError as e:
         print(f"demo: evaluation failed: {e}", file=sys.stderr)
         return 1
-    off, liv = offline.result, live.result
-    off["task"] = f"{task} offline"
-    liv["task"] = f"{task} live"
-    print("\nMAE [mm] against the Diana ground truth (offline = evaluate over the recorded raw topics; "
-          "live = the poses fusion_node published):")
-    print(format_table1([off, liv]))
+    rows = []
+    for target, (offline, live) in results.items():
+        off, liv = offline.result, live.result
+        name = task if target == "tool" else f"{task} {target}"
+        off["task"], liv["task"] = f"{name} offline", f"{name} live"
+        rows += [off, liv]
+    print("\nMAE [mm] against the ground truth (tool: the Diana's joints; instrument: the simulator's truth; offline = "
+          "evaluate over the recorded raw topics; live = the poses fusion_node published):")
+    print(format_table1(rows))
+    off = results["tool"][0].result
     if off.get("b_to_p"):
         print()
         print(format_table2(off))
-    for w in off["warnings"]:
-        print(f"warning: {w}")
-    index = write_report(offline, out / "report")
-    write_json(out / "report" / "eval.json", off)
-    write_json(out / "report" / "eval_live.json", liv)
-    print(f"\nreport: {index}")
-    print(f"bag:    {bag}  (evaluate again: evaluate {bag})")
+    for target, (offline, live) in results.items():
+        for w in offline.result["warnings"]:
+            print(f"warning: {target}: {w}")
+        sub = out / "report" if target == "tool" else out / "report" / target
+        index = write_report(offline, sub)
+        write_json(sub / "eval.json", offline.result)
+        write_json(sub / "eval_live.json", live.result)
+        print(f"\nreport: {index}" if target == "tool" else f"report ({target}): {index}")
+    print(f"bag:    {bag}  (evaluate again: evaluate {bag} [--target instrument])")
     return rc

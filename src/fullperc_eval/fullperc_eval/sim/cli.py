@@ -26,7 +26,7 @@ import numpy as np
 from fullperc_eval.bag.calibration import save_calibration
 from fullperc_fusion.layout import load_layout
 
-from .dataset import sim_calibration
+from .dataset import sim_calibration, write_truth_bag
 from .live import LiveServer
 from .run import simulate
 from .scene import DEFAULT_PROFILE, PROFILES, VegaBump, build_scene
@@ -94,6 +94,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="bump the Vega stand at task second AT: the Vega head and its OMC rig body ots_rig move by DX "
                          "metres along omc x and tilt by TILT degrees about omc y (what fusion_node's link monitor "
                          "must report)")
+    ap.add_argument("--truth-out", metavar="DIR",
+                    help="after the task, write the second target's true poses (host-clock stamps of the served run) "
+                         "as a bag with /sim/truth/<target> here (the demo merges it into its recording)")
     ap.add_argument("--calibration-out", help="write the run's calibration.yaml (true T_base_diana_base, "
                     "T_flange_tool) here, for evaluating a recording of this run")
     return ap
@@ -169,6 +172,12 @@ def main(argv: list[str] | None = None) -> int:
         threading.Thread(target=_vega_outage, args=(server, a / args.speed, b / args.speed), daemon=True).start()
     server.serve(start_delay_s=args.start_delay, loops=0 if args.loop else 1,
                  wait_for_tracking_s=args.start_when_tracking)
+    if args.truth_out and run.extra_truth and server.t0_host_ns:
+        # stamps as the drivers publish them: capture time on the host clock (the last served loop)
+        truth = {n: (np.array([server.host_ns(t) for t in tr.t_ns], dtype=np.int64), tr.T_base_tool)
+                 for n, tr in run.extra_truth.items()}
+        write_truth_bag(args.truth_out, truth, {"task": args.task, "seed": str(args.seed)})
+        print(json.dumps({"event": "truth", "targets": sorted(truth), "path": args.truth_out}), flush=True)
     return 0
 
 
