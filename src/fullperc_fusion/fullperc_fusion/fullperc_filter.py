@@ -36,8 +36,10 @@ in b.
   ``rot_global_std`` / ``rot_local_std``. A sample without ``q`` updates the position only.
 * hops, as CBKF (:mod:`filters`): NIS of the global position rows above ``hop_gate`` -> the variance of b is
   raised by y_p^2 per axis before the gain (a camera-set change persists while that set sees the body, so it goes
-  into the lasting part, as in CBKF); the same for the rotation rows and beta. A step of the global
-  source goes into its bias, not into the pose.
+  into the lasting part, as in CBKF). A rotation hop (NIS of the global rotation rows above the gate) is flagged
+  but not put into beta: the OMC's rotation jumps revert within frames and are part of its R
+  (:func:`measurement_models.omc_covariance`), so a jump kept in beta would stay wrong after the OMC recovers.
+  A lasting step of the global position goes into its bias, not into the pose.
 * error-state update (Joseph form), injection p += dp ..., R = Exp(dtheta) R, and the reset of the error state:
   P = G P G^T with G_thth = I - [dtheta/2]x (the first-order reset Jacobian of the multiplicative update).
 * gaps longer than ``max_gap_s`` re-initialise p, v, R, w from the next sample; b and beta (and their variances)
@@ -394,12 +396,9 @@ class FullpercFilter(StepCompat):
             hop = hop_p or hop_r
             self.hop_counts["position"] += hop_p
             self.hop_counts["rotation"] += hop_r
-            if hop and pr.hop_to_bias:
+            if hop_p and pr.hop_to_bias:
                 P = P.copy()
-                if hop_p:
-                    P[B_, B_] += np.diag(y[0:3] ** 2)
-                if hop_r:
-                    P[BE, BE] += np.diag(y[3:6] ** 2)
+                P[B_, B_] += np.diag(y[0:3] ** 2)
                 S = H @ P @ H.T + Rm
         G = np.linalg.solve(S, H @ P).T
         dx = G @ y
