@@ -179,8 +179,9 @@ PARAMS: tuple[Param, ...] = (
     Param("history", _T.history_ns * 1e-9, "float", _pos, "must be finite and > 0", "s",
           "arrival: a sample up to this much older than the newest is still fused in order (rewind and replay); "
           "older: dropped, named on /diagnostics"),
-    Param("lag_warn", 0.1, "float", _pos, "must be finite and > 0", "s",
-          "processing lag (node clock - stamp of the newest fused sample) above this -> WARN (overload)"),
+    Param("lag_warn", 0.2, "float", _pos, "must be finite and > 0", "s",
+          "processing lag (node clock - stamp of the newest fused sample) above this for a whole /diagnostics "
+          "period -> WARN (overload; beyond `history` late samples are dropped)"),
     Param("publish_final", True, "bool", None, "", "",
           "arrival: publish /fullperc/<target>/final, the primary filter's estimates once final (= offline)"),
     Param("stale_timeout", 1.0, "float", _pos, "must be finite and > 0", "s",

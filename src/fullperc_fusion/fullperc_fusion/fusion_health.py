@@ -210,11 +210,12 @@ class SourceLoss:
     1 kHz + 1 kHz the node took in a quarter of the OMC samples while /diagnostics said OK. The drivers publish a
     TrackingQuality per device frame, visible or not, with the device's frame counter and the pose's stamp:
 
-    * ``frames_lost``: gaps in ``frame_number`` (frames whose quality message never arrived; a counter that goes
-      back, e.g. a driver restart, starts a new count without a gap);
-    * ``samples_lost``: frames whose quality says *visible* but whose pose (same stamp) did not arrive within
-      ``match_ns`` of stamp time after the quality (both topics come through the same executor, so a pose is at
-      most that much behind its quality message unless it was lost).
+    * ``frames_lost``: gaps in ``frame_number`` -- quality messages that never arrived (a counter that goes back,
+      e.g. a driver restart, starts a new count without a gap);
+    * ``samples_lost``: pose samples that never arrived: frames whose quality says *visible* and whose pose (same
+      stamp) did not come within ``match_ns`` (stamp time) of it, plus the frames of the gaps whose pose did not
+      come either -- the gap frames minus the poses that came without a quality message. Frames of a gap are taken
+      as visible (their quality is unknown), so this is an upper bound when the body was occluded during a gap.
 
     Pure: the caller passes stamps; a source without quality messages reports nothing.
     """
@@ -222,12 +223,20 @@ class SourceLoss:
     def __init__(self, match_ns: int = 1_000_000_000) -> None:
         self.match_ns = int(match_ns)
         self.frames_lost = 0
-        self.samples_lost = 0
+        self._unmatched = 0                    # visible frames whose pose did not come
+        self._orphans = 0                      # poses that came without their quality message
         self._last_frame: int | None = None
         self._waiting: dict[int, None] = {}    # stamps of visible frames whose pose has not arrived (insertion order)
-        self._poses: deque[int] = deque()      # stamps of poses that arrived before their quality
-        self._pose_set: set[int] = set()
+        self._poses: dict[int, None] = {}      # stamps of poses whose quality has not arrived
         self._newest = 0
+
+    @property
+    def samples_lost(self) -> int:
+        return self._unmatched + max(0, self.frames_lost - self._orphans - len(self._poses))
+
+    @property
+    def lost(self) -> int:
+        return self.samples_lost
 
     def quality(self, frame_number: int, stamp_ns: int, visible: bool) -> int:
         """One TrackingQuality; returns the frames this one shows lost (a gap before it)."""
@@ -236,11 +245,10 @@ class SourceLoss:
             gap = frame_number - self._last_frame - 1
             self.frames_lost += gap
         self._last_frame = frame_number
-        if visible:
-            if stamp_ns in self._pose_set:
-                self._pose_set.discard(stamp_ns)
-            else:
-                self._waiting[stamp_ns] = None
+        if stamp_ns in self._poses:
+            del self._poses[stamp_ns]
+        elif visible:
+            self._waiting[stamp_ns] = None
         self._settle(stamp_ns)
         return gap
 
@@ -249,25 +257,19 @@ class SourceLoss:
         if stamp_ns in self._waiting:
             del self._waiting[stamp_ns]
         else:
-            self._pose_set.add(stamp_ns)
-            self._poses.append(stamp_ns)
+            self._poses[stamp_ns] = None
         self._settle(stamp_ns)
 
     def _settle(self, stamp_ns: int) -> None:
         self._newest = max(self._newest, stamp_ns)
         old = self._newest - self.match_ns
-        while self._waiting:
-            t = next(iter(self._waiting))
-            if t >= old:
-                break
-            del self._waiting[t]
-            self.samples_lost += 1
-        while self._poses and self._poses[0] < old:
-            self._pose_set.discard(self._poses.popleft())
-
-    @property
-    def lost(self) -> int:
-        return self.frames_lost + self.samples_lost
+        for pending, expired in ((self._waiting, "_unmatched"), (self._poses, "_orphans")):
+            while pending:
+                t = next(iter(pending))
+                if t >= old:
+                    break
+                del pending[t]
+                setattr(self, expired, getattr(self, expired) + 1)
 
 
 class InputLoad:
@@ -276,7 +278,9 @@ class InputLoad:
     Why: at 1 kHz + 1 kHz the node fell half a second behind and /diagnostics said OK. ``depth``: samples waiting
     besides the one that started the callback (taken in the same callback); ``delay``: from the DDS reception of
     that sample to the callback; ``lag``: node clock - stamp of the newest sample, after it was fused (with arrival
-    processing the fused estimate is that old; with ordered processing add the synchronizer's wait).
+    processing the fused estimate is that old; with ordered processing add the synchronizer's wait). ``lag_min``
+    over a period is what the overload WARN looks at: a lag that never came down for a whole period is overload,
+    a single late callback on a busy machine is not.
     """
 
     def __init__(self) -> None:
@@ -284,6 +288,7 @@ class InputLoad:
         self.delay_max_ns: int | None = None
         self.lag_ns: int | None = None
         self.lag_max_ns: int | None = None
+        self.lag_min_ns: int | None = None
         self.callbacks = 0
 
     def callback(self, depth: int, delay_ns: int | None, lag_ns: int | None) -> None:
@@ -297,16 +302,18 @@ class InputLoad:
         if lag_ns is not None:
             self.lag_ns = lag_ns
             self.lag_max_ns = lag_ns if self.lag_max_ns is None else max(self.lag_max_ns, lag_ns)
+            self.lag_min_ns = lag_ns if self.lag_min_ns is None else min(self.lag_min_ns, lag_ns)
 
     def values(self) -> dict:
         def ms(v: int | None) -> float | None:
             return None if v is None else round(v * 1e-6, 3)
 
         return {"queue_depth": self.depth, "queue_depth_max": self.depth_max, "lag_ms": ms(self.lag_ns),
-                "lag_max_ms": ms(self.lag_max_ns), "callback_delay_max_ms": ms(self.delay_max_ns),
+                "lag_min_ms": ms(self.lag_min_ns), "lag_max_ms": ms(self.lag_max_ns),
+                "callback_delay_max_ms": ms(self.delay_max_ns),
                 "input_callbacks": self.callbacks}
 
     def reset_period(self) -> None:
         self.depth_max = 0
-        self.delay_max_ns = self.lag_max_ns = None
+        self.delay_max_ns = self.lag_max_ns = self.lag_min_ns = None
         self.callbacks = 0

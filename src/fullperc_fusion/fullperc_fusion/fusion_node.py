@@ -24,7 +24,8 @@ Publishes:
                                overload: queue_depth(_max), lag_ms / lag_max_ms (node clock - stamp of the newest
                                fused sample), callback_delay_max_ms, <omc|ots>_frames_lost / _samples_lost of the
                                target's sources (TrackingQuality frame-number gaps; visible frames whose pose never
-                               came); WARN when the lag exceeds ``lag_warn`` or samples were lost (problem_hold)
+                               came); WARN when the lag stayed above ``lag_warn`` for a whole period, or samples
+                               were lost (held problem_hold)
 Services:
   ~/initialize (std_srvs/Trigger) re-estimates the static links of every target from the next samples
                (``static_links``: average of init_samples, or calibrate over calibration.duration).
@@ -43,7 +44,7 @@ mapping the offline evaluator uses), documented in config/fusion.yaml; names of 
   noise.accel, noise.bias_walk, noise.global_std, noise.local_std, init.pos_std, init.vel_std,
   init.bias_std, hop_gate, hop_to_bias, max_gap (see filters.FilterParams)
   slop [s], reorder_delay [s], clock stamps|host, max_future [s] 0.1, idle_flush [s], stale_timeout [s],
-  problem_hold [s], processing arrival|ordered, history [s] 0.2, lag_warn [s] 0.1, publish_final true
+  problem_hold [s], processing arrival|ordered, history [s] 0.2, lag_warn [s] 0.2, publish_final true
   qos_reliability reliable|best_effort, qos_depth
   alarm.hop_window [s] 2.0, alarm.hop_max 5, alarm.bias_max [m] 0.02, alarm.reject_timeout [s] 1.0
   calibration_file '' (calibration YAML loaded at start; a bad file stops the node naming file and field),
@@ -142,6 +143,7 @@ class FusionNode(Node):
         self._final_pubs: dict[str, object] = {}
         self._loss: dict[tuple[str, str], SourceLoss] = {}   # (dev, target body): frames / samples never received
         self._loss_seen: dict[tuple[str, str], tuple[int, float]] = {}
+        self._quality_subs: dict[tuple[str, str], object] = {}
         self._region: dict[str, int] = {}
         self._last_rx: dict[str, dict[str, float]] = {}
         self._problem_seen: dict[str, dict[str, tuple[int, float]]] = {}
@@ -173,8 +175,8 @@ class FusionNode(Node):
             for dev, body in (("omc", c.omc_target), ("ots", c.ots_target)):
                 if (dev, body) not in self._loss:
                     self._loss[(dev, body)] = SourceLoss()
-                    self.create_subscription(TrackingQuality, f"/{dev}/{body}/quality",
-                                             lambda m, k=(dev, body): self._on_quality(k, m), qos)
+                    self._quality_subs[(dev, body)] = self.create_subscription(
+                        TrackingQuality, f"/{dev}/{body}/quality", partial(self._on_quality, (dev, body)), qos)
             for f in self._extra:
                 self._pubs[(t, f)] = (
                     self.create_publisher(PoseStamped, f"/fullperc/{t}/{f}/pose", qos), None,
@@ -222,9 +224,10 @@ class FusionNode(Node):
         return declare(self, name, default, description=p.description)
 
     # ---- input ------------------------------------------------------------------------------
-    def _on_input(self, dev: str, body: str, msg: PoseStamped, info=None) -> None:
+    def _on_input(self, dev: str, body: str, msg: PoseStamped, info) -> None:
         """One executor callback: this message plus everything queued on every input, in stamp order (a link
-        body's sample before a target sample of the same stamp: the same device frame, mapped with it)."""
+        body's sample before a target sample of the same stamp: the same device frame, mapped with it). ``info``:
+        rclpy's message info (a required argument, so rclpy passes it), for the callback delay."""
         wall = time.time_ns()
         batch = [(stamp_to_ns(msg.header.stamp), dev, body, msg)]
         for d, b, sub in self._input_subs:
@@ -245,7 +248,15 @@ class FusionNode(Node):
             self._loss[(d, b)].pose(stamp_to_ns(m.header.stamp))
 
     def _on_quality(self, key: tuple[str, str], msg: TrackingQuality) -> None:
-        self._loss[key].quality(int(msg.frame_number), stamp_to_ns(msg.header.stamp), bool(msg.visible))
+        """This quality message and every one queued behind it (one executor round each would fall behind)."""
+        loss = self._loss[key]
+        for m in [msg, *take_queued(self._quality_subs[key])]:
+            loss.quality(int(m.frame_number), stamp_to_ns(m.header.stamp), bool(m.visible))
+            if key[0] == "omc" and m.visible:   # H3: the OMC model covariance of filters with uses_models (fullperc)
+                for t in self._targets_of_omc.get(key[1], ()):
+                    self.pipes[t].push_omc_quality(key[1], stamp_to_ns(m.header.stamp),
+                                                   {"fit_error": float(m.fit_error),
+                                                    "markers_used": float(m.markers_used)})
 
     def _publish_final(self, target: str) -> None:
         """/fullperc/<target>/final: the primary filter's estimates of the items that left the history."""
@@ -534,11 +545,12 @@ class FusionNode(Node):
         """Queue depth, processing lag, callback delay and lost samples of ``target`` (WARN: lag above lag_warn,
         samples lost within problem_hold)."""
         values.update(self._load.values())
-        lag = self._load.lag_max_ns
+        lag = self._load.lag_min_ns
         if lag is not None and lag * 1e-9 > self._lag_warn:
             level = max(level, WARN)
-            msgs.append(f"overload: processing lag {lag * 1e-6:.0f} ms > lag_warn {self._lag_warn * 1e3:g} ms (node "
-                        f"clock - stamp of the newest fused sample; up to {self._load.depth_max} samples waiting)")
+            msgs.append(f"overload: processing lag {lag * 1e-6:.0f} ms or more since the last report > lag_warn "
+                        f"{self._lag_warn * 1e3:g} ms (node clock - stamp of the newest fused sample; up to "
+                        f"{self._load.depth_max} samples waiting)")
         c = self.pipes[target].config.chain
         for dev, body, name in (("omc", c.omc_target, f"OMC body '{c.omc_target}'"),
                                 ("ots", c.ots_target, f"OTS tool '{c.ots_target}'")):
@@ -553,8 +565,9 @@ class FusionNode(Node):
                 n, when = loss.lost, now
             if n and now - when < self._problem_hold:
                 level = max(level, WARN)
-                msgs.append(f"lost samples of the {name}: {loss.frames_lost} frames missing (frame-number gaps), "
-                            f"{loss.samples_lost} visible frames whose pose never arrived")
+                msgs.append(f"lost samples of the {name}: {loss.samples_lost} poses never arrived (frames of the "
+                            f"driver's TrackingQuality; {loss.frames_lost} quality messages missing: "
+                            "frame-number gaps)")
         return level
 
 

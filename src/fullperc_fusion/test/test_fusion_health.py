@@ -163,13 +163,13 @@ def test_source_loss_counts_frame_gaps_and_visible_frames_without_pose():
     from fullperc_fusion.fusion_health import SourceLoss
 
     loss = SourceLoss(match_ns=100)
-    for fn in (1, 2, 3, 7, 8):            # frames 4-6 missing
+    for fn in (1, 2, 3, 7, 8):            # quality of frames 4-6 missing
         loss.quality(fn, fn * 10, visible=fn != 8)
-    for fn in (1, 3):                     # poses of frames 1 and 3 arrived; 2 and 7 did not (yet)
+    for fn in (1, 3, 5):                  # poses of frames 1, 3 and 5 arrived; 2 and 7 did not (yet), 8 not visible
         loss.pose(fn * 10)
-    assert loss.frames_lost == 3 and loss.samples_lost == 0
-    loss.quality(30, 300, visible=False)  # 200 stamp-ns later: frames 2 and 7 are overdue; 9-29 missing
-    assert loss.samples_lost == 2 and loss.frames_lost == 3 + 21 and loss.lost == 26
+    assert loss.frames_lost == 3 and loss.samples_lost == 3 - 1, "gap frames 4 and 6: no pose either"
+    loss.quality(30, 300, visible=False)  # 200 stamp-ns later: 2 and 7 are overdue; quality of 9-29 missing
+    assert loss.frames_lost == 3 + 21 and loss.samples_lost == 2 + 2 + 21
     loss.quality(1, 310, visible=False)   # counter restarted: a new count, no gap
     assert loss.frames_lost == 24
 
@@ -181,7 +181,7 @@ def test_source_loss_pose_before_its_quality_is_not_lost():
     loss.pose(10)
     loss.quality(1, 10, visible=True)
     loss.quality(2, 500, visible=False)
-    assert loss.lost == 0
+    assert loss.lost == 0 and loss.frames_lost == 0
 
 
 def test_input_load_keeps_the_period_maximum():
@@ -192,7 +192,7 @@ def test_input_load_keeps_the_period_maximum():
     load.callback(0, None, 5_000_000)
     load.callback(1, 1_000_000, None)     # no clock yet: lag unknown
     v = load.values()
-    assert (v["queue_depth"], v["queue_depth_max"], v["lag_ms"], v["lag_max_ms"], v["callback_delay_max_ms"],
-            v["input_callbacks"]) == (1, 3, 5.0, 40.0, 2.0, 3)
+    assert (v["queue_depth"], v["queue_depth_max"], v["lag_ms"], v["lag_min_ms"], v["lag_max_ms"],
+            v["callback_delay_max_ms"], v["input_callbacks"]) == (1, 3, 5.0, 5.0, 40.0, 2.0, 3)
     load.reset_period()
     assert load.values()["lag_max_ms"] is None and load.values()["lag_ms"] == 5.0
