@@ -12,6 +12,9 @@ PKG = Path(__file__).resolve().parent.parent
 SRC = PKG.parent
 
 
+TARGETS = ("tool", "instrument")   # the demo's two targets (config/demo_graph.yaml)
+
+
 def _displays():
     cfg = yaml.safe_load((PKG / "config" / "fullperc.rviz").read_text())
     return cfg, cfg["Visualization Manager"]["Displays"]
@@ -20,26 +23,32 @@ def _displays():
 def test_rviz_config_parses_and_shows_what_issue_17_asks():
     cfg, displays = _displays()
     assert cfg["Visualization Manager"]["Global Options"]["Fixed Frame"] == "base"
-    by_class = {d["Class"].split("/")[-1]: d for d in displays}
+    by_class: dict[str, list] = {}
+    for d in displays:
+        by_class.setdefault(d["Class"].split("/")[-1], []).append(d)
     assert {"TF", "MarkerArray", "PoseWithCovariance", "Marker"} <= set(by_class)
-    assert by_class["MarkerArray"]["Topic"]["Value"] == "/fullperc/margin_map"
+    (margin_map,) = by_class["MarkerArray"]
+    assert margin_map["Topic"]["Value"] == "/fullperc/margin_map"
     # the margin map is latched (transient local): the display must ask for it that way or it sees nothing
-    assert by_class["MarkerArray"]["Topic"]["Durability Policy"] == "Transient Local"
-    assert by_class["PoseWithCovariance"]["Topic"]["Value"] == "/fullperc/tool/pose_cov"
-    assert by_class["Marker"]["Topic"]["Value"] == "/fullperc/tool/region_marker"
+    assert margin_map["Topic"]["Durability Policy"] == "Transient Local"
+    # both targets of the demo: the arm-held tool and the twin's hand-held instrument
+    assert {d["Topic"]["Value"] for d in by_class["PoseWithCovariance"]} == {f"/fullperc/{t}/pose_cov" for t in TARGETS}
+    assert {d["Topic"]["Value"] for d in by_class["Marker"]} == {f"/fullperc/{t}/region_marker" for t in TARGETS}
 
 
 def test_rviz_topics_are_published_by_our_nodes():
     """Every topic of the config is one a node of the demo graph publishes (targets of the demo's fusion_node)."""
     graph = yaml.safe_load((PKG / "config" / "demo_graph.yaml").read_text())
     fusion = next(p for p in graph["processes"] if p["name"] == "fusion")["cmd"]
-    assert not any(str(a).startswith("targets:=") for a in fusion)     # the default target: tool
+    margin = next(p for p in graph["processes"] if p["name"] == "margin")["cmd"]
+    for cmd in (fusion, margin):   # the demo's targets, fused and labelled
+        assert f"targets:=[{', '.join(TARGETS)}]" in cmd, cmd
     fusion_src = (SRC / "fullperc_fusion" / "fullperc_fusion" / "fusion_node.py").read_text()
     margin_src = (SRC / "fullperc_fusion" / "fullperc_fusion" / "margin_node.py").read_text()
     published = {
         "/fullperc/margin_map": 'MAP_TOPIC = "/fullperc/margin_map"' in margin_src,
-        "/fullperc/tool/pose_cov": 'f"/fullperc/{t}/pose_cov"' in fusion_src,
-        "/fullperc/tool/region_marker": 'f"/fullperc/{target}/region_marker"' in margin_src,
+        **{f"/fullperc/{t}/pose_cov": 'f"/fullperc/{t}/pose_cov"' in fusion_src for t in TARGETS},
+        **{f"/fullperc/{t}/region_marker": 'f"/fullperc/{target}/region_marker"' in margin_src for t in TARGETS},
     }
     _, displays = _displays()
     topics = [d["Topic"]["Value"] for d in displays if "Topic" in d]
