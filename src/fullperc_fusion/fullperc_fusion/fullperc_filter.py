@@ -53,7 +53,6 @@ Output: :class:`filter_api.Step` with ``q`` (x y z w) and ``pose_cov`` (6x6, [p,
 
 from __future__ import annotations
 
-import copy
 import math
 from dataclasses import dataclass
 
@@ -66,6 +65,7 @@ __all__ = ["FullpercFilter", "FullpercParams", "so3_exp", "so3_log", "quat_to_R"
 
 N = 21
 _I3 = np.eye(3)
+_IN = np.eye(N)
 P_, V_, B_, TH, W_, BE, G_ = (slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15), slice(15, 18),
                               slice(18, 21))
 
@@ -195,6 +195,12 @@ class _State:
     sys_var: float                 # its stationary variance (newest global sample's model, else sys_std^2)
 
 
+def _copy(s: _State) -> _State:
+    """A copy of every array of the state (the scalars are immutable): ~10x cheaper than copy.deepcopy."""
+    return _State(s.p.copy(), s.v.copy(), s.b.copy(), s.R.copy(), s.w.copy(), s.beta.copy(), s.P.copy(), s.t_ns,
+                  s.pending_ns, s.has_R, s.g.copy(), s.sys_var)
+
+
 class FullpercFilter(StepCompat):
     """The ``fullperc`` filter; implements :class:`filter_api.Filter` (see the module docstring for the model)."""
 
@@ -227,13 +233,13 @@ class FullpercFilter(StepCompat):
 
     def snapshot(self) -> object:
         """A copy of the whole filter state, for :meth:`restore` (rewind and replay)."""
-        return copy.deepcopy(self.s)
+        return _copy(self.s)
 
     def restore(self, obj: object) -> None:
         """Put back a state taken by :meth:`snapshot` (the snapshot stays usable)."""
         if not isinstance(obj, _State):
             raise TypeError(f"not a fullperc snapshot: {type(obj).__name__}")
-        self.s = copy.deepcopy(obj)
+        self.s = _copy(obj)
 
     @property
     def time_ns(self) -> int | None:
@@ -276,12 +282,15 @@ class FullpercFilter(StepCompat):
         s.p = s.p + s.v * dt
         s.R = Rw @ s.R
         s.g = phi * s.g
-        F = np.eye(N)
-        F[P_, V_] = dt * _I3
-        F[TH, TH] = Rw
-        F[TH, W_] = dt * _I3
-        F[G_, G_] = phi * _I3
-        P = F @ s.P @ F.T
+        # P = F P F^T with F = I except F_pv = dt I, F_thth = Rw, F_thw = dt I, F_gg = phi I: as row and column
+        # operations on the blocks F touches (equal to the product, ~3x cheaper at 21x21 in numpy)
+        P = s.P.copy()
+        P[P_, :] += dt * P[V_, :]
+        P[TH, :] = Rw @ P[TH, :] + dt * P[W_, :]
+        P[G_, :] *= phi
+        P[:, P_] += dt * P[:, V_]
+        P[:, TH] = P[:, TH] @ Rw.T + dt * P[:, W_]
+        P[:, G_] *= phi
         qa, qr = pr.accel_noise, pr.ang_accel_noise
         for (i, j), q in (((0, 3), qa), ((9, 12), qr)):
             for k in range(3):
@@ -402,7 +411,7 @@ class FullpercFilter(StepCompat):
                 S = H @ P @ H.T + Rm
         G = np.linalg.solve(S, H @ P).T
         dx = G @ y
-        IKH = np.eye(N) - G @ H
+        IKH = _IN - G @ H
         P = IKH @ P @ IKH.T + G @ Rm @ G.T
         # inject and reset the error state
         s.p = s.p + dx[P_]
@@ -412,9 +421,9 @@ class FullpercFilter(StepCompat):
         s.w = s.w + dx[W_]
         s.beta = s.beta + dx[BE]
         s.g = s.g + dx[G_]
-        Gr = np.eye(N)
-        Gr[TH, TH] = _I3 - 0.5 * _skew(dx[TH])
-        P = Gr @ P @ Gr.T
+        Gt = _I3 - 0.5 * _skew(dx[TH])     # reset Jacobian G = I except G_thth: P = G P G^T on those rows/columns
+        P[TH, :] = Gt @ P[TH, :]
+        P[:, TH] = P[:, TH] @ Gt.T
         s.P = 0.5 * (P + P.T)
         if not (np.all(np.isfinite(s.P)) and np.all(np.isfinite(s.p)) and np.all(np.isfinite(s.R))):
             self.reset()
