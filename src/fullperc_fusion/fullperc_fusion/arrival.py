@@ -92,6 +92,7 @@ class ArrivalPipeline(TargetPipeline):
         self._published_ns: int | None = None
         self._final: list[FusedOutput] = []
         self._nres = 0                            # the first _nres entries are resolved (links fixed)
+        self._late_run: int | None = None         # first stamp of a run of samples all behind the history
         self._view = None                         # snapshot of the current static links (shallow copy)
         self._sig = _links_signature(self.chain.links)
         self._new_view()
@@ -121,6 +122,13 @@ class ArrivalPipeline(TargetPipeline):
             self._problem("duplicate", f"{what}: duplicate stamp {t} ns; dropped", t)
             self.counts[f"{_STREAM[stream]}_duplicate"] += 1
             return False
+        if self.newest_ns is not None and t < self.newest_ns - self.history_ns:   # behind the history
+            if self._late_run is None:
+                self._late_run = t
+            elif t - self._late_run > self.history_ns:
+                self._restart_timeline(what, t)
+        else:
+            self._late_run = None
         if self.horizon_ns is not None and t < self.horizon_ns:
             self._problem("late", f"{what}: sample at {t} ns is older than the history ({self.history_ns * 1e-9:g} s): "
                                   f"{(self.newest_ns - t) * 1e-9:.3f} s behind the newest sample ({self.newest_ns} ns),"
@@ -150,6 +158,20 @@ class ArrivalPipeline(TargetPipeline):
             self._process_entry(it, views.get(_key(it)))
         self._resolve_and_commit()
         return True
+
+    def _restart_timeline(self, what: str, t: int) -> None:
+        """Samples all behind the history, their stamps spanning more than ``history``: the stamps went back for
+        good (a bag replayed again, a clock reset, or one stamp far ahead that no clock could check). The history
+        becomes final, the filters start again, and the samples are fused and output from here on -- the node
+        never stalls."""
+        self._problem("timeline_restart", f"{what}: stamps went back to {t} ns, {(self.newest_ns - t) * 1e-9:.3f} s "
+                                          f"before the newest ({self.newest_ns} ns), for more than the history; "
+                                          "history ended, filters restarted", t)
+        self._resolve_and_commit(everything=True)
+        self.horizon_ns = self.newest_ns = self._published_ns = self._late_run = None
+        self._last_committed = [None, None]
+        for f in self.filters.values():
+            f.reset()
 
     def _after_link_sample(self, lookup: bool, t: int) -> None:
         """A base / rig sample: replay what the ordered pipeline would map with new links or a nearer rig pose."""

@@ -107,7 +107,7 @@ from .pipeline import FusedOutput, TargetPipeline
 OK, WARN, ERROR = (diag.as_level(v) for v in (diag.OK, diag.WARN, diag.ERROR))
 _PROBLEM_KEYS = ("rejected_nonfinite", "rejected_nonunit", "rejected_pose", "rejected_stamp", "rejected_future",
                  "late", "duplicate", "rejected_cov", "local_skipped", "filter_error", "nonfinite_output",
-                 "publish_error", "calibration_refused")
+                 "publish_error", "calibration_refused", "timeline_restart")
 # ROS type of a parameter declared without a default value (optional ones, empty lists)
 _ROS_TYPES = {"str_list": Parameter.Type.STRING_ARRAY, "pose7": Parameter.Type.DOUBLE_ARRAY}
 

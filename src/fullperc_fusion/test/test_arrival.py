@@ -231,3 +231,25 @@ def test_pair_equals_push_and_flush():
     want = sync.flush()
     got = ApproxSync.pair([Sample(t, t) for t in g], [Sample(t, t) for t in loc], 4 * MS)
     assert got == want
+
+
+def test_stamps_going_back_for_good_restart_the_timeline_instead_of_stalling():
+    """One stamp an hour ahead with no clock to check it (or a bag played again): the following samples are late
+    for a history's worth of their stamps, then the history ends, the filters restart and fusion goes on."""
+    cfg = TargetConfig(filters=("cbkf",))
+    pipe = ArrivalPipeline(cfg)
+    eye = np.eye(4)
+    for k in range(40):
+        pipe.push_omc("base", T0 + k * MS, eye)
+    assert pipe.push_omc("tool", T0 + 3600 * S, eye)     # no now_ns: nothing checks it
+    pipe.poll()
+    out = []
+    for k in range(1, 40):
+        pipe.push_omc("tool", T0 + k * 10 * MS, eye)
+        out.append(pipe.poll())
+    first = next(i for i, o in enumerate(out) if o)
+    assert not any(out[:first]) and all(out[first:]), "stalled, then an output per sample again"
+    assert (first - 1) * 10 * MS <= cfg.history_ns < (first + 1) * 10 * MS, "resumed after one history"
+    assert pipe.counts["timeline_restart"] == 1 and str(T0 + 3600 * S) in pipe.problems["timeline_restart"]
+    assert out[-1][-1].t_ns == T0 + 39 * 10 * MS
+    assert pipe.counts["filter_error"] == 0
