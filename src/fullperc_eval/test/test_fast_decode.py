@@ -138,6 +138,8 @@ def test_undecodable_message_named_by_topic_and_number(tmp_path: Path) -> None:
             w.write("/a", T0 + i, good if i != 2 else good[:20])
     with BagReader(bag) as r, pytest.raises(BagError, match=r"message 3 of /a cannot be decoded"):
         decoded_messages(r, ["/a"])
+    with BagReader(bag) as r, pytest.raises(BagError, match=r"has no topic /b"):
+        decoded_messages(r, ["/a", "/b"])
 
 
 @pytest.mark.skipif(not BAGS, reason="no committed sample bags under bags/")

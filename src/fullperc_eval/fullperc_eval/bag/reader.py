@@ -156,6 +156,8 @@ def decoded_messages(reader: BagReader, topics: list[str]) -> list[DecodedMessag
     decoded by rosbags, and one nothing can decode raises :class:`BagError` naming topic and message number.
     """
     for t in topics:
+        if t not in reader.topics:
+            raise BagError(f"bag {str(reader.path)!r} has no topic {t}")
         typ = reader.topics[t].msgtype
         if typ not in (POSE_TYPE, JOINT_TYPE):
             raise BagError(f"bag {str(reader.path)!r}: topic {t} has type {typ}; bulk decoding reads "
