@@ -1,0 +1,53 @@
+"""``make demo PROFILE=… CALIBRATION=…``: the demo's twin profile and static-link calibration reach the processes.
+
+What the graph starts is checked by loading the installed graph with the demo's values (the live run is
+test/test_demo_graph.py): the profile goes to the simulator, the calibration file to fusion_node (quoted, so an
+empty value stays a string), and the offline evaluation gets a fusion params file naming the same calibration.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import yaml
+
+from fullperc_eval.graph.cli import main as supervisor_main
+from fullperc_eval.graph.demo import fusion_params_with, graph_path
+from fullperc_eval.graph.supervisor import load_graph
+from fullperc_fusion.fusion_config import default_fusion_config_path, read_params_file
+
+ROOT = Path(__file__).resolve().parents[3]
+VALUES = {"task": "B-G-P", "out": "/tmp/x", "omc_port": "1", "diana_port": "2", "vega_port": "3"}
+
+
+def _cmds(values: dict[str, str]) -> dict[str, list[str]]:
+    return {p.name: p.cmd for p in load_graph(graph_path(ROOT), {**VALUES, **values}).processes}
+
+
+def test_profile_and_calibration_reach_the_simulator_and_fusion_node():
+    cmds = _cmds({"profile": "spec", "calibration_file": "/cal/or1.yaml", "vega_bump": "12:0.004:0.3"})
+    sim = cmds["sim"]
+    assert sim[sim.index("--profile") + 1] == "spec"
+    assert sim[sim.index("--vega-bump") + 1] == "12:0.004:0.3"
+    assert "calibration_file:='/cal/or1.yaml'" in cmds["fusion"]
+    # defaults: the paper twin, fusion_node calibrating itself (an empty string parameter), no bump
+    cmds = _cmds({})
+    assert cmds["sim"][cmds["sim"].index("--profile") + 1] == "paper"
+    assert "calibration_file:=''" in cmds["fusion"]
+    assert cmds["sim"][cmds["sim"].index("--vega-bump") + 1] == ""
+
+
+def test_offline_evaluation_uses_the_same_calibration(tmp_path):
+    cal = tmp_path / "or1.yaml"
+    path = fusion_params_with(cal, tmp_path)
+    got, default = read_params_file(path), read_params_file(default_fusion_config_path())
+    assert got["calibration_file"] == str(cal)
+    assert {k: v for k, v in got.items() if k != "calibration_file"} == \
+        {k: v for k, v in default.items() if k != "calibration_file"}
+    assert yaml.safe_load(path.read_text())["fusion_node"]["ros__parameters"]["calibration_file"] == str(cal)
+
+
+def test_a_missing_calibration_file_is_refused_before_anything_starts(tmp_path, capsys):
+    rc = supervisor_main(["demo", "--out", str(tmp_path), "--calibration", str(tmp_path / "nope.yaml")])
+    assert rc == 2 and "nope.yaml does not exist" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())   # no run directory, no process
