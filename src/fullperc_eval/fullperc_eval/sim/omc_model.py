@@ -10,8 +10,11 @@ and fits each rigid body by Kabsch to its ≥ 3 triangulated markers.
 
 Nothing is injected: when the set of seeing cameras changes, the rays that enter the least-squares
 solution change, and with miscalibrated extrinsics the solution moves (a *hop*); with a fixed
-set, the error varies smoothly with position (*distortion*). With perfect calibration and zero
-noise every ray passes exactly through the marker and the estimate is exact.
+set, the error varies smoothly with position (*distortion*). A lens residual common to all cameras
+(:mod:`.omc_lens`: the focal length and radial distortion an incomplete calibration gets wrong)
+bends every camera's ray the same way, which distorts the reconstructed volume smoothly with little
+hop. With perfect calibration and zero noise every ray passes exactly through the marker and the
+estimate is exact.
 
 Everything is vectorised over a chunk of frames x markers x cameras.
 """
@@ -19,19 +22,22 @@ Everything is vectorised over a chunk of frames x markers x cameras.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .occluders import PlacedBox, rays_blocked_by_boxes, rays_blocked_by_capsules
+from .omc_lens import LensResidual
 
 
 @dataclass
 class CameraSet:
     """K pinhole cameras. ``R`` maps camera to omc (columns: camera x right, y down, z forward).
 
-    ``C``/``R`` are the true extrinsics, ``Cb``/``Rb`` what the system believes after calibration.
+    ``C``/``R`` are the true extrinsics, ``Cb``/``Rb`` what the system believes after calibration; ``lens`` is
+    what the believed intrinsics (pinhole ``fx``..``cy``, taken as exact when back-projecting) miss of the real
+    lenses (:class:`~.omc_lens.LensResidual`), common to all cameras.
     """
 
     names: list[str]
@@ -46,6 +52,7 @@ class CameraSet:
     range_m: np.ndarray
     Cb: np.ndarray = field(default=None)  # type: ignore[assignment]
     Rb: np.ndarray = field(default=None)  # type: ignore[assignment]
+    lens: LensResidual | None = None  # what the believed lens model misses of the real lenses (None: exact)
 
     def __post_init__(self) -> None:
         if self.Cb is None:
@@ -73,8 +80,7 @@ class CameraSet:
         """Copy whose believed extrinsics differ from the truth by seeded Gaussian errors."""
         dt = rng.normal(0.0, sigma_t_m, size=(self.K, 3))
         drot = Rotation.from_rotvec(np.radians(rng.normal(0.0, sigma_rot_deg, size=(self.K, 3)))).as_matrix()
-        return CameraSet(self.names, self.C, self.R, self.fx, self.fy, self.cx, self.cy, self.tan_h, self.tan_v,
-                         self.range_m, Cb=self.C + dt, Rb=np.einsum("kij,kjl->kil", drot, self.R))
+        return replace(self, Cb=self.C + dt, Rb=np.einsum("kij,kjl->kil", drot, self.R))
 
 
 @dataclass(frozen=True)
@@ -185,8 +191,11 @@ def observe_markers(cams: CameraSet, X_true: np.ndarray, exists: np.ndarray, occ
         mask &= line_of_sight(cams, X_true, occ)
     z = np.where(pc[..., 2] > 1e-9, pc[..., 2], 1.0)
     sig = noise.sigma_px(dist)
-    u = cams.fx * pc[..., 0] / z + cams.cx + sig * std_normals[..., 0]
-    v = cams.fy * pc[..., 1] / z + cams.cy + sig * std_normals[..., 1]
+    xn, yn = pc[..., 0] / z, pc[..., 1] / z
+    if cams.lens is not None:  # the real lens images the point where the believed lens model does not expect it
+        xn, yn = cams.lens.distort(xn, yn)
+    u = cams.fx * xn + cams.cx + sig * std_normals[..., 0]
+    v = cams.fy * yn + cams.cy + sig * std_normals[..., 1]
     # back-projection through the believed intrinsics (taken as exact) and believed extrinsics
     dc = np.stack([(u - cams.cx) / cams.fx, (v - cams.cy) / cams.fy, np.ones_like(u)], axis=-1)
     dw = np.einsum("kij,fmkj->fmki", cams.Rb, dc)

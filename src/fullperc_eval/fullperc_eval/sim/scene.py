@@ -30,6 +30,7 @@ from fullperc_drivers.diana_kinematics import DianaKinematics
 from fullperc_fusion.layout import Layout, default_layout_path, load_layout
 
 from .occluders import PlacedBox, StaffWalker
+from .omc_lens import LensResidual
 from .omc_model import CameraSet, NoiseModel
 from .ots_model import OtsModel
 
@@ -293,6 +294,10 @@ def build_scene(seed: int = 0, config: dict | str | os.PathLike | None = None, l
     mc = _get(cfg, "omc.miscalibration")
     if miscalibration:
         cams = cams.miscalibrated(r_cal, float(mc["translation_sigma_m"]), float(mc["rotation_sigma_deg"]))
+        try:  # the lens residual common to all cameras (sim.omc_lens); no random draw
+            cams = replace(cams, lens=LensResidual.from_config(cfg["omc"].get("lens_residual")))
+        except ValueError as e:
+            raise SceneError(str(e)) from e
     nz = _get(cfg, "omc.noise")
     omc_noise = NoiseModel(float(nz["sigma_px_ref"]), float(nz["d_ref_m"]), float(nz["exponent"]))
 
