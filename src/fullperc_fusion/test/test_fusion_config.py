@@ -213,3 +213,26 @@ def test_a_bad_calibration_file_names_the_parameter_the_file_and_the_field(tmp_p
     msg = str(e.value)
     assert "'calibration_file'" in msg and str(cal) in msg and "links.T_base_ots.quaternion_xyzw" in msg
     assert isinstance(e.value, ParameterError)
+
+
+def test_fullperc_block_is_mapped_and_its_layout_loaded_only_when_used(tmp_path):
+    """filter: fullperc -> FullpercParams from the fullperc.* rows and the layout for the OMC model's view margin;
+    without a filter that uses the models no layout is read; a bad layout file names the parameter."""
+    from fullperc_fusion.fullperc_filter import FullpercParams
+    from fullperc_fusion.layout import Layout
+
+    p = _write(tmp_path, {"filter": "fullperc", "fullperc": {"sys_time": 2.5, "rot_local_std": 1e-3}})
+    cfg, _ = fc.load_fusion_config(p, filters=None)
+    assert cfg.filters == ("fullperc",) and isinstance(cfg.params, FullpercParams)
+    assert cfg.params.sys_time == 2.5 and cfg.params.rot_local_std == 1e-3
+    assert isinstance(cfg.layout, Layout)
+    cfg, _ = fc.load_fusion_config(_write(tmp_path, {"filter": "cbkf"}), filters=None)
+    assert cfg.layout is None
+    cfg, _ = fc.load_fusion_config(_write(tmp_path, {"filter": "fullperc", "fullperc": {"layout_file": "none"}}),
+                                   filters=None)
+    assert cfg.layout is None
+    bad = _write(tmp_path, {"filter": "fullperc", "fullperc": {"layout_file": str(tmp_path / "missing.yaml")}})
+    with pytest.raises(fc.FusionConfigError, match="fullperc.layout_file"):
+        fc.load_fusion_config(bad, filters=None)
+    with pytest.raises(fc.FusionConfigError, match="fullperc.sys_time"):
+        fc.load_fusion_config(_write(tmp_path, {"fullperc": {"sys_time": 0.0}}), filters=None)
