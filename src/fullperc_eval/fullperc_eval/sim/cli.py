@@ -24,6 +24,7 @@ import time
 import numpy as np
 
 from fullperc_eval.bag.calibration import save_calibration
+from fullperc_eval.bag.errors import BagError
 from fullperc_fusion.layout import load_layout
 
 from .dataset import sim_calibration, write_truth_bag
@@ -176,7 +177,11 @@ def main(argv: list[str] | None = None) -> int:
         # stamps as the drivers publish them: capture time on the host clock (the last served loop)
         truth = {n: (np.array([server.host_ns(t) for t in tr.t_ns], dtype=np.int64), tr.T_base_tool)
                  for n, tr in run.extra_truth.items()}
-        write_truth_bag(args.truth_out, truth, {"task": args.task, "seed": str(args.seed)})
+        try:
+            write_truth_bag(args.truth_out, truth, {"task": args.task, "seed": str(args.seed)})
+        except (OSError, BagError) as e:
+            print(f"sim: --truth-out {args.truth_out}: {e}", file=sys.stderr, flush=True)
+            return 1
         print(json.dumps({"event": "truth", "targets": sorted(truth), "path": args.truth_out}), flush=True)
     return 0
 
