@@ -113,3 +113,24 @@ def test_truth_topic_round_trip_and_interpolation(tmp_path):
     np.testing.assert_allclose(np.arctan2(Tq[:-2, 1, 0], Tq[:-2, 0, 0]), sq, atol=1e-9)
     with pytest.raises(ValueError, match=f"{TRUTH_PREFIX}/other"):
         load_truth_track(bag, "other")
+
+
+def test_merge_bag_adds_the_truth_file_and_refuses_a_clash(tmp_path):
+    from fullperc_eval.bag.errors import BagError
+    from fullperc_eval.bag.reader import BagReader
+    from fullperc_eval.sim.dataset import merge_bag
+
+    t = np.arange(5, dtype=np.int64) * 10_000_000 + 1_700_000_000_000_000_000
+    T = np.tile(np.eye(4), (5, 1, 1))
+    dst = write_truth_bag(tmp_path / "dst", {"a": (t, T)})
+    src = write_truth_bag(tmp_path / "src", {"b": (t + 1, T)})
+    merge_bag(dst, src)
+    assert not src.exists()
+    r = BagReader(dst)
+    assert {f"{TRUTH_PREFIX}/a", f"{TRUTH_PREFIX}/b"} <= set(r.topics) and r.message_count == 10
+    assert len(r.info["relative_file_paths"]) == 2
+    with r:
+        got = [m.topic for m in r.messages()]
+    assert got.count(f"{TRUTH_PREFIX}/b") == 5 and got.count(f"{TRUTH_PREFIX}/a") == 5
+    with pytest.raises(BagError, match="both hold"):
+        merge_bag(dst, write_truth_bag(tmp_path / "again", {"a": (t, T)}))
