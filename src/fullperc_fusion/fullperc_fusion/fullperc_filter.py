@@ -5,7 +5,7 @@ model covariances of :mod:`measurement_models` (the paper's four keep their fixe
 
 Nominal state (``base``, SI): position p, velocity v, the global source's position bias in two parts -- b, CBKF's
 compensation term (random walk: the part that stays, e.g. the error of the calibrated global link), and g, a
-Gauss-Markov part (the OMC's systematic error that decorrelates within ~``sys_time`` of motion: distortion along
+Gauss-Markov part (the OMC's systematic error that decorrelates over ~``sys_time`` of motion: distortion along
 the path, camera-set changes) --, orientation R (tool -> base), angular velocity w (base axes) and the global
 source's orientation bias beta (a rotation vector: the OMC reports R_omc = Exp(beta) R). Error state, 21 dims,
 rotation errors on the left about the base axes (the :mod:`filter_api` convention, R_true = Exp(dtheta) R):
@@ -13,11 +13,11 @@ rotation errors on the left about the base axes (the :mod:`filter_api` conventio
     dx = [dp dv db | dtheta dw dbeta | dg]      (indices 0:3 3:6 6:9 | 9:12 12:15 15:18 | 18:21)
 
 Why two bias parts (raw OMC error vs the Diana truth, :mod:`measurement_models`): the rms increment of the OMC's
-error over a lag grows from the white level to a plateau within ~1 s (spec 0.04 -> 0.10 -> 0.17 mm at 8 ms / 1 s /
-10 s; paper 0.09 -> 1.06 -> 1.84 mm): a random walk (CBKF's b alone) keeps a learnt compensation forever, so
-after the local source is gone the output carries a compensation that no longer holds; a Gauss-Markov process
-forgets it at the rate the sensor's error does, and the mean offset (per bag ~0.1 mm spec, ~1.5 mm paper) stays
-in b.
+error over a lag grows from the white level towards a plateau (spec 0.07 -> 0.18 -> 0.30 mm at 8 ms / 1 s / 10 s;
+paper 0.16 -> 1.84 -> 3.19 mm; Gauss-Markov fit: tau ~3 s): a random walk (CBKF's b alone) keeps a learnt
+compensation forever, so after the local source is gone the output carries a compensation that no longer holds;
+a Gauss-Markov process forgets it at the rate the sensor's error does, and the mean offset (per bag ~0.1 mm spec,
+~1.5 mm paper) stays in b.
 
 * predict over dt (constant velocity, constant angular velocity):
   p += v dt, R = Exp(w dt) R, g *= phi, phi = exp(-dt / sys_time);
@@ -81,8 +81,8 @@ class FullpercParams(FilterParams):
     rot_global_std   OMC orientation noise per axis [rad] without a covariance (5 mrad: raw OMC, spec bags).
     rot_local_std    Vega orientation noise per axis [rad] without a covariance (2.2 mrad: raw Vega, spec bags).
     init_rot_std, init_angvel_std, init_rot_bias_std  prior stds of theta [rad], w [rad/s], beta [rad].
-    sys_time         correlation time of the OMC's systematic position error [s] (1 s: the knee of the raw OMC
-                     error's structure function in both twin profiles, module docstring).
+    sys_time         correlation time of the OMC's systematic position error [s] (3 s: Gauss-Markov fit of the raw
+                     OMC error's structure function, 3.1 s spec / 2.8 s paper, measurement_models).
     sys_std          its per-axis std [m] for a global sample without ``sys_var`` (0.2 mm: raw OMC, spec bags).
     """
 
@@ -93,7 +93,7 @@ class FullpercParams(FilterParams):
     init_rot_std: float = 0.05
     init_angvel_std: float = 0.5
     init_rot_bias_std: float = 0.02
-    sys_time: float = 1.0
+    sys_time: float = 3.0
     sys_std: float = 0.2e-3
 
     def validate(self) -> FullpercParams:

@@ -10,7 +10,8 @@ small rotation vector about the parent's axes, R_true = Exp(dtheta) R_est.
 Raw-sensor statistics used below ("raw stats"): the 6 ``bags/spec`` twin bags (device-specification noise),
 every tracked /omc/tool and /ots/tool sample mapped into ``base`` by the node's frame chain, compared with the
 Diana forward kinematics; the OMC's view margin from :func:`margin.margin_at` on ``config/or_layout.yaml``
-(script of the H3 report, /tmp/h3/raw_stats.py). Per-axis variance regressed on [1, fit_error^2, 300/margin]:
+(``python scripts/raw_sensor_stats.py bags/spec bags/paper``). Per-axis variance regressed on
+[1, fit_error^2, 300/margin]:
 
 * OMC total error (white + systematic): sqrt(a) = 0.12 mm, k_fit = 0.96 (the ``paper`` profile bags, whose
   cameras are worse calibrated, give k_fit = 0.79: the fit-error term carries over between calibrations, the
@@ -18,9 +19,11 @@ Diana forward kinematics; the OMC's view margin from :func:`margin.margin_at` on
   both profiles, margin term 1.3 mrad at 300 deg;
 * OMC white part (frame-to-frame: consecutive differences / sqrt 2, same regression): floor 0.02 mm, margin term
   0.076 mm at 300 deg, fit gain 0.25; robust (MAD) white jitter 0.036 mm per axis in both profiles;
-* time structure of the OMC error (rms per-axis increment over a lag L): spec 0.041 / 0.10 / 0.17 mm at
-  L = 8 ms / 1 s / 10 s, paper 0.09 / 1.06 / 1.84 mm: beyond the white jitter the error is systematic and
-  decorrelates on the order of a second of motion (distortion along the path, camera-set changes);
+* time structure of the OMC error (rms per-axis increment over a lag L): spec 0.071 / 0.175 / 0.301 mm at
+  L = 8 ms / 1 s / 10 s, paper 0.16 / 1.84 / 3.19 mm; fitted as white + first-order Gauss-Markov,
+  D(L) = 2 w^2 + 2 s^2 (1 - exp(-L / tau)): position tau = 3.1 s (spec) / 2.8 s (paper), s = 0.21 / 2.29 mm;
+  rotation tau = 0.8 / 1.1 s, s = 1.9 / 23 mrad. Beyond the white jitter the error is systematic and
+  decorrelates within seconds of motion (distortion along the path, camera-set changes);
 * Vega tool (chain included) per axis 0.13 mm mid-volume, 0.17-0.19 mm at the ends of the 0.95-2.4 m volume;
   orientation ~2.2 mrad per axis.
 """
@@ -39,8 +42,8 @@ MARGIN_REF_DEG = 300.0
 @dataclass(frozen=True)
 class OmcModelParams:
     """Constants of :func:`omc_covariance` and :func:`omc_systematic_var`; origin of each in the module docstring
-    ("raw stats"). The systematic error's correlation time (~1 s, the structure function's knee) is the filter's
-    ``FullpercParams.sys_time``.
+    ("raw stats"). The systematic error's correlation time (~3 s, Gauss-Markov fit of the structure function) is
+    the filter's ``FullpercParams.sys_time``.
 
     white_std        [m]      per-axis white floor
     white_fit_gain   [-]      per-axis white std per metre of the device's RMS marker fit error
@@ -116,9 +119,10 @@ def omc_covariance(fit_error: float | None, margin_deg: float | None,
     Why the position gets its white part only: the rest of the OMC's position error is systematic (the same for
     about a second along the path, module docstring); a filter given it as white R would average it away, which
     it cannot be. ``fullperc`` models it as a bias state (Gauss-Markov, variance :func:`omc_systematic_var`).
-    Why the rotation gets both: its systematic part jumps (one marker's camera set changes: a step of ~0.3 mm over
-    a 60 mm lever is 5 mrad) and reverts within frames (raw stats: single-frame innovations of 4-8 mrad at a
-    white level of 0.7 mrad, spec bags); a bias state cannot follow that, so it counts as noise of the sample.
+    Why the rotation gets both: its systematic part decorrelates within ~1 s (Gauss-Markov fit, module
+    docstring) and jumps (one marker's camera set changes: a step of ~0.3 mm over a 60 mm lever is 5 mrad) and
+    reverts within frames (the filter's single-frame innovations of 4-8 mrad at a modelled white level of
+    0.7 mrad, spec bags); a bias state cannot follow that, so it counts as noise of the sample.
     """
     e = _fit(fit_error, params)
     f = margin_factor(margin_deg, params.margin_ref, params.margin_min)

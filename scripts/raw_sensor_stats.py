@@ -1,0 +1,182 @@
+"""Raw-sensor statistics behind the constants of ``fullperc_fusion.measurement_models`` (issue 18).
+
+Noise-model calibration, not filter tuning: every tracked /omc/<tool>/pose and /ots/<tool>/pose sample of the
+bags is mapped into ``base`` by the node's own frame chain and compared with the Diana forward kinematics (the
+bag's calibration.yaml); no filter runs. Printed per profile (one directory of task bags):
+
+* OMC per-axis error variance regressed on [1, fit_error^2, 300/margin] (total, and the white part from
+  consecutive differences / sqrt 2), the margin from ``margin.margin_at`` on the default layout;
+* the OMC rotation error's regression on the same terms;
+* the rms per-axis increment of the OMC's position and rotation error over lags 8 ms .. 10 s (the structure
+  function: white level, then the systematic part decorrelating);
+* the Vega tool's per-axis error by distance and its orientation error.
+
+Run: python scripts/raw_sensor_stats.py bags/spec bags/paper
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from fullperc_eval.bag.calibration import load_calibration
+from fullperc_eval.bag.reader import BagReader
+from fullperc_eval.evaluation.config import replay_config
+from fullperc_eval.evaluation.ground_truth import GroundTruth
+from fullperc_fusion.frame_chain import pose_to_T
+from fullperc_fusion.layout import default_layout_path, load_layout
+from fullperc_fusion.margin import margin_at
+from fullperc_fusion.pipeline import TargetPipeline
+
+# columns of a sample row
+T, EX, EY, EZ, FIT, MARGIN, DIST, RX, RY, RZ = range(10)
+
+
+def _stamp(h) -> int:
+    return int(h.stamp.sec) * 1_000_000_000 + int(h.stamp.nanosec)
+
+
+def bag_rows(bag: Path, layout) -> tuple[np.ndarray, np.ndarray]:
+    """(OMC rows, OTS rows) of one bag: time [s], position error (3) [m], fit error [m], margin [deg] (OMC),
+    distance to the Vega [m] (OTS), rotation error vector (3) [rad]; errors in base, measured minus true."""
+    cfg, _ = replay_config()
+    cfg.filters = ("omc",)
+    pipe = TargetPipeline(cfg)
+    c = cfg.chain
+    reader = BagReader(bag)
+    reader.open()
+    fit: dict[tuple[str, int], float] = {}
+    jt, jq, samples = [], [], []
+    try:
+        for m in reader.messages(list(reader.topics)):
+            msg = reader.deserialize(m.data, m.msgtype)
+            if m.topic == "/diana/joint_states":
+                jt.append(_stamp(msg.header))
+                jq.append(np.asarray(msg.position, dtype=float))
+            elif m.topic.endswith("/quality"):
+                fit[(m.topic.split("/")[1], _stamp(msg.header))] = float(msg.fit_error)
+            elif m.topic.endswith("/pose") and m.topic.split("/")[1] in ("omc", "ots"):
+                dev, body = m.topic.split("/")[1:3]
+                t = _stamp(msg.header)
+                pp, qq = msg.pose.position, msg.pose.orientation
+                Td = pose_to_T((np.array([pp.x, pp.y, pp.z]), np.array([qq.x, qq.y, qq.z, qq.w])))
+                if dev == "omc":
+                    pipe.push_omc(body, t, Td)
+                    if body == c.omc_target and pipe.chain.links.T_omc_base is not None:
+                        samples.append(("omc", t, Td, pipe.chain.global_T(Td)))
+                else:
+                    pipe.push_ots(body, t, Td)
+                    if body == c.ots_target and pipe.chain.links.local_ready:
+                        Tl, _ = pipe.chain.local_T(t, Td)
+                        if Tl is not None:
+                            samples.append(("ots", t, Td, Tl))
+                pipe.poll()
+    finally:
+        reader.close()
+    gt = GroundTruth(np.array(jt), np.array(jq), load_calibration(bag))
+    Ttrue, ok = gt.T_base_tool(np.array([s[1] for s in samples], dtype=np.int64))
+    rows: dict[str, list] = {"omc": [], "ots": []}
+    for (dev, t, Td, Tb), T0, k in zip(samples, Ttrue, ok, strict=True):
+        if not k:
+            continue
+        rv = Rotation.from_matrix(Tb[:3, :3] @ T0[:3, :3].T).as_rotvec()
+        margin = margin_at(layout, Td[:3, 3])[0] if dev == "omc" else np.nan
+        rows[dev].append((t * 1e-9, *(Tb[:3, 3] - T0[:3, 3]), fit.get((dev, t), -1.0), margin,
+                          float(np.linalg.norm(Td[:3, 3])), *rv))
+    return np.array(rows["omc"]), np.array(rows["ots"])
+
+
+def _segments(t: np.ndarray) -> list[np.ndarray]:
+    cuts = np.flatnonzero((np.diff(t) < 0) | (np.diff(t) > 1.0)) + 1
+    return np.split(np.arange(len(t)), cuts)
+
+
+def regress(y: np.ndarray, fit: np.ndarray, margin: np.ndarray) -> np.ndarray:
+    """Least squares y ~ a + k fit^2 + c 300/max(margin, 30); returns sqrt(|a|), sqrt(|k|), sqrt(|c|)."""
+    A = np.column_stack([np.ones(len(y)), fit**2, 300.0 / np.maximum(margin, 30.0)])
+    coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+    return np.sqrt(np.abs(coef))
+
+
+def structure(e: np.ndarray, t: np.ndarray, lags: tuple[int, ...]) -> list[float]:
+    """rms per-axis increment of e over each lag (in samples), within each bag."""
+    out = []
+    for L in lags:
+        d = np.concatenate([e[s][L:] - e[s][:-L] for s in _segments(t) if len(s) > L])
+        out.append(float(np.sqrt((d**2).mean())))
+    return out
+
+
+def fit_gauss_markov(lags_s: np.ndarray, rms: np.ndarray) -> tuple[float, float, float]:
+    """(white std, systematic std, tau [s]) of D(L) = 2 w^2 + 2 s^2 (1 - exp(-L / tau)) fitted to the squared
+    rms increments (grid over tau, linear least squares for w^2 and s^2 at each tau)."""
+    D = rms**2
+    best = (np.inf, 0.0, 0.0, 0.0)
+    for tau in np.geomspace(0.05, 100.0, 400):
+        A = np.column_stack([2 * np.ones_like(lags_s), 2 * (1 - np.exp(-lags_s / tau))])
+        coef, *_ = np.linalg.lstsq(A, D, rcond=None)
+        if np.all(coef >= 0):
+            res = float(np.sum((A @ coef - D) ** 2 / D**2))
+            if res < best[0]:
+                best = (res, float(np.sqrt(coef[0])), float(np.sqrt(coef[1])), float(tau))
+    return best[1], best[2], best[3]
+
+
+def report(name: str, g: np.ndarray, o: np.ndarray) -> None:
+    fit = np.where(g[:, FIT] >= 0, g[:, FIT], np.nan)
+    ok = np.isfinite(fit)
+    g, fit = g[ok], fit[ok]
+    e, r = g[:, EX:EZ + 1], g[:, RX:RZ + 1]
+    print(f"== {name}: {len(g)} OMC samples, {len(o)} OTS samples")
+    a, k, c = regress((e**2).mean(1), fit, g[:, MARGIN])
+    print(f"OMC position, total per axis:   floor {a * 1e3:.3f} mm, fit gain {k:.2f}, margin term {c * 1e3:.3f} mm")
+    a, k, c = regress((r**2).mean(1), fit, g[:, MARGIN])
+    print(f"OMC rotation, total per axis:   floor {a * 1e3:.2f} mrad, fit gain {k:.1f} rad/m, margin term "
+          f"{c * 1e3:.2f} mrad")
+    pair = np.diff(g[:, T]) < 0.02
+    dw = (np.diff(e, axis=0)[pair] ** 2).mean(1) / 2
+    fm = 0.5 * (fit[1:] + fit[:-1])[pair]
+    mm = np.minimum(g[1:, MARGIN], g[:-1, MARGIN])[pair]
+    a, k, c = regress(dw, fm, mm)
+    print(f"OMC position, white per axis:   floor {a * 1e3:.3f} mm, fit gain {k:.2f}, margin term {c * 1e3:.3f} mm")
+    d = np.diff(e, axis=0)[pair]
+    mad = 1.4826 * np.median(np.abs(d - np.median(d, 0)), 0) / np.sqrt(2)
+    print(f"OMC position, robust white per axis (MAD): {np.round(mad * 1e3, 3)} mm")
+    lags = (1, 6, 12, 30, 60, 120, 240, 360, 600, 1200)
+    sp = structure(e, g[:, T], lags)
+    sr = structure(r, g[:, T], lags)
+    print("OMC structure function (lag s: pos mm / rot mrad per axis): "
+          + ", ".join(f"{L / 120:.2f}: {p * 1e3:.3f} / {q * 1e3:.2f}" for L, p, q in zip(lags, sp, sr, strict=True)))
+    Ls = np.asarray(lags) / 120.0
+    w, sy, tau = fit_gauss_markov(Ls, np.asarray(sp))
+    print(f"OMC position as white + Gauss-Markov: white {w * 1e3:.3f} mm, systematic {sy * 1e3:.3f} mm, "
+          f"tau {tau:.2f} s")
+    w, sy, tau = fit_gauss_markov(Ls, np.asarray(sr))
+    print(f"OMC rotation as white + Gauss-Markov: white {w * 1e3:.2f} mrad, systematic {sy * 1e3:.2f} mrad, "
+          f"tau {tau:.2f} s")
+    eo, ro, d = o[:, EX:EZ + 1], o[:, RX:RZ + 1], o[:, DIST]
+    for lo, hi in ((0.9, 1.3), (1.3, 1.6), (1.6, 1.8), (1.8, 2.5)):
+        s = (d >= lo) & (d < hi)
+        if s.any():
+            print(f"OTS tool at {lo}-{hi} m: per-axis rms {np.sqrt((eo[s] ** 2).mean()) * 1e3:.3f} mm "
+                  f"(n={int(s.sum())})")
+    print(f"OTS tool orientation: per-axis rms {np.sqrt((ro ** 2).mean()) * 1e3:.2f} mrad")
+
+
+def main(argv: list[str]) -> int:
+    if not argv:
+        print(__doc__)
+        return 2
+    layout = load_layout(default_layout_path())
+    for d in argv:
+        bags = sorted(p for p in Path(d).iterdir() if p.is_dir())
+        parts = [bag_rows(b, layout) for b in bags]
+        report(d, np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
