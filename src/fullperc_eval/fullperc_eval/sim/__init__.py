@@ -5,8 +5,9 @@ Layer: below :mod:`fullperc_eval.evaluation`, above :mod:`fullperc_eval.bag` and
 
 * :mod:`.occluders` — capsules (staff, arm links) and placed boxes (the margin model's Box), seeded staff walks;
 * :mod:`.trajectories` — Diana 7 single-joint arcs (minimum jerk) on the shared kinematic model;
+* :mod:`.omc_lens` — OMC: the lens residual of an incomplete calibration, common to all cameras;
 * :mod:`.omc_model` — OMC: per-marker visibility, noisy projection, triangulation with miscalibrated
-  extrinsics, Kabsch rigid-body fit;
+  extrinsics (and the lens residual), Kabsch rigid-body fit;
 * :mod:`.ots_model` — NDI Vega: stereo pair with frustum, line of sight, ~0.1 mm noise, MISSING outside;
 * :mod:`.scene` — cameras (shared layout), marker bodies, obstacles, staff, arm placement, true transforms;
 * :mod:`.run` — :func:`simulate`: a planned arc measured in a scene, a :class:`SimRun` of arrays (see its
