@@ -138,6 +138,7 @@ def test_live_final_estimates_equal_the_offline_result_on_a_committed_bag(procs,
                             "--playback-duration", str(PLAY_S), "--wait-for-subscribers", "60"], name="play")
         wait_for(lambda: play.poll() is not None, 60 + PLAY_S * 10, what="the bag to be played")
         assert play.returncode == 0, procs.log(play)
+        wait_for(lambda: out.counts()[1] >= len(offline), 120, what=f"{len(offline)} final estimates")
         wait_for(_settled(out), 60, interval=2.0, what="the outputs to settle")
         assert node.poll() is None, procs.log(node)
     finally:
@@ -145,7 +146,8 @@ def test_live_final_estimates_equal_the_offline_result_on_a_committed_bag(procs,
     live = [t for t, _ in out.pose]
     assert live == sorted(set(live)), "live stamps strictly increase"
     want = [(o.t_ns, o.p) for o in offline]
-    assert [t for t, _ in out.final] == [t for t, _ in want]
+    got = [t for t, _ in out.final]
+    assert got == [t for t, _ in want], (len(got), len(want), out.diag[-1] if out.diag else None)
     err = max(float(np.max(np.abs(a[1] - b[1]))) for a, b in zip(out.final, want, strict=True))
     assert err < 1e-9, f"final estimates differ from the offline ones by up to {err} m"
     assert len(live) >= len(want), "every item was published live when it arrived"

@@ -26,12 +26,19 @@ How (every rule is the synchronizer's, :class:`~synchronizer.ApproxSync`, so pai
   link estimate finished mid-stream gives the same estimates as ordered processing. ``reorder_delay`` has no
   other role here.
 * Counters that processing increments (``items``, ``waiting_for_links``, ...) are rolled back on a rewind, so a
-  replay does not count twice.
+  replay does not count twice. A TrackingQuality that arrives after its pose (``push_omc_quality``) replays the
+  item when the primary filter uses the measurement models (``fullperc``).
 
-Outputs. :meth:`poll` returns, in stamp order, the outputs of every item (re)processed since the last poll whose
-stamp is newer than the last one returned: the live estimate, one per filter per new item, stamps strictly
-increasing (what fusion_node publishes on pose, pose_cov, status and /tf). A correction of an item already
-returned is not returned again; it is part of the next item's estimate. :meth:`take_final` returns the outputs of
+Filters. Only the primary filter (``filters[0]``) is fused on arrival and replayed. The side-by-side filters (the
+others, for comparison) are fused when an item leaves the history, in stamp order like ordered processing -- no
+replay, so they cost what they cost in ordered processing (replaying every filter would nearly double the node's
+CPU with the paper's four beside the primary) -- and their outputs are final, ``history`` behind.
+
+Outputs. :meth:`poll` returns, in stamp order, the primary filter's outputs of every item (re)processed since the
+last poll whose stamp is newer than the last one returned: the live estimate, stamps strictly increasing (what
+fusion_node publishes on pose, pose_cov, status and /tf); then the side-by-side filters' outputs of the items that
+left the history meanwhile. A correction of an item already returned is not returned again; it is part of the
+next item's estimate. :meth:`take_final` returns the outputs of
 the items that left the history: these equal ordered processing of the same samples (test_arrival.py) whenever
 every sample arrived within ``history`` -- the offline evaluator's result (evaluation/replay.py runs the ordered
 pipeline). :meth:`flush` (end of data, idle) ends the history: everything in it becomes final.
@@ -97,6 +104,13 @@ class ArrivalPipeline(TargetPipeline):
         self._sig = _links_signature(self.chain.links)
         self._new_view()
         self._resolve_ns = 2 * config.slop_ns + config.delay_ns
+        # lanes: the primary filter (filters[0]) is fused on arrival; the side-by-side ones when an item leaves the
+        # history (module docstring); self.filters is the live lane, _process_item runs whichever is set there
+        names = list(self.filters)
+        self._lane_final = {n: self.filters[n] for n in names[1:]}
+        self.filters = {names[0]: self.filters[names[0]]}
+        self._lane_last: tuple[int | None, int | None] = (None, None)   # last_local_ns, last_global_ns of it
+        self._committed: list[FusedOutput] = []   # side-by-side outputs not yet returned by poll
 
     # ---- input ------------------------------------------------------------------------------------------------
     def push_omc(self, body: str, t_ns: int, pose, cov=None, now_ns: int | None = None, **kw) -> bool:
@@ -112,6 +126,21 @@ class ArrivalPipeline(TargetPipeline):
         if ok and tool == c.ots_base and tool != c.ots_target:
             self._after_link_sample(c.local_chain == "direct", t_ns)
         return ok
+
+    def push_omc_quality(self, body: str, t_ns: int, quality: dict) -> None:
+        """The quality of a sample already fused (it came after its pose): replay from its item, so the model
+        covariance it gives is used as in ordered processing (only when the live filter uses the models)."""
+        super().push_omc_quality(body, t_ns, quality)
+        f = next(iter(self.filters.values()))
+        if body != self.config.chain.omc_target or not getattr(f, "uses_models", False):
+            return
+        i = bisect.bisect_left(self._tes, int(t_ns) - self.config.slop_ns)
+        while i < len(self._entries) and self._tes[i] <= t_ns:
+            g = self._entries[i].item.glob
+            if g is not None and g.t_ns == t_ns:
+                self._replay_from(i)
+                return
+            i += 1
 
     def apply_calibration(self, cal, source: str) -> None:
         super().apply_calibration(cal, source)
@@ -170,7 +199,7 @@ class ArrivalPipeline(TargetPipeline):
         self._resolve_and_commit(everything=True)
         self.horizon_ns = self.newest_ns = self._published_ns = self._late_run = None
         self._last_committed = [None, None]
-        for f in self.filters.values():
+        for f in (*self.filters.values(), *self._lane_final.values()):
             f.reset()
 
     def _after_link_sample(self, lookup: bool, t: int) -> None:
@@ -266,6 +295,10 @@ class ArrivalPipeline(TargetPipeline):
         n = 0
         while n < len(self._entries) and (everything or self._entries[n].te < self.newest_ns - self.history_ns):
             e = self._entries[n]
+            if self._lane_final:
+                side = self._side_by_side(e)
+                e.outs = e.outs + side
+                self._committed.extend(side)
             self._final.extend(e.outs)
             self.horizon_ns = e.item.t_ns
             for s, x in ((GLOBAL, e.item.glob), (LOCAL, e.item.local)):
@@ -278,15 +311,37 @@ class ArrivalPipeline(TargetPipeline):
             del self._tes[:n]
             self._nres = max(0, self._nres - n)
 
+    def _side_by_side(self, e: _Entry) -> list[FusedOutput]:
+        """The side-by-side filters on a final item, in stamp order as ordered processing does (their own
+        last-sample stamps; counters and the live lane untouched)."""
+        live = self.filters, self.last_local_ns, self.last_global_ns, self._models
+        counts, problem = self.counts.copy(), (self.last_problem, dict(self.problems), self.last_problem_t_ns)
+        self.filters = self._lane_final
+        self.last_local_ns, self.last_global_ns = self._lane_last
+        self._models = any(getattr(f, "uses_models", False) for f in self._lane_final.values())
+        links = self.chain.links
+        if e.view is not None:
+            self.chain.links = e.view
+        try:
+            return self._process_item(e.item)
+        finally:
+            self.chain.links = links
+            self._lane_last = self.last_local_ns, self.last_global_ns
+            self.filters, self.last_local_ns, self.last_global_ns, self._models = live
+            self.counts = counts
+            self.last_problem, self.problems, self.last_problem_t_ns = problem
+
     # ---- output -----------------------------------------------------------------------------------------------
     def poll(self, now_ns: int | None = None) -> list[FusedOutput]:
         """The live outputs since the last poll (module docstring); ``now_ns`` is not needed (nothing waits)."""
         out: list[FusedOutput] = []
         for e in sorted((e for e in self._fresh if e.alive and e.outs), key=lambda e: e.item.t_ns):
             if self._published_ns is None or e.item.t_ns > self._published_ns:
-                out.extend(e.outs)
+                out.extend(o for o in e.outs if o.filter not in self._lane_final)
                 self._published_ns = e.item.t_ns
         self._fresh = []
+        out.extend(self._committed)
+        self._committed = []
         return out
 
     def flush(self) -> list[FusedOutput]:

@@ -8,9 +8,11 @@ Publishes:
   /fullperc/<target>/pose      PoseStamped, frame ``base``, stamp = acquisition stamp of the newest sample
   /fullperc/<target>/pose_cov  PoseWithCovarianceStamped (same stamp/frame)
   /fullperc/<target>/status    fullperc_msgs/FusionStatus
-  /fullperc/<target>/<filter>/pose and .../status  for every filter listed in ``filters`` (side by side)
+  /fullperc/<target>/<filter>/pose and .../status  for every filter listed in ``filters`` (side by side; with
+                               ``processing: arrival`` fused when an item leaves the history: final, ``history`` late)
   /fullperc/<target>/final     PoseStamped (``processing: arrival``, ``publish_final``): the primary filter's estimate
-                               of each item once it left the history -- final, equal to the offline evaluator's
+                               of each item once it left the history -- final, equal to the offline evaluator's;
+                               /fullperc/<target>/<filter>/final the same for every side-by-side filter
   /tf                          tf2_msgs/TFMessage ``base`` -> ``<target>`` per fused output of the primary filter
                                (stamp = fused stamp); with ``tf.enabled`` (default true)
   /tf_static                   (transient local) ``omc`` -> ``base`` (T_omc_base) and ``base`` -> ``ots``
@@ -140,7 +142,7 @@ class FusionNode(Node):
         self._diag = diag.Diagnostics(self, hardware_id="fullperc_fusion")
         self.pipes: dict[str, TargetPipeline] = {}
         self._pubs: dict[tuple[str, str], tuple] = {}
-        self._final_pubs: dict[str, object] = {}
+        self._final_pubs: dict[tuple[str, str], object] = {}   # (target, '' primary | side-by-side filter)
         self._loss: dict[tuple[str, str], SourceLoss] = {}   # (dev, target body): frames / samples never received
         self._loss_seen: dict[tuple[str, str], tuple[int, float]] = {}
         self._quality_subs: dict[tuple[str, str], object] = {}
@@ -171,7 +173,9 @@ class FusionNode(Node):
                 self.create_publisher(PoseWithCovarianceStamped, f"/fullperc/{t}/pose_cov", qos),
                 self.create_publisher(FusionStatus, f"/fullperc/{t}/status", qos))
             if vals["publish_final"] and isinstance(self.pipes[t], ArrivalPipeline):
-                self._final_pubs[t] = self.create_publisher(PoseStamped, f"/fullperc/{t}/final", qos)
+                for key in ("", *self._extra):
+                    self._final_pubs[(t, key)] = self.create_publisher(
+                        PoseStamped, f"/fullperc/{t}/{key + '/' if key else ''}final", qos)
             for dev, body in (("omc", c.omc_target), ("ots", c.ots_target)):
                 if (dev, body) not in self._loss:
                     self._loss[(dev, body)] = SourceLoss()
@@ -259,25 +263,23 @@ class FusionNode(Node):
                                                     "markers_used": float(m.markers_used)})
 
     def _publish_final(self, target: str) -> None:
-        """/fullperc/<target>/final: the primary filter's estimates of the items that left the history."""
+        """/fullperc/<target>[/<filter>]/final: the estimates of the items that left the history."""
         pipe = self.pipes[target]
         if not isinstance(pipe, ArrivalPipeline):
             return
         outs = pipe.take_final()
-        pub = self._final_pubs.get(target)
-        if pub is None:
+        if not self._final_pubs:
             return
         for o in outs:
-            if o.filter != self._primary:
-                continue
-            ps = PoseStamped()
-            ps.header.stamp = ns_to_stamp(o.t_ns)
-            ps.header.frame_id = "base"
-            try:
-                ps.pose = pose_msg(o.p, o.q)
-            except ValueError:
-                continue
-            pub.publish(ps)
+            for key in ([""] if o.filter == self._primary else []) + ([o.filter] if o.filter in self._extra else []):
+                ps = PoseStamped()
+                ps.header.stamp = ns_to_stamp(o.t_ns)
+                ps.header.frame_id = "base"
+                try:
+                    ps.pose = pose_msg(o.p, o.q)
+                except ValueError:
+                    continue
+                self._final_pubs[(target, key)].publish(ps)
 
     def _on_pose(self, dev: str, body: str, msg: PoseStamped) -> list[str]:
         """Push one pose into the pipelines of the targets it feeds; returns those targets."""

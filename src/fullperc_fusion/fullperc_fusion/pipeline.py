@@ -75,6 +75,7 @@ from .margin import margin_at
 from .measurement_models import local_covariance, omc_covariance, omc_systematic_var, rotate_cov
 from .synchronizer import GLOBAL, LOCAL, ApproxSync, SyncItem
 
+_QUALITY_KEEP_NS = 1_000_000_000   # OMC qualities older than this behind the fused sample are dropped
 FILTER_NAMES: tuple[str, ...] = tuple(FILTERS)   # ("cbkf", "ckf", "bkf", "kf", "omc"): filter_registry.FILTERS
 
 
@@ -391,8 +392,8 @@ class TargetPipeline:
         out = []
         if mg is not None:
             T_dev = item.glob.payload[0]
-            qual = self._omc_quality.pop(mg.t_ns, None) or {}
-            for k in [k for k in self._omc_quality if k < mg.t_ns]:
+            qual = self._omc_quality.get(mg.t_ns) or {}   # kept: arrival.py may fuse this item again (replay)
+            for k in [k for k in self._omc_quality if k < mg.t_ns - _QUALITY_KEEP_NS]:
                 del self._omc_quality[k]
             C = mg.cov
             if C is None:

@@ -253,3 +253,36 @@ def test_stamps_going_back_for_good_restart_the_timeline_instead_of_stalling():
     assert pipe.counts["timeline_restart"] == 1 and str(T0 + 3600 * S) in pipe.problems["timeline_restart"]
     assert out[-1][-1].t_ns == T0 + 39 * 10 * MS
     assert pipe.counts["filter_error"] == 0
+
+
+def test_fullperc_primary_with_quality_after_its_pose_equals_ordered():
+    """fullperc as the primary filter uses the OMC's TrackingQuality (by stamp); a quality that arrives after its
+    pose was fused replays the item, so the final estimates still equal ordered processing."""
+    events = stream(duration=2.0, local=(0.5, 1.5), omc_hz=240, ots_hz=400)
+    rng = np.random.default_rng(7)
+    feed = []
+    for ev in events:
+        feed.append(("pose", ev))
+        if ev[0] == "omc" and ev[1] == "tool":
+            feed.insert(len(feed) - int(rng.integers(0, 3)) if len(feed) > 3 else len(feed),   # before or after
+                        ("quality", ("tool", ev[2], {"fit_error": float(rng.uniform(1e-4, 5e-4)),
+                                                     "markers_used": 4.0})))
+    cfg = TargetConfig(filters=("fullperc", "cbkf"), chain=ChainConfig(static_links="average"))
+    results = []
+    for P in (TargetPipeline, ArrivalPipeline):
+        pipe = P(cfg)
+        outs = []
+        for kind, x in feed:
+            if kind == "pose":
+                _push(pipe, x)
+            else:
+                pipe.push_omc_quality(*x)
+            polled = pipe.poll()
+            outs += pipe.take_final() if P is ArrivalPipeline else polled
+        flushed = pipe.flush()
+        outs += pipe.take_final() if P is ArrivalPipeline else flushed
+        results.append(_by_key(outs))
+    do, da = results
+    assert len(do) > 500 and do.keys() == da.keys()
+    for k, o in do.items():
+        assert np.array_equal(o.p, da[k].p) and np.array_equal(o.cov, da[k].cov), k
