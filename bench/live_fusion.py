@@ -10,8 +10,9 @@ fused pose of its target is stamped in ``[s, s + slop]`` (a lone sample is publi
 approximate-time pair at the newer of its two stamps, at most ``slop`` later). The node's own drop counters from
 ``/diagnostics`` are returned beside it; a pose not received within 2.5 s after the last sample was published
 counts as lost (a node with a backlog of seconds does not serve the OR). The first second after the first fused
-pose is skipped (the static links are averaged from the first samples then). Every run uses LOCALHOST discovery
-and its own domain id.
+pose is skipped (the static links are averaged from the first samples then; every node runs with
+``init_samples:=20`` instead of 30 to shorten that, all else at the node's defaults unless a bench passes more).
+Every run uses LOCALHOST discovery and its own domain id.
 """
 
 from __future__ import annotations
