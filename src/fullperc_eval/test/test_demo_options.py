@@ -17,7 +17,7 @@ from fullperc_eval.graph.supervisor import load_graph
 from fullperc_fusion.fusion_config import default_fusion_config_path, read_params_file
 
 ROOT = Path(__file__).resolve().parents[3]
-VALUES = {"task": "B-G-P", "out": "/tmp/x", "omc_port": "1", "diana_port": "2", "vega_port": "3"}
+VALUES = {"task": "B-G-P", "out": "demo-out", "omc_port": "1", "diana_port": "2", "vega_port": "3"}
 
 
 def _cmds(values: dict[str, str]) -> dict[str, list[str]]:
