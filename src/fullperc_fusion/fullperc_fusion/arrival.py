@@ -109,6 +109,8 @@ class ArrivalPipeline(TargetPipeline):
         names = list(self.filters)
         self._lane_final = {n: self.filters[n] for n in names[1:]}
         self.filters = {names[0]: self.filters[names[0]]}
+        # model covariances (measurement_models) per lane: the live lane builds them only if its filter uses them
+        self._models_live = getattr(self.filters[names[0]], "uses_models", False)
         self._lane_last: tuple[int | None, int | None] = (None, None)   # last_local_ns, last_global_ns of it
         self._committed: list[FusedOutput] = []   # side-by-side outputs not yet returned by poll
 
@@ -270,13 +272,14 @@ class ArrivalPipeline(TargetPipeline):
             view = self._view
         e = _Entry(item, te, self._snap(), view=view)
         before = self.counts.copy()
-        links = self.chain.links
+        links, models = self.chain.links, self._models
         if view is not None and view is not self._view:
             self.chain.links = view           # the links ordered processing used for this item
+        self._models = self._models_live
         try:
             e.outs = self._process_item(item)
         finally:
-            self.chain.links = links
+            self.chain.links, self._models = links, models
         e.delta = self.counts - before
         self._entries.append(e)
         self._tes.append(te)
