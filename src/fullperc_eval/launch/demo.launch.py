@@ -28,10 +28,8 @@ RECORD_TOPICS = [
     "/fullperc/instrument/pose", "/fullperc/instrument/pose_cov", "/fullperc/instrument/status",
     "/fullperc/instrument/ckf/pose", "/fullperc/instrument/bkf/pose", "/fullperc/instrument/kf/pose",
     "/fullperc/instrument/omc/pose", "/fullperc/instrument/region",
-    # the estimates once final (fusion_node's processing on arrival; equal to the offline replay): evaluate --live
-    "/fullperc/tool/final", "/fullperc/tool/ckf/final", "/fullperc/tool/bkf/final", "/fullperc/tool/kf/final",
-    "/fullperc/tool/omc/final", "/fullperc/instrument/final", "/fullperc/instrument/ckf/final",
-    "/fullperc/instrument/bkf/final", "/fullperc/instrument/kf/final", "/fullperc/instrument/omc/final",
+    # the primary filter's estimates once final (fusion_node's processing on arrival): evaluate --live
+    "/fullperc/tool/final", "/fullperc/instrument/final",
 ]
 
 

@@ -11,8 +11,7 @@ Publishes:
   /fullperc/<target>/<filter>/pose and .../status  for every filter listed in ``filters`` (side by side; with
                                ``processing: arrival`` fused when an item leaves the history: final, ``history`` late)
   /fullperc/<target>/final     PoseStamped (``processing: arrival``, ``publish_final``): the primary filter's estimate
-                               of each item once it left the history -- final, equal to the offline evaluator's;
-                               /fullperc/<target>/<filter>/final the same for every side-by-side filter
+                               of each item once it left the history -- final, equal to the offline evaluator's
   /tf                          tf2_msgs/TFMessage ``base`` -> ``<target>`` per fused output of the primary filter
                                (stamp = fused stamp); with ``tf.enabled`` (default true)
   /tf_static                   (transient local) ``omc`` -> ``base`` (T_omc_base) and ``base`` -> ``ots``
@@ -142,7 +141,7 @@ class FusionNode(Node):
         self._diag = diag.Diagnostics(self, hardware_id="fullperc_fusion")
         self.pipes: dict[str, TargetPipeline] = {}
         self._pubs: dict[tuple[str, str], tuple] = {}
-        self._final_pubs: dict[tuple[str, str], object] = {}   # (target, '' primary | side-by-side filter)
+        self._final_pubs: dict[str, object] = {}
         self._loss: dict[tuple[str, str], SourceLoss] = {}   # (dev, target body): frames / samples never received
         self._loss_seen: dict[tuple[str, str], tuple[int, float]] = {}
         self._quality_subs: dict[tuple[str, str], object] = {}
@@ -173,9 +172,7 @@ class FusionNode(Node):
                 self.create_publisher(PoseWithCovarianceStamped, f"/fullperc/{t}/pose_cov", qos),
                 self.create_publisher(FusionStatus, f"/fullperc/{t}/status", qos))
             if vals["publish_final"] and isinstance(self.pipes[t], ArrivalPipeline):
-                for key in ("", *self._extra):
-                    self._final_pubs[(t, key)] = self.create_publisher(
-                        PoseStamped, f"/fullperc/{t}/{key + '/' if key else ''}final", qos)
+                self._final_pubs[t] = self.create_publisher(PoseStamped, f"/fullperc/{t}/final", qos)
             for dev, body in (("omc", c.omc_target), ("ots", c.ots_target)):
                 if (dev, body) not in self._loss:
                     self._loss[(dev, body)] = SourceLoss()
@@ -263,23 +260,26 @@ class FusionNode(Node):
                                                     "markers_used": float(m.markers_used)})
 
     def _publish_final(self, target: str) -> None:
-        """/fullperc/<target>[/<filter>]/final: the estimates of the items that left the history."""
+        """/fullperc/<target>/final: the primary filter's estimates of the items that left the history (the
+        side-by-side filters' own topics carry their final estimates already)."""
         pipe = self.pipes[target]
         if not isinstance(pipe, ArrivalPipeline):
             return
         outs = pipe.take_final()
-        if not self._final_pubs:
+        pub = self._final_pubs.get(target)
+        if pub is None:
             return
         for o in outs:
-            for key in ([""] if o.filter == self._primary else []) + ([o.filter] if o.filter in self._extra else []):
-                ps = PoseStamped()
-                ps.header.stamp = ns_to_stamp(o.t_ns)
-                ps.header.frame_id = "base"
-                try:
-                    ps.pose = pose_msg(o.p, o.q)
-                except ValueError:
-                    continue
-                self._final_pubs[(target, key)].publish(ps)
+            if o.filter != self._primary:
+                continue
+            ps = PoseStamped()
+            ps.header.stamp = ns_to_stamp(o.t_ns)
+            ps.header.frame_id = "base"
+            try:
+                ps.pose = pose_msg(o.p, o.q)
+            except ValueError:
+                continue
+            pub.publish(ps)
 
     def _on_pose(self, dev: str, body: str, msg: PoseStamped) -> list[str]:
         """Push one pose into the pipelines of the targets it feeds; returns those targets."""

@@ -232,10 +232,10 @@ def live_replay(bag: str | Path, target: str = "tool", primary: str = "cbkf", ba
 
     ``--live`` evaluates these instead of re-running the filters, so a recording of the live graph can be
     compared with the offline replay of its own raw measurements (the demo and the system test do).
-    Method ``f`` is read from ``/fullperc/<target>/<f>/final`` when recorded (processing on arrival: the
-    estimates once final, equal to the offline replay), else ``/fullperc/<target>/<f>/pose``; the primary filter
-    also from ``/fullperc/<target>/final`` / ``pose``. Sources, hop flags and biases are not in the pose topics
-    (zeros here).
+    Method ``f`` is read from ``/fullperc/<target>/<f>/pose`` (with fusion_node's processing on arrival the
+    side-by-side filters publish final estimates there); the primary filter also from ``/fullperc/<target>/final``
+    when recorded (arrival: its estimates once final, equal to the offline replay), else ``/fullperc/<target>/pose``.
+    Sources, hop flags and biases are not in the pose topics (zeros here).
     """
     t_start = time.perf_counter()
     try:
@@ -243,12 +243,10 @@ def live_replay(bag: str | Path, target: str = "tool", primary: str = "cbkf", ba
     except BagError as e:
         raise EvaluationError(str(e)) from None
 
-    def pick(prefix: str) -> str:   # the final estimates when recorded, else the live ones
-        return f"{prefix}/final" if f"{prefix}/final" in reader.topics else f"{prefix}/pose"
-
-    topics = {pick(f"/fullperc/{target}/{f}"): f for f in METHODS}
-    if pick(f"/fullperc/{target}/{primary}") not in reader.topics:
-        topics[pick(f"/fullperc/{target}")] = primary
+    topics = {f"/fullperc/{target}/{f}/pose": f for f in METHODS}
+    if f"/fullperc/{target}/{primary}/pose" not in reader.topics:
+        final = f"/fullperc/{target}/final"
+        topics[final if final in reader.topics else f"/fullperc/{target}/pose"] = primary
     present = [t for t in (*topics, JOINT_TOPIC, f"/omc/{base_body}/pose") if t in reader.topics]
     if not any(t in reader.topics for t in topics):
         raise EvaluationError(f"bag {str(reader.path)!r} holds no fused poses /fullperc/{target}/.../pose "
