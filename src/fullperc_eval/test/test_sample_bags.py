@@ -26,8 +26,9 @@ from fullperc_eval.sim.scene import PROFILES
 
 BAGS = workspace_root() / "bags"
 REL = 1e-9          # same machine: bit-identical; other CPUs/BLAS: last-digit differences at most
-# Two profiles x six bags of ~1.6 MB: 24 MB would allow it; the limit is the old 12 MB per profile set, doubled.
-MAX_TOTAL_BYTES = 24_000_000
+# Two profiles x six bags of ~2.1 MB (~1.5 MB of the arm-held tool, ~0.6 MB of the hand-held instrument, issue 17):
+# 25.7 MB; the limit leaves ~10 % for growth and fails on anything like a doubling.
+MAX_TOTAL_BYTES = 28_000_000
 
 
 def _stored(profile: str) -> dict[str, dict]:
