@@ -271,7 +271,7 @@ class ArrivalPipeline(TargetPipeline):
         if view is None and te + self._resolve_ns <= self.newest_ns:
             view = self._view
         e = _Entry(item, te, self._snap(), view=view)
-        before = self.counts.copy()
+        before = dict(self.counts)   # a dict copy: Counter.copy / Counter - Counter were ~5 % of the input path
         links, models = self.chain.links, self._models
         if view is not None and view is not self._view:
             self.chain.links = view           # the links ordered processing used for this item
@@ -280,7 +280,7 @@ class ArrivalPipeline(TargetPipeline):
             e.outs = self._process_item(item)
         finally:
             self.chain.links, self._models = links, models
-        e.delta = self.counts - before
+        e.delta = Counter({k: v - before.get(k, 0) for k, v in self.counts.items() if v > before.get(k, 0)})
         self._entries.append(e)
         self._tes.append(te)
         self._fresh.append(e)

@@ -416,7 +416,7 @@ class _Recent:
     def nearest(self, t_ns: int, max_age_ns: int) -> np.ndarray | None:
         if not self.t:
             return None
-        ts = list(self.t)
+        ts = self.t   # bisect on the deque itself: copying 256 stamps to a list per lookup cost more than the rest
         i = bisect.bisect_left(ts, t_ns)
         best = None
         for j in (i - 1, i):
@@ -441,6 +441,16 @@ class FrameChain:
         self._rig = _Recent()
         self._ots_base = _Recent()
         self.why_not = ""
+        self._inv_src: np.ndarray | None = None   # the T_omc_base whose inverse is cached (kept: no id reuse)
+        self._inv: np.ndarray | None = None
+
+    def _inv_omc_base(self, T_omc_base: np.ndarray) -> np.ndarray:
+        """inv(T_omc_base), computed once per link estimate instead of once per sample (issue 16: per-sample
+        cost). Links are replaced, never modified in place (StaticLinks sets new arrays; arrival.py's link views
+        rely on the same), so the identity of the array names its value."""
+        if T_omc_base is not self._inv_src:
+            self._inv_src, self._inv = T_omc_base, inv_T(T_omc_base)
+        return self._inv
 
     def reinitialize(self, mode: str | None = None) -> None:
         """Re-estimate the static links (``mode``: average | calibrate, default the configured one)."""
@@ -463,7 +473,7 @@ class FrameChain:
         if self.links.T_omc_base is None:
             self.why_not = "global link T_omc_base not initialised yet"
             return None
-        return inv_T(self.links.T_omc_base) @ T_omc_tool
+        return self._inv_omc_base(self.links.T_omc_base) @ T_omc_tool
 
     def local_T(self, t_ns: int, T_ots_tool: np.ndarray) -> tuple[np.ndarray | None, str]:
         """Local measurement in base and the equation used ('eq1', 'eq2', 'static'), or (None, '')."""
@@ -481,7 +491,7 @@ class FrameChain:
             if T_omc_rig is None:
                 self.why_not = f"no OMC pose of '{self.cfg.omc_rig}' within {self.cfg.rig_max_age_ns / 1e6:g} ms"
                 return None, ""
-            return inv_T(L.T_omc_base) @ T_omc_rig @ L.T_rig_ots @ T_ots_tool, "eq1"
+            return self._inv_omc_base(L.T_omc_base) @ T_omc_rig @ L.T_rig_ots @ T_ots_tool, "eq1"
         if L.T_base_ots is None:
             self.why_not = "local link T_base_ots not initialised yet"
             return None, ""

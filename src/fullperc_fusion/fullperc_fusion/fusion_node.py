@@ -91,7 +91,7 @@ from fullperc_common import diagnostics as diag
 from fullperc_common.drain import take_queued
 from fullperc_common.node_main import run_node
 from fullperc_common.params import ParameterError, declare
-from fullperc_common.ros_conv import ns_to_stamp, pose_msg, pose_to_pq, stamp_to_ns, vector3
+from fullperc_common.ros_conv import ns_to_stamp, pose_msg, pose_to_pq, stamp_to_ns
 from fullperc_common.tf import Broadcaster, StaticBroadcaster, transform_stamped
 from fullperc_msgs.msg import FusionStatus, Region, TrackingQuality
 
@@ -102,6 +102,7 @@ from .calibration_run import CalibrationRun, summary
 from .frame_chain import links_needed, pose_to_T
 from .fusion_config import calibration_settings, health_params, primary_and_extra, read_values, spec, target_config
 from .fusion_health import GLOBAL, LOCAL, InputLoad, SourceLoss, TargetHealth
+from .fusion_publish import OutputPublisher, publish_outputs
 from .pipeline import FusedOutput, TargetPipeline
 
 # Diagnostics.set takes an int level (the diagnostic_msgs constants are bytes in rclpy).
@@ -186,6 +187,7 @@ class FusionNode(Node):
                                      lambda m, t=t: self._region.__setitem__(t, int(m.label)), 10)
             self._last_rx[t] = {"omc": None, "ots": None}
             self._problem_seen[t] = {}
+        self._out_sets = {k: OutputPublisher(*v, always_pose=k[1] == "") for k, v in self._pubs.items()}
         self._targets_of_omc = {b: list(dict.fromkeys(ts)) for b, ts in routes_omc.items()}
         self._targets_of_ots = {b: list(dict.fromkeys(ts)) for b, ts in routes_ots.items()}
         self._input_subs: list[tuple[str, str, object]] = []
@@ -444,50 +446,17 @@ class FusionNode(Node):
     def _publish(self, target: str, outs: list[FusedOutput]) -> None:
         self._send_static()
         now = time.monotonic()
-        tfs = []
         pipe, h = self.pipes[target], self.health[target]
         skipped = pipe.counts["local_skipped"]
         if skipped > self._skipped_seen[target]:     # local samples the chain could not map: rejected too
             h.rejected(LOCAL, now, pipe.problems.get("local_skipped", ""), skipped - self._skipped_seen[target])
             self._skipped_seen[target] = skipped
-        for o in outs:
-            if o.filter == self._primary:
-                h.output(now, o.sources, o.hop, o.bias)
-            keys = ([""] if o.filter == self._primary else []) + ([o.filter] if o.filter in self._extra else [])
-            for key in keys:
-                pose_pub, cov_pub, status_pub = self._pubs[(target, key)]
-                try:
-                    pose = pose_msg(o.p, o.q)
-                except ValueError as e:   # never publish NaN; the pipeline should have caught it already
-                    self.pipes[target]._problem("publish_error", f"{o.filter}: {e}", o.t_ns)
-                    continue
-                ps = PoseStamped()
-                ps.header.stamp = ns_to_stamp(o.t_ns)
-                ps.header.frame_id = "base"
-                ps.pose = pose
-                pose_pub.publish(ps)
-                if key == "" and self._tf is not None:
-                    tfs.append(transform_stamped(o.t_ns, "base", target, p=o.p, q_xyzw=o.q))
-                if cov_pub is not None:
-                    pc = PoseWithCovarianceStamped()
-                    pc.header = ps.header
-                    pc.pose.pose = pose
-                    pc.pose.covariance = [float(x) for x in o.cov.reshape(-1)]
-                    cov_pub.publish(pc)
-                st = FusionStatus()
-                st.header = ps.header
-                st.target = target
-                st.filter = o.filter
-                st.sources = int(o.sources)
-                st.orientation_source = int(o.orientation_source)
-                st.bias = vector3(o.bias)
-                st.innovation = vector3(o.innovation)
-                st.nis = float(o.nis)
-                st.hop = bool(o.hop)
-                st.time_since_local = float(o.time_since_local)
-                st.region = self._region.get(target, 0)
-                st.link_bumped = bool(o.link_bumped)
-                status_pub.publish(st)
+        tfs = publish_outputs(
+            self._out_sets, target, outs, self._primary, self._extra, self._region.get(target, 0),
+            on_primary=lambda o: h.output(now, o.sources, o.hop, o.bias),
+            on_error=lambda o, why: pipe._problem("publish_error", f"{o.filter}: {why}", o.t_ns),
+            tf_of=None if self._tf is None else
+            lambda o: transform_stamped(o.t_ns, "base", target, p=o.p, q_xyzw=o.q))
         if tfs:
             self._tf.send(tfs)
 

@@ -362,7 +362,8 @@ class TargetPipeline:
                 cov[0:3, 0:3] = st.pos_cov
                 cov[3:6, 3:6] = np.eye(3) * ostd**2 if mq.cov is None else mq.cov[3:6, 3:6]
                 q = mq.q
-            if not (np.all(np.isfinite(st.p)) and np.all(np.isfinite(cov)) and np.all(np.isfinite(q))):
+            # ndarray.all(): the same test as np.all without its Python dispatch layer (~1 us each, per output)
+            if not (np.isfinite(st.p).all() and np.isfinite(cov).all() and np.isfinite(q).all()):
                 f.reset()
                 self._problem("nonfinite_output", f"filter {name}: non-finite estimate; filter reset", st.t_ns)
                 continue

@@ -162,3 +162,41 @@ def test_invalid_chain_config_is_named():
         ChainConfig(local_chain="magic")
     with pytest.raises(ValueError, match="init_samples"):
         ChainConfig(init_samples=0)
+
+
+def test_pose_to_T_equals_scipy_and_keeps_the_unit_threshold():
+    """The float fast path of pose_to_T (issue 16) against scipy; the 1e-2 unit-norm threshold unchanged."""
+    from scipy.spatial.transform import Rotation
+    rng = np.random.default_rng(20)
+    for _ in range(2000):
+        q = rng.normal(size=4)
+        q *= (1.0 + rng.uniform(-0.0099, 0.0099)) / np.linalg.norm(q)
+        if rng.uniform() < 0.5:
+            q[3] = -abs(q[3])
+        p = rng.normal(size=3)
+        T = pose_to_T((p, q))
+        ref = np.eye(4)
+        ref[:3, :3] = Rotation.from_quat(q / np.linalg.norm(q)).as_matrix()
+        ref[:3, 3] = p
+        assert np.max(np.abs(T - ref)) <= 1e-12
+    q = np.array([0.0, 0.0, np.sin(0.3), np.cos(0.3)])
+    pose_to_T(([0, 0, 0], q * 1.0099))
+    pose_to_T(([0, 0, 0], q * 0.9901))
+    for f in (1.0101, 0.9899):
+        with pytest.raises(BadSample, match="non-unit"):
+            pose_to_T(([0, 0, 0], q * f))
+    with pytest.raises(BadSample, match="non-finite"):
+        pose_to_T(([0, 0, 0], [0, 0, np.nan, 1.0]))
+    assert np.array_equal(pose_to_T(([1, 2, 3], (0, 0, 0, 1))),
+                          [[1, 0, 0, 1], [0, 1, 0, 2], [0, 0, 1, 3], [0, 0, 0, 1]])
+
+
+def test_cached_inverse_of_the_global_link_follows_a_replaced_link():
+    """global_T caches inv(T_omc_base) per link array (issue 16); a new link estimate must be used at once."""
+    ch = FrameChain(ChainConfig())
+    T = make_T([0.3, 0.1, 0.2], Rot.from_euler("xyz", [10, 20, 30], degrees=True).as_quat())
+    for k in range(3):
+        A = make_T([k, 0.5, -1.0], Rot.from_euler("z", 40 * k, degrees=True).as_quat())
+        ch.links.T_omc_base = A
+        assert np.array_equal(ch.global_T(T), inv_T(A) @ T)
+        assert np.array_equal(ch.global_T(T), inv_T(A) @ T)   # from the cache: the same bits
