@@ -339,9 +339,14 @@ class ArrivalPipeline(TargetPipeline):
         """The live outputs since the last poll (module docstring); ``now_ns`` is not needed (nothing waits)."""
         out: list[FusedOutput] = []
         for e in sorted((e for e in self._fresh if e.alive and e.outs), key=lambda e: e.item.t_ns):
-            if self._published_ns is None or e.item.t_ns > self._published_ns:
-                out.extend(o for o in e.outs if o.filter not in self._lane_final)
-                self._published_ns = e.item.t_ns
+            live = [o for o in e.outs if o.filter not in self._lane_final]
+            # gate on the outputs' own stamps, not the item's: a pair re-run when the partner of a published sample
+            # arrives has a newer item stamp, but if the chain cannot map the partner (links not known yet) its
+            # output is the estimate already published, with the same stamp -- it must not go out twice
+            t = max((o.t_ns for o in live), default=None)
+            if t is not None and (self._published_ns is None or t > self._published_ns):
+                out.extend(live)
+                self._published_ns = t
         self._fresh = []
         out.extend(self._committed)
         self._committed = []
