@@ -63,8 +63,9 @@ REPORT_SEEDS = parse_seeds(DEFAULT_SEEDS)   # what `make twin-report` uses by de
 
 @pytest.mark.parametrize("profile", PROFILES)
 def test_committed_profile_is_within_its_raw_sensor_targets(profile):
-    """Every target is met on seeds 0-1 except the profile's declared ``known_misses`` (measured, in the README);
-    a known miss that is met now must be removed from the list (it would hide a regression)."""
+    """Every target is met on seeds 0-1 except the profile's declared ``known_misses`` (each measured and explained
+    in the profile file; none today); a known miss that is met now must be removed from the list (it would hide a
+    regression)."""
     known = set(load_profile(profile).get("known_misses") or ())
     assert known <= set(load_profile(profile)["targets"])
     rep = report(profile, REPORT_SEEDS)
