@@ -20,19 +20,11 @@ import rclpy
 from geometry_msgs.msg import PoseStamped
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
+from fullperc_common.ros_conv import ns_to_stamp, pose_stamped
 from fullperc_msgs.msg import TrackingQuality
 
 T_OMC_BASE = (np.array([1.0, 0.5, 0.8]), np.array([0.0, 0.0, 0.0, 1.0]))
 T_OTS_BASE = (np.array([0.1, -0.2, -1.5]), np.array([0.0, 0.0, 0.0, 1.0]))
-
-
-def _pose(stamp_ns: int, frame: str, p, q) -> PoseStamped:
-    m = PoseStamped()
-    m.header.stamp.sec, m.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
-    m.header.frame_id = frame
-    m.pose.position.x, m.pose.position.y, m.pose.position.z = (float(v) for v in p)
-    m.pose.orientation.x, m.pose.orientation.y, m.pose.orientation.z, m.pose.orientation.w = (float(v) for v in q)
-    return m
 
 
 def main() -> int:
@@ -77,10 +69,10 @@ def main() -> int:
             p_base = np.array([0.4 + 0.05 * np.sin(ph), 0.1 * np.cos(ph), 0.3])  # tool in base, slowly moving
             base = T_OMC_BASE if dev == "omc" else T_OTS_BASE
             if k % a.base_every == 0:
-                pubs[(dev, "base")].publish(_pose(stamp, dev, *base))
-            pubs[(dev, "tool")].publish(_pose(stamp, dev, base[0] + p_base, base[1]))
+                pubs[(dev, "base")].publish(pose_stamped(stamp, dev, *base))
+            pubs[(dev, "tool")].publish(pose_stamped(stamp, dev, base[0] + p_base, base[1]))
             q = TrackingQuality()
-            q.header.stamp = _pose(stamp, dev, base[0], base[1]).header.stamp
+            q.header.stamp = ns_to_stamp(stamp)
             q.header.frame_id = dev
             q.body, q.visible, q.frame_number, q.fit_error = "tool", True, k, -1.0
             qpubs[dev].publish(q)
