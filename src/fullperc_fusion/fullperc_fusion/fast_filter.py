@@ -44,7 +44,7 @@ import math
 
 import numpy as np
 
-from .filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement, Step, StepCompat, split_update
+from .filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement, Step, StepCompat, predict_interval, split_update
 from .filters import FILTER_KINDS, FilterParams, FusionFilter
 
 __all__ = ["AxisStep", "ClosedFormFilter", "separable_cov"]
@@ -226,16 +226,9 @@ class ClosedFormFilter(StepCompat):
             finally:
                 self.t_ns, self._pending_ns = self._ref.t_ns, self._ref._pending_ns
             return
-        t = int(t_ns)
-        now = self.time_ns
-        if now is None:
-            self._pending_ns = t
-            return
-        if t < now:
-            raise ValueError(f"time went backwards by {(now - t) * 1e-9:.6f} s (filter at {now}, sample at {t})")
-        dt = (t - self.t_ns) * 1e-9
         pr = self.params
-        if self._pending_ns is not None or dt > pr.max_gap_s:
+        t, dt = predict_interval(t_ns, self.t_ns, self._pending_ns, pr.max_gap_s)
+        if dt is None:
             self._pending_ns = t
             return
         qa = pr.accel_noise

@@ -64,6 +64,27 @@ def check_covariance(cov) -> np.ndarray:
     return C
 
 
+def predict_interval(t_ns: int, state_ns: int | None, pending_ns: int | None,
+                     max_gap_s: float) -> tuple[int, float | None]:
+    """``(t, dt)`` of ``predict(t_ns)``, the time rule every filter shares (:class:`Filter`).
+
+    ``dt`` [s] from the state's stamp ``state_ns`` to ``t``, or None when there is nothing to predict from -- no
+    state yet, a (re-)initialisation pending at ``pending_ns``, or a gap longer than ``max_gap_s`` -- and the
+    caller records ``t`` as its pending stamp. ValueError when ``t`` is before the filter's time (the pending stamp
+    if there is one, else the state's).
+    """
+    t = int(t_ns)
+    now = pending_ns if pending_ns is not None else state_ns
+    if now is None:
+        return t, None
+    if t < now:
+        raise ValueError(f"time went backwards by {(now - t) * 1e-9:.6f} s (filter at {now}, sample at {t})")
+    if pending_ns is not None:
+        return t, None
+    dt = (t - state_ns) * 1e-9
+    return t, (None if dt > max_gap_s else dt)
+
+
 @dataclass
 class Step:
     """Result of one filter update (one synchronizer item), in ``base``, SI units."""

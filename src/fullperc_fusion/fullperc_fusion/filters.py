@@ -75,7 +75,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement, Step, StepCompat, split_update
+from .filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement, Step, StepCompat, predict_interval, split_update
 
 __all__ = ["FILTER_KINDS", "SOURCE_GLOBAL", "SOURCE_LOCAL", "FilterParams", "FusionFilter", "PassThrough", "Step",
            "biased_factors", "kalman_update", "measurement_matrix", "process_noise", "transition"]
@@ -263,15 +263,8 @@ class FusionFilter(StepCompat):
 
     def predict(self, t_ns: int) -> None:
         """Eq. (9)-(10): x' = F x, P' = F P F^T + Q with dt from the state's stamp to ``t_ns``."""
-        t = int(t_ns)
-        now = self.time_ns
-        if now is None:
-            self._pending_ns = t
-            return
-        if t < now:
-            raise ValueError(f"time went backwards by {(now - t) * 1e-9:.6f} s (filter at {now}, sample at {t})")
-        dt = (t - self.t_ns) * 1e-9
-        if self._pending_ns is not None or dt > self.params.max_gap_s:
+        t, dt = predict_interval(t_ns, self.t_ns, self._pending_ns, self.params.max_gap_s)
+        if dt is None:
             self._pending_ns = t
             return
         pr = self.params

@@ -58,7 +58,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement, Step, StepCompat, split_update
+from .filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement, Step, StepCompat, predict_interval, split_update
 from .filters import FilterParams
 
 __all__ = ["FullpercFilter", "FullpercParams", "so3_exp", "so3_log", "quat_to_R", "R_to_quat"]
@@ -262,16 +262,9 @@ class FullpercFilter(StepCompat):
     # ---- predict --------------------------------------------------------------------------------
     def predict(self, t_ns: int) -> None:
         """Move the state to ``t_ns`` (constant velocity and angular velocity; module docstring)."""
-        t = int(t_ns)
         s = self.s
-        now = self.time_ns
-        if now is None:
-            s.pending_ns = t
-            return
-        if t < now:
-            raise ValueError(f"time went backwards by {(now - t) * 1e-9:.6f} s (filter at {now}, sample at {t})")
-        dt = (t - s.t_ns) * 1e-9
-        if s.pending_ns is not None or dt > self.params.max_gap_s:
+        t, dt = predict_interval(t_ns, s.t_ns, s.pending_ns, self.params.max_gap_s)
+        if dt is None:
             s.pending_ns = t
             return
         if dt == 0.0:
