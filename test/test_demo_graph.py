@@ -252,7 +252,36 @@ def test_the_bag_tf_has_base_to_each_target_in_rosbags_jazzy_types(demo):
             for tf in ts.deserialize_cdr(raw, "tf2_msgs/msg/TFMessage").transforms:
                 edges[conn.topic].add((tf.header.frame_id, tf.child_frame_id))
     assert {("base", "tool"), ("base", INSTRUMENT)} <= edges["/tf"], edges["/tf"]
-    assert {("omc", "base"), ("base", "ots")} <= edges["/tf_static"], edges["/tf_static"]
+    assert {("omc", "base"), ("base", "ots"), ("base", "diana_base")} <= edges["/tf_static"], edges["/tf_static"]
+    assert ("diana_base", "diana_link1") in edges["/tf"], "diana_state's arm tree hangs under diana_base"
+
+
+def test_the_arm_hangs_under_base_with_the_simulators_transform(demo):
+    """fusion_node's base -> diana_base (from the demo's sim_diana_base, computed before the graph starts) is the
+    transform the simulator itself wrote to calibration.yaml after the run: in RViz the arm's link tree and the fused
+    targets share one tree."""
+    from rosbags.rosbag2 import Reader
+    from rosbags.typesys import Stores, get_typestore
+    from scipy.spatial.transform import Rotation
+
+    from fullperc_eval.bag.calibration import load_calibration
+
+    _, run_dir = demo
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    got = []
+    with Reader(run_dir / "bag") as r:
+        conns = [c for c in r.connections if c.topic == "/tf_static"]
+        for _conn, _t, raw in r.messages(connections=conns):
+            got += [tf.transform for tf in ts.deserialize_cdr(raw, "tf2_msgs/msg/TFMessage").transforms
+                    if (tf.header.frame_id, tf.child_frame_id) == ("base", "diana_base")]
+    assert got
+    T = load_calibration(run_dir / "calibration.yaml").T_base_diana_base
+    for tr in got:
+        p = np.array([tr.translation.x, tr.translation.y, tr.translation.z])
+        q = np.array([tr.rotation.x, tr.rotation.y, tr.rotation.z, tr.rotation.w])
+        assert np.allclose(p, T[:3, 3], atol=1e-9)
+        R = Rotation.from_quat(q).as_matrix()
+        assert np.allclose(R, T[:3, :3], atol=1e-9)
 
 
 def test_the_instrument_is_labelled_and_evaluated(demo):

@@ -8,6 +8,9 @@ simulator finishes, the whole launch shuts down; evaluate
 the bag with `ros2 run fullperc_eval evaluate <out>/bag --calibration <out>/calibration.yaml` (the hand-held
 `instrument` needs its truth: merge <out>/truth into the bag with fullperc_eval.sim.dataset.merge_bag, then
 `--target instrument`).
+Unlike `make demo`, the launch file does not give fusion_node `tf.diana_base` (the arm's base in `base`, from the
+simulator's task plan): add `-p tf.diana_base:=[...]` from `python -c "from fullperc_eval.graph.demo import
+sim_diana_base; print(sim_diana_base('P-B-G-P', 0, 'paper'))"` to hang the arm's tree under `base` in RViz.
 """
 
 from launch import LaunchDescription

@@ -9,15 +9,17 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import yaml
 
 from fullperc_eval.graph.cli import main as supervisor_main
-from fullperc_eval.graph.demo import fusion_params_with, graph_path
+from fullperc_eval.graph.demo import fusion_params_with, graph_path, sim_diana_base
 from fullperc_eval.graph.supervisor import load_graph
 from fullperc_fusion.fusion_config import default_fusion_config_path, read_params_file
 
 ROOT = Path(__file__).resolve().parents[3]
-VALUES = {"task": "B-G-P", "out": "demo-out", "omc_port": "1", "diana_port": "2", "vega_port": "3"}
+VALUES = {"task": "B-G-P", "out": "demo-out", "omc_port": "1", "diana_port": "2", "vega_port": "3",
+          "diana_base": "[0.1, 0.2, 0.3, 0.0, 0.0, 0.0, 1.0]"}
 
 
 def _cmds(values: dict[str, str]) -> dict[str, list[str]]:
@@ -35,6 +37,25 @@ def test_profile_and_calibration_reach_the_simulator_and_fusion_node():
     assert cmds["sim"][cmds["sim"].index("--profile") + 1] == "paper"
     assert "calibration_file:=''" in cmds["fusion"]
     assert cmds["sim"][cmds["sim"].index("--vega-bump") + 1] == ""
+    assert "tf.diana_base:=[0.1, 0.2, 0.3, 0.0, 0.0, 0.0, 1.0]" in cmds["fusion"]
+
+
+def test_the_arm_base_given_to_fusion_node_is_the_simulators():
+    """run_demo fills ``diana_base`` from :func:`sim_diana_base`: the simulator's T_base_diana_base of the task plan
+    (the same transform ``sim --calibration-out`` writes; the live demo test compares it with that file)."""
+    from fullperc_common.transforms import inv_T, make_T
+    from fullperc_eval.sim.dataset import sim_calibration
+    from fullperc_eval.sim.run import simulate
+    from fullperc_eval.sim.scene import build_scene
+    from fullperc_eval.sim.tasks import plan_task
+
+    v = sim_diana_base("P-G-B", 2, "spec")
+    scene = build_scene(2, profile="spec")
+    plan = plan_task("P-G-B", scene)
+    run = simulate(scene.with_diana_base(plan.T_omc_diana_base), plan.arc, task="P-G-B")
+    want = sim_calibration(run).T_base_diana_base
+    assert np.allclose(make_T(v[:3], v[3:]), want, atol=1e-12)
+    assert not np.allclose(want, inv_T(scene.T_omc_base), atol=1e-3)   # not the identity of the arm in omc
 
 
 def test_offline_evaluation_uses_the_same_calibration(tmp_path):

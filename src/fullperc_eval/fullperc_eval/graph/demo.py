@@ -21,6 +21,11 @@ robot, with the simulator's truth, which the simulator writes to ``<out>/truth``
 loads instead of calibrating itself, and that the offline evaluation uses too, so offline and live stay comparable
 (``make demo CALIBRATION=or1.yaml``).
 
+``fusion_node`` also gets ``tf.diana_base``, the arm's base in ``base``, so that in RViz the Diana's link tree
+(``diana_state``'s /tf, rooted at ``diana_base``) hangs under ``base`` with the fused targets. In a real OR that
+transform comes from a hand-eye calibration; here it is the simulator's own, computed before the graph starts
+from the same task plan the simulator makes (:func:`sim_diana_base`; deterministic in task, seed and profile).
+
 Only a bag of a task that ran to its end is evaluated: after Ctrl-C (or when a process failed) the bag holds part
 of the task, and MAE figures of a part would look like the task's. The demo then says so, names the bag and the
 command that evaluates it anyway, and exits non-zero (130 after Ctrl-C).
@@ -37,6 +42,7 @@ from pathlib import Path
 
 import yaml
 
+from fullperc_common.transforms import T_to_pq, inv_T
 from fullperc_eval.bag.errors import BagError
 from fullperc_eval.bag.reader import BagReader
 from fullperc_eval.evaluation.config import EvaluationError
@@ -44,6 +50,8 @@ from fullperc_eval.evaluation.metrics import evaluate_bag
 from fullperc_eval.evaluation.report import write_report
 from fullperc_eval.evaluation.tables import format_table1, format_table2, write_json
 from fullperc_eval.sim.dataset import TRUTH_PREFIX, merge_bag
+from fullperc_eval.sim.scene import build_scene
+from fullperc_eval.sim.tasks import TaskPlanningError, plan_task
 
 from .supervisor import execute_graph
 
@@ -74,6 +82,15 @@ def fusion_params_with(calibration: Path, out: Path) -> Path:
     return path
 
 
+def sim_diana_base(task: str, seed: str | int, profile: str) -> list[float]:
+    """T_base_diana_base [x y z qx qy qz qw] of the simulated run (task, seed, profile): the arm's base as the
+    simulator's task plan places it, relative to the base marker (what ``sim --calibration-out`` writes)."""
+    scene = build_scene(int(seed), profile=profile)
+    T = inv_T(scene.T_omc_base) @ plan_task(task, scene).T_omc_diana_base
+    p, q = T_to_pq(T)
+    return [float(v) for v in (*p, *q)]
+
+
 def run_demo(task: str, seed: str, out: Path, root: Path, speed: str = "1.0",
              extra: dict[str, str] | None = None, graph: Path | None = None, profile: str = "paper",
              calibration: Path | None = None) -> int:
@@ -92,7 +109,12 @@ def run_demo(task: str, seed: str, out: Path, root: Path, speed: str = "1.0",
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     values = {"task": task, "seed": str(seed), "out": str(out.resolve()), "speed": str(speed),
               "omc_port": str(_free_port(socket.SOCK_DGRAM)), "diana_port": str(_free_port(socket.SOCK_DGRAM)),
-              "vega_port": str(_free_port(socket.SOCK_STREAM)), "profile": profile, **extra}
+              "vega_port": str(_free_port(socket.SOCK_STREAM)), "profile": profile}
+    try:
+        values["diana_base"] = "[" + ", ".join(repr(v) for v in sim_diana_base(task, seed, profile)) + "]"
+    except (ValueError, KeyError, TaskPlanningError) as e:   # the simulator will say the same, in its own log
+        print(f"demo: no arm base for /tf_static: {e}", file=sys.stderr, flush=True)
+    values.update(extra)
     print(f"demo: task {task}, seed {seed}, profile {profile}, output {out}, "
           f"ROS_DOMAIN_ID={os.environ['ROS_DOMAIN_ID']}"
           + (f", static links from {calibration}" if calibration else ""), flush=True)
