@@ -43,6 +43,10 @@ the items that left the history: these equal ordered processing of the same samp
 every sample arrived within ``history`` -- the offline evaluator's result (evaluation/replay.py runs the ordered
 pipeline). :meth:`flush` (end of data, idle) ends the history: everything in it becomes final.
 
+Further local sources (:mod:`sources`): one more stream each, never paired (synchronizer.py); the re-pairing
+window, the duplicate / late rules and the link views cover their samples and chains the same way, so the final
+estimates equal ordered processing with them too (test_arrival.py).
+
 Cost: a snapshot is a few list copies per filter (fast_filter.ClosedFormFilter.snapshot); a rewind restores one
 and processes the replayed items again. Filters without ``snapshot`` / ``restore`` are copied with deepcopy.
 """
@@ -59,7 +63,6 @@ from .pipeline import FusedOutput, TargetConfig, TargetPipeline
 from .synchronizer import GLOBAL, LOCAL, ApproxSync, Sample, SyncItem
 
 PROCESSING_MODES = ("arrival", "ordered")
-_STREAM = ("global", "local")
 
 
 @dataclass
@@ -75,12 +78,25 @@ class _Entry:
     alive: bool = True                       # False once replaced by a rewind
 
 
-def _key(item: SyncItem) -> tuple[int | None, int | None]:
-    return (None if item.glob is None else item.glob.t_ns, None if item.local is None else item.local.t_ns)
+def _key(item: SyncItem) -> tuple[int | None, int | None, int]:
+    return (None if item.glob is None else item.glob.t_ns, None if item.local is None else item.local.t_ns,
+            item.source)
 
 
 def _links_signature(links) -> tuple:
     return (id(links.T_omc_base), id(links.T_base_ots), id(links.T_rig_ots), links.generation)
+
+
+def _stream(item: SyncItem) -> int:
+    """The synchronizer stream of the item's local sample: 1 + its local source index."""
+    return LOCAL + item.source
+
+
+def _copy_links(links):
+    v = copy.copy(links)
+    v.estimates = dict(links.estimates)
+    v.sources = dict(links.sources)
+    return v
 
 
 class ArrivalPipeline(TargetPipeline):
@@ -91,8 +107,9 @@ class ArrivalPipeline(TargetPipeline):
         self.history_ns = int(config.history_ns)
         self._entries: list[_Entry] = []
         self._tes: list[int] = []                 # entry.te, parallel to _entries (bisect)
-        self._stamps: tuple[set[int], set[int]] = (set(), set())   # target stamps in the history, per stream
-        self._last_committed: list[int | None] = [None, None]
+        self._names = self.sync.names              # stream names: global, local, further local sources
+        self._stamps: tuple[set[int], ...] = tuple(set() for _ in self._names)   # target stamps in the history
+        self._last_committed: list[int | None] = [None] * len(self._names)
         self.horizon_ns: int | None = None        # processing stamp of the last item that left the history
         self.newest_ns: int | None = None         # newest target stamp accepted
         self._fresh: list[_Entry] = []            # (re)processed since the last poll
@@ -101,7 +118,7 @@ class ArrivalPipeline(TargetPipeline):
         self._nres = 0                            # the first _nres entries are resolved (links fixed)
         self._late_run: int | None = None         # first stamp of a run of samples all behind the history
         self._view = None                         # snapshot of the current static links (shallow copy)
-        self._sig = _links_signature(self.chain.links)
+        self._sig = self._signature()
         self._new_view()
         self._resolve_ns = 2 * config.slop_ns + config.delay_ns
         # lanes: the primary filter (filters[0]) is fused on arrival; the side-by-side ones when an item leaves the
@@ -111,22 +128,35 @@ class ArrivalPipeline(TargetPipeline):
         self.filters = {names[0]: self.filters[names[0]]}
         # model covariances (measurement_models) per lane: the live lane builds them only if its filter uses them
         self._models_live = getattr(self.filters[names[0]], "uses_models", False)
-        self._lane_last: tuple[int | None, int | None] = (None, None)   # last_local_ns, last_global_ns of it
+        self._lane_last: tuple = (None, None, None)   # last_local_ns, last_global_ns, last_item_ns of it
         self._committed: list[FusedOutput] = []   # side-by-side outputs not yet returned by poll
 
     # ---- input ------------------------------------------------------------------------------------------------
+    def _chains(self) -> list:
+        return [self.chain, *self.extra_chains]
+
     def push_omc(self, body: str, t_ns: int, pose, cov=None, now_ns: int | None = None, **kw) -> bool:
         ok = super().push_omc(body, t_ns, pose, cov, now_ns=now_ns, **kw)
         c = self.config.chain
         if ok and body != c.omc_target:
-            self._after_link_sample(body == c.omc_rig and c.local_chain == "tracked", t_ns)
+            self._after_link_sample([k for k, ch in enumerate(self._chains())
+                                     if body == ch.cfg.omc_rig and ch.cfg.local_chain == "tracked"], t_ns)
         return ok
 
     def push_ots(self, tool: str, t_ns: int, pose, cov=None, now_ns: int | None = None, **kw) -> bool:
         ok = super().push_ots(tool, t_ns, pose, cov, now_ns=now_ns, **kw)
         c = self.config.chain
         if ok and tool == c.ots_base and tool != c.ots_target:
-            self._after_link_sample(c.local_chain == "direct", t_ns)
+            self._after_link_sample([0] if c.local_chain == "direct" else [], t_ns)
+        return ok
+
+    def push_local(self, k: int, tool: str, t_ns: int, pose, cov=None, now_ns: int | None = None) -> bool:
+        if k == 0:
+            return self.push_ots(tool, t_ns, pose, cov, now_ns)
+        ok = super().push_local(k, tool, t_ns, pose, cov, now_ns)
+        c = self.extra_chains[k - 1].cfg
+        if ok and tool == c.ots_base and tool != c.ots_target:
+            self._after_link_sample([k] if c.local_chain == "direct" else [], t_ns)
         return ok
 
     def push_omc_quality(self, body: str, t_ns: int, quality: dict) -> None:
@@ -146,12 +176,12 @@ class ArrivalPipeline(TargetPipeline):
 
     def apply_calibration(self, cal, source: str) -> None:
         super().apply_calibration(cal, source)
-        self._after_link_sample(False, 0)
+        self._after_link_sample([], 0)
 
     def _enqueue(self, stream: int, what: str, t: int, payload) -> bool:
         if t in self._stamps[stream] or self._last_committed[stream] == t:
             self._problem("duplicate", f"{what}: duplicate stamp {t} ns; dropped", t)
-            self.counts[f"{_STREAM[stream]}_duplicate"] += 1
+            self.counts[f"{self._names[stream]}_duplicate"] += 1
             return False
         if self.newest_ns is not None and t < self.newest_ns - self.history_ns:   # behind the history
             if self._late_run is None:
@@ -164,22 +194,22 @@ class ArrivalPipeline(TargetPipeline):
             self._problem("late", f"{what}: sample at {t} ns is older than the history ({self.history_ns * 1e-9:g} s): "
                                   f"{(self.newest_ns - t) * 1e-9:.3f} s behind the newest sample ({self.newest_ns} ns),"
                                   f" before the last item that left the history ({self.horizon_ns} ns); dropped", t)
-            self.counts[f"{_STREAM[stream]}_late"] += 1
+            self.counts[f"{self._names[stream]}_late"] += 1
             return False
         self._stamps[stream].add(t)
-        self.counts[f"{_STREAM[stream]}_in"] += 1
+        self.counts[f"{self._names[stream]}_in"] += 1
         if self.newest_ns is None or t > self.newest_ns:
             self.newest_ns = t
         k = bisect.bisect_left(self._tes, t - 2 * self.config.slop_ns)
         old = self._entries[k:]
-        glob = [e.item.glob for e in old if e.item.glob is not None]
-        local = [e.item.local for e in old if e.item.local is not None]
-        new = Sample(t, payload)
-        if stream == GLOBAL:
-            bisect.insort(glob, new, key=lambda s: s.t_ns)
-        else:
-            bisect.insort(local, new, key=lambda s: s.t_ns)
-        items = ApproxSync.pair(glob, local, self.config.slop_ns)
+        streams: list[list[Sample]] = [[] for _ in self._names]
+        for e in old:
+            if e.item.glob is not None:
+                streams[GLOBAL].append(e.item.glob)
+            if e.item.local is not None:
+                streams[_stream(e.item)].append(e.item.local)
+        bisect.insort(streams[stream], Sample(t, payload), key=lambda s: s.t_ns)
+        items = ApproxSync.pair(streams[GLOBAL], streams[LOCAL], self.config.slop_ns, streams[2:])
         j = 0
         while j < len(old) and j < len(items) and _key(old[j].item) == _key(items[j]):
             j += 1
@@ -200,25 +230,29 @@ class ArrivalPipeline(TargetPipeline):
                                           "history ended, filters restarted", t)
         self._resolve_and_commit(everything=True)
         self.horizon_ns = self.newest_ns = self._published_ns = self._late_run = None
-        self._last_committed = [None, None]
+        self._last_committed = [None] * len(self._names)
         for f in (*self.filters.values(), *self._lane_final.values()):
             f.reset()
 
-    def _after_link_sample(self, lookup: bool, t: int) -> None:
-        """A base / rig sample: replay what the ordered pipeline would map with new links or a nearer rig pose."""
-        links = self.chain.links
-        sig = _links_signature(links)
+    def _signature(self) -> tuple:
+        return tuple(_links_signature(ch.links) for ch in self._chains())
+
+    def _after_link_sample(self, lookups: list[int], t: int) -> None:
+        """A base / rig sample: replay what the ordered pipeline would map with new links or a nearer rig pose.
+        ``lookups``: the local sources (index) whose chain looks this body up live (tracked rig, direct base)."""
+        sig = self._signature()
         start = None
         if sig != self._sig:
             self._sig = sig
             self._new_view()
             start = next((i for i, e in enumerate(self._entries) if e.view is None), None)
-        if lookup:   # tracked: nearest rig pose within rig_max_age; direct: the base tool of the same OTS frame
-            age = self.config.chain.rig_max_age_ns if self.config.chain.local_chain == "tracked" else 0
+        for k in lookups:   # tracked: nearest rig pose within rig_max_age; direct: the base tool of the same frame
+            c = self._chains()[k].cfg
+            age = c.rig_max_age_ns if c.local_chain == "tracked" else 0
             i = bisect.bisect_left(self._tes, t - age - self.config.slop_ns)
             while i < len(self._entries) and (start is None or i < start):
-                loc = self._entries[i].item.local
-                if loc is not None and abs(loc.t_ns - t) <= age:
+                it = self._entries[i].item
+                if it.local is not None and it.source == k and abs(it.local.t_ns - t) <= age:
                     start = i
                     break
                 i += 1
@@ -227,17 +261,24 @@ class ArrivalPipeline(TargetPipeline):
 
     # ---- history ----------------------------------------------------------------------------------------------
     def _new_view(self) -> None:
-        v = copy.copy(self.chain.links)
-        v.estimates = dict(self.chain.links.estimates)
-        v.sources = dict(self.chain.links.sources)
-        self._view = v
+        """The links in use now: the primary chain's, or with further local sources a tuple of every chain's."""
+        v = _copy_links(self.chain.links)
+        self._view = (v, *(_copy_links(ch.links) for ch in self.extra_chains)) if self.extra_chains else v
+
+    def _set_links(self, view) -> tuple | object:
+        """Use the links of ``view`` (:meth:`_new_view`); returns what was in use, for :meth:`_set_links` back."""
+        chains = self._chains()
+        was = tuple(ch.links for ch in chains) if self.extra_chains else self.chain.links
+        for ch, links in zip(chains, view if self.extra_chains else (view,), strict=True):
+            ch.links = links
+        return was
 
     def _snap(self) -> tuple:
         snaps = tuple(f.snapshot() if hasattr(f, "snapshot") else copy.deepcopy(f) for f in self.filters.values())
-        return snaps, self.last_local_ns, self.last_global_ns, dict(self.last_output)
+        return snaps, self.last_local_ns, self.last_global_ns, dict(self.last_output), self.last_item_ns
 
     def _restore(self, snap: tuple) -> None:
-        snaps, self.last_local_ns, self.last_global_ns, last = snap
+        snaps, self.last_local_ns, self.last_global_ns, last, self.last_item_ns = snap
         self.last_output = dict(last)
         for (name, f), s in zip(list(self.filters.items()), snaps, strict=True):
             if hasattr(f, "restore"):
@@ -272,14 +313,16 @@ class ArrivalPipeline(TargetPipeline):
             view = self._view
         e = _Entry(item, te, self._snap(), view=view)
         before = dict(self.counts)   # a dict copy: Counter.copy / Counter - Counter were ~5 % of the input path
-        links, models = self.chain.links, self._models
+        links, models = None, self._models
         if view is not None and view is not self._view:
-            self.chain.links = view           # the links ordered processing used for this item
+            links = self._set_links(view)     # the links ordered processing used for this item
         self._models = self._models_live
         try:
             e.outs = self._process_item(item)
         finally:
-            self.chain.links, self._models = links, models
+            self._models = models
+            if links is not None:
+                self._set_links(links)
         e.delta = Counter({k: v - before.get(k, 0) for k, v in self.counts.items() if v > before.get(k, 0)})
         self._entries.append(e)
         self._tes.append(te)
@@ -303,8 +346,9 @@ class ArrivalPipeline(TargetPipeline):
                 e.outs = e.outs + side
                 self._committed.extend(side)
             self._final.extend(e.outs)
-            self.horizon_ns = e.item.t_ns
-            for s, x in ((GLOBAL, e.item.glob), (LOCAL, e.item.local)):
+            self.horizon_ns = e.item.t_ns if not e.item.source or self.horizon_ns is None \
+                else max(self.horizon_ns, e.item.t_ns)   # a further source's lagged item: never back (synchronizer)
+            for s, x in ((GLOBAL, e.item.glob), (_stream(e.item), e.item.local)):
                 if x is not None:
                     self._stamps[s].discard(x.t_ns)
                     self._last_committed[s] = x.t_ns
@@ -317,20 +361,19 @@ class ArrivalPipeline(TargetPipeline):
     def _side_by_side(self, e: _Entry) -> list[FusedOutput]:
         """The side-by-side filters on a final item, in stamp order as ordered processing does (their own
         last-sample stamps; counters and the live lane untouched)."""
-        live = self.filters, self.last_local_ns, self.last_global_ns, self._models
+        live = self.filters, self.last_local_ns, self.last_global_ns, self.last_item_ns, self._models
         counts, problem = self.counts.copy(), (self.last_problem, dict(self.problems), self.last_problem_t_ns)
         self.filters = self._lane_final
-        self.last_local_ns, self.last_global_ns = self._lane_last
+        self.last_local_ns, self.last_global_ns, self.last_item_ns = self._lane_last
         self._models = any(getattr(f, "uses_models", False) for f in self._lane_final.values())
-        links = self.chain.links
-        if e.view is not None:
-            self.chain.links = e.view
+        links = None if e.view is None else self._set_links(e.view)
         try:
             return self._process_item(e.item)
         finally:
-            self.chain.links = links
-            self._lane_last = self.last_local_ns, self.last_global_ns
-            self.filters, self.last_local_ns, self.last_global_ns, self._models = live
+            if links is not None:
+                self._set_links(links)
+            self._lane_last = self.last_local_ns, self.last_global_ns, self.last_item_ns
+            self.filters, self.last_local_ns, self.last_global_ns, self.last_item_ns, self._models = live
             self.counts = counts
             self.last_problem, self.problems, self.last_problem_t_ns = problem
 

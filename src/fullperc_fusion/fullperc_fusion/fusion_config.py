@@ -36,6 +36,7 @@ from .fullperc_filter import FullpercParams
 from .fusion_health import HealthParams
 from .link_monitor import MonitorParams
 from .pipeline import FILTER_NAMES, TargetConfig
+from .sources import SOURCE_KEYS, read_source_values, source_set
 
 # every method: the paper's five in the column order of its Table 1 (omc, kf, bkf, ckf, cbkf: the first five of
 # the registry reversed), then every further registered filter (fullperc) in registry order
@@ -84,6 +85,9 @@ _M = MonitorParams()
 PARAMS: tuple[Param, ...] = (
     Param("targets", ["tool"], "str_list", lambda v: len(v) > 0 and all(v), "at least one non-empty name", "",
           "fused targets; one output namespace /fullperc/<target>/ each"),
+    Param("sources", None, "str_list", None, "", "",
+          "measurement sources (sources.py): one global, one or more local, a block '<name>: {role: ...}' each; "
+          "none = the built-in omc (global, /omc) + ots (local, /ots)"),
     Param("omc_base_body", _C.omc_base, "str", bool, "must not be empty", "",
           "OMC rigid body of the reference marker: the frame 'base' of every output"),
     Param("omc_rig_body", _C.omc_rig, "str", bool, "must not be empty", "",
@@ -223,6 +227,11 @@ def spec(name: str) -> Param:
     for tp in TARGET_PARAMS:
         if suffix == tp.name and target:
             return Param(name, target, tp.kind, tp.check, tp.why, tp.unit, tp.doc)
+    if target and suffix in SOURCE_KEYS:   # a source block (sources.py)
+        kind, unit, doc = SOURCE_KEYS[suffix]
+        return Param(name, None, kind, None, "", unit, f"source '{target}': {doc}")
+    if target and "." not in target and "." not in suffix:   # <target>.<source>: the target's device of a source
+        return Param(name, None, "str", None, "", "", f"device name of target '{target}' for source '{suffix}'")
     raise KeyError(f"fusion_node has no parameter '{name}'")
 
 
@@ -284,11 +293,18 @@ def read_values(get: Get, targets: list[str] | None = None) -> dict[str, Any]:
     """Every parameter of :data:`PARAMS` (and :data:`TARGET_PARAMS` of each target, by default those of the
     ``targets`` parameter) read through ``get(name, default)``, converted and checked."""
     vals = {p.name: convert(p, get(p.name, p.default)) for p in PARAMS}
-    for t in (vals["targets"] if targets is None else targets):
+    ts = vals["targets"] if targets is None else targets
+    for t in ts:
         for tp in TARGET_PARAMS:
             p = spec(f"{t}.{tp.name}")
             vals[p.name] = convert(p, get(p.name, p.default))
+    vals.update(read_source_values(get, vals, list(ts), _conv, {p.name.split(".")[0] for p in PARAMS}))
     return vals
+
+
+def _conv(name: str, kind: str, default: Any, raw: Any) -> Any:
+    """One value of a source block (sources.py) by the table's rules."""
+    return convert(Param(name, default, kind), raw)
 
 
 def filter_params(vals: dict[str, Any]) -> FullpercParams:
@@ -365,7 +381,7 @@ def target_config(get: Get | dict[str, Any], target: str, filters: tuple[str, ..
     except CalibrationError as e:
         raise ParameterError(f"parameter 'calibration_file' = {path!r}: {e}") from None
     try:
-        chain = ChainConfig(omc_target=vals[f"{target}.omc_body"], ots_target=vals[f"{target}.ots_tool"],
+        base = ChainConfig(omc_target=vals[f"{target}.omc_body"], ots_target=vals[f"{target}.ots_tool"],
                             omc_base=vals["omc_base_body"], omc_rig=vals["omc_rig_body"],
                             ots_base=vals["ots_base_tool"], local_chain=vals["local_chain"],
                             init_samples=vals["init_samples"], T_rig_ots=_pose(vals["T_rig_ots"]),
@@ -373,7 +389,9 @@ def target_config(get: Get | dict[str, Any], target: str, filters: tuple[str, ..
                             calibration_duration_s=vals["calibration.duration"],
                             calibration_settings=calibration_settings(vals), calibration=cal,
                             calibration_file=path)
-        return TargetConfig(name=target, chain=chain, filters=tuple(filters), params=filter_params(vals),
+        sources, chain = source_set(vals, target, base)
+        return TargetConfig(name=target, chain=chain, sources=sources, filters=tuple(filters),
+                            params=filter_params(vals),
                             slop_ns=int(vals["slop"] * 1e9), delay_ns=int(vals["reorder_delay"] * 1e9),
                             max_future_ns=int(round(vals["max_future"] * 1e9)),
                             processing=vals["processing"], history_ns=int(round(vals["history"] * 1e9)),

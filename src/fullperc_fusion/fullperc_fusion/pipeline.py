@@ -73,6 +73,7 @@ from .layout import Layout
 from .link_monitor import LinkMonitor, MonitorParams
 from .margin import margin_at
 from .measurement_models import local_covariance, omc_covariance, omc_systematic_var, rotate_cov
+from .sources import SourceSet, fixed_cov, model_cov_std, renamed_calibration
 from .synchronizer import GLOBAL, LOCAL, ApproxSync, SyncItem
 
 _QUALITY_KEEP_NS = 1_000_000_000   # OMC qualities older than this behind the fused sample are dropped
@@ -96,6 +97,7 @@ class TargetConfig:
     orientation_std_global: float = 0.01   # [rad] when the OMC orientation is used
     monitor: MonitorParams = field(default_factory=MonitorParams)   # link monitoring (link_monitor)
     layout: Layout | None = None    # OR layout (omc frame) for the OMC model's view margin; None: margin unknown
+    sources: SourceSet = field(default_factory=SourceSet)   # sources.py: global + first local (``chain``) + further
 
     def __post_init__(self) -> None:
         self.filters = tuple(self.filters)
@@ -146,7 +148,15 @@ class TargetPipeline:
     def __init__(self, config: TargetConfig) -> None:
         self.config = config
         self.chain = FrameChain(config.chain)
-        self.sync = ApproxSync(config.slop_ns, config.delay_ns)
+        self.sync = ApproxSync(config.slop_ns, config.delay_ns, names=config.sources.stream_names)
+        src = config.sources
+        # further local sources (sources.py): their own chains, fixed covariances per local source index
+        self.extra_chains = [FrameChain(x.chain) for x in src.extras if x.chain is not None]
+        rot = (getattr(config.params, "rot_global_std", config.orientation_std_global),
+               getattr(config.params, "rot_local_std", config.orientation_std_local))
+        self._fixed_global = fixed_cov(src.glob, rot[0])
+        self._fixed_local = [fixed_cov(x, rot[1]) for x in src.locals]
+        self.last_item_ns: int | None = None   # processing stamp of the last item (lagged further-source samples)
         self.filters = {name: make_filter(name, config.params) for name in config.filters}
         self.counts: Counter[str] = Counter()
         self.last_problem = ""          # the most recent reason something was rejected or skipped
@@ -209,13 +219,16 @@ class TargetPipeline:
         c = self.config.chain
         if quality is not None:
             self.push_omc_quality(body, t_ns, quality)
-        if body not in (c.omc_target, c.omc_base, c.omc_rig):
+        extra = [ch for ch in self.extra_chains if body in (ch.cfg.omc_base, ch.cfg.omc_rig)]
+        if body not in (c.omc_target, c.omc_base, c.omc_rig) and not extra:
             return False
         v = self._validate(f"OMC body '{body}'", t_ns, pose, cov, now_ns)
         if v is None:
             return False
         t, T, C = v
         self.chain.observe_omc(body, t, T)
+        for ch in extra:
+            ch.observe_omc(body, t, T)
         if body in (c.omc_base, c.omc_rig):
             self._links_changed(t)
         if body == c.omc_target:
@@ -238,6 +251,24 @@ class TargetPipeline:
             self._watch_link(t, T)
         if tool == c.ots_target:
             return self._enqueue(LOCAL, f"OTS tool '{tool}'", t, (T, C))
+        return True
+
+    def push_local(self, k: int, tool: str, t_ns: int, pose, cov=None, now_ns: int | None = None) -> bool:
+        """One sample of local source ``k`` (0: the first, :meth:`push_ots`; k >= 1: a further one, its own chain
+        and synchronizer stream, never paired; sources.py). False if rejected or unused."""
+        if k == 0:
+            return self.push_ots(tool, t_ns, pose, cov, now_ns)
+        ch = self.extra_chains[k - 1]
+        if tool not in (ch.cfg.ots_target, ch.cfg.ots_base):
+            return False
+        what = f"{self.config.sources.locals[k].name} tool '{tool}'"
+        v = self._validate(what, t_ns, pose, cov, now_ns)
+        if v is None:
+            return False
+        t, T, C = v
+        ch.observe_ots(tool, t, T)
+        if tool == ch.cfg.ots_target:
+            return self._enqueue(1 + k, what, t, (T, C))
         return True
 
     def push_omc_quality(self, body: str, t_ns: int, quality: dict) -> None:
@@ -267,10 +298,16 @@ class TargetPipeline:
         """Re-estimate the static links from the next samples (the old ones stay in use meanwhile); ``mode``
         average | calibrate, default the configured ``static_links``."""
         self.chain.reinitialize(mode)
+        for ch in self.extra_chains:
+            ch.reinitialize(mode)
 
     def apply_calibration(self, cal: Calibration, source: str) -> None:
         """Use the links of a finished calibration from now on (``fusion_node``'s ``~/calibrate``)."""
         self.chain.links.apply(cal, source)
+        for x, ch in zip(self.config.sources.extras, self.extra_chains, strict=True):
+            own = renamed_calibration(cal, x.name)   # T_omc_base, and T_base_<name> / T_rig_<name> if it has them
+            if own is not None and own.links:
+                ch.links.apply(own, source)
 
     # ---- static links: refusals and the link monitor -------------------------------------------
     def _links_changed(self, t: int) -> None:
@@ -311,29 +348,36 @@ class TargetPipeline:
     def _process_item(self, item: SyncItem) -> list[FusedOutput]:
         Tg = Tl = None
         eq = ""
-        links = self.chain.links
         if item.glob is not None:
             Tg = self.chain.global_T(item.glob.payload[0])
             if Tg is None:   # only possible before T_omc_base is known
                 self.counts["waiting_for_links"] += 1
+        chain = self.chain if item.source == 0 else self.extra_chains[item.source - 1]
         if item.local is not None:
-            Tl, eq = self.chain.local_T(item.local.t_ns, item.local.payload[0])
+            Tl, eq = chain.local_T(item.local.t_ns, item.local.payload[0])
             if Tl is None:
-                if links.local_ready:   # e.g. no rig pose near this stamp (tracked mode)
-                    self._problem("local_skipped", f"local sample skipped: {self.chain.why_not}", item.local.t_ns)
+                if chain.links.local_ready:   # e.g. no rig pose near this stamp (tracked mode)
+                    self._problem("local_skipped", f"local sample skipped: {chain.why_not}", item.local.t_ns)
                 else:
                     self.counts["waiting_for_links"] += 1
         if Tg is None and Tl is None:
             return []
         try:
-            mg = None if Tg is None else _measurement(SOURCE_GLOBAL, item.glob.t_ns, Tg, *item.glob.payload)
-            ml = None if Tl is None else _measurement(SOURCE_LOCAL, item.local.t_ns, Tl, *item.local.payload)
-            ms_model = self._model_measurements(item, mg, ml, Tg, Tl, eq) if self._models else None
+            mg = None if Tg is None else _measurement(SOURCE_GLOBAL, item.glob.t_ns, Tg, *item.glob.payload,
+                                                      fixed=self._fixed_global)
+            ml = None if Tl is None else _measurement(SOURCE_LOCAL, item.local.t_ns, Tl, *item.local.payload,
+                                                      fixed=self._fixed_local[item.source])
+            ms_model = self._model_measurements(item, mg, ml, Tg, Tl, eq, chain) if self._models else None
         except BadMeasurement as e:   # a valid device covariance that mapping into base made invalid
             self._problem("rejected_cov", f"item at {item.t_ns} ns: covariance in base: {e}", item.t_ns)
             return []
         ms = [m for m in (mg, ml) if m is not None]
         t_item = max(m.t_ns for m in ms)
+        if item.source and self.last_item_ns is not None:   # lagged sample of a further source (synchronizer.py)
+            t_item = max(t_item, self.last_item_ns)
+        self.last_item_ns = t_item
+        if self.extra_chains and ml is not None:
+            self.counts[f"{self.config.sources.locals[item.source].name}_fused"] += 1
         tg = None if mg is None else mg.t_ns
         tl = None if ml is None else ml.t_ns
         if tl is not None:
@@ -381,7 +425,8 @@ class TargetPipeline:
         return outs
 
     def _model_measurements(self, item: SyncItem, mg: Measurement | None, ml: Measurement | None,
-                            Tg: np.ndarray | None, Tl: np.ndarray | None, eq: str) -> list[Measurement]:
+                            Tg: np.ndarray | None, Tl: np.ndarray | None, eq: str,
+                            chain: FrameChain) -> list[Measurement]:
         """The item's measurements with the model covariances of :mod:`measurement_models` (``uses_models``).
 
         Global: a device covariance when one was pushed (already in base), else the OMC model (white part) from the
@@ -389,7 +434,9 @@ class TargetPipeline:
         ``extras`` carry the quality and ``sys_var``, the variance of the OMC's systematic position error here.
         Local: the device covariance or the Vega's distance model, mapped into base, plus the calibrated static
         link's covariance through the lever arm (``static`` chain with a calibrated T_base_ots; else no link term).
+        A source with ``noise_std`` or ``noise_model: std`` (sources.py) gets its diagonal instead of the model.
         """
+        src, p = self.config.sources, self.config.params
         out = []
         if mg is not None:
             T_dev = item.glob.payload[0]
@@ -397,6 +444,8 @@ class TargetPipeline:
             for k in [k for k in self._omc_quality if k < mg.t_ns - _QUALITY_KEEP_NS]:
                 del self._omc_quality[k]
             C = mg.cov
+            if C is None and src.glob.noise_model == "std":
+                C = model_cov_std(src.glob, p.global_std, p.rot_global_std)
             if C is None:
                 lay = self.config.layout
                 margin = margin_at(lay, T_dev[:3, 3])[0] if lay is not None else None
@@ -408,9 +457,13 @@ class TargetPipeline:
                                    extras={**qual, "sys_var": omc_systematic_var(qual.get("fit_error"), margin)[0]}))
         if ml is not None:
             T_dev, C_dev = item.local.payload[0], item.local.payload[1]
-            A = Tl @ inv_T(T_dev)   # T_base_tool = A T_ots_tool: the whole chain in front of the tool
-            est = self.chain.links.estimates.get("T_base_ots") if eq == "static" else None
-            C = local_covariance(A, T_dev, None if est is None else est.cov, device_cov=C_dev)
+            spec = src.locals[item.source]
+            if self._fixed_local[item.source] is not None or (spec.noise_model == "std" and C_dev is None):
+                C = ml.cov if ml.cov is not None else model_cov_std(spec, p.local_std, p.rot_local_std)
+            else:
+                A = Tl @ inv_T(T_dev)   # T_base_tool = A T_ots_tool: the whole chain in front of the tool
+                est = chain.links.estimates.get("T_base_ots") if eq == "static" else None
+                C = local_covariance(A, T_dev, None if est is None else est.cov, device_cov=C_dev)
             out.append(Measurement(ml.t_ns, SOURCE_LOCAL, ml.p, ml.q, C))
         return out
 
@@ -430,17 +483,21 @@ class TargetPipeline:
         chk = self.monitor.last
         if chk is not None:
             d.update(link_dtrans_mm=round(chk.dtrans_m * 1e3, 3), link_drot_mrad=round(chk.drot_rad * 1e3, 3))
+        for x, ch in zip(self.config.sources.extras, self.extra_chains, strict=True):
+            d[f"{x.name}_link"] = "ready" if ch.links.local_ready else "waiting"
+            d[f"{x.name}_links_source"] = "; ".join(f"{k}: {v}" for k, v in ch.links.sources.items())
         d.update({f"sync_{k}": v for k, v in self.sync.counts.items()})
         d.update(dict(self.counts))
         return d
 
 
 def _measurement(source: int, t_ns: int, T_base: np.ndarray, T_dev: np.ndarray,
-                 C_dev: np.ndarray | None) -> Measurement:
-    """The filter's measurement of one sample mapped into base; the covariance rotated by the chain's R_A."""
+                 C_dev: np.ndarray | None, fixed: np.ndarray | None = None) -> Measurement:
+    """The filter's measurement of one sample mapped into base; the covariance rotated by the chain's R_A.
+    ``fixed``: the source's own diagonal covariance in base (``noise_std``, sources.py), used instead."""
     p, q = T_to_pq(T_base)
-    C = None
-    if C_dev is not None:
+    C = fixed
+    if C_dev is not None and fixed is None:
         RA = T_base[:3, :3] @ T_dev[:3, :3].T   # T_base = A T_dev -> R_A = R_base R_dev^T
         J = np.zeros((6, 6))
         J[0:3, 0:3] = J[3:6, 3:6] = RA

@@ -27,6 +27,13 @@ Defined behaviour for bad timing (each counted in :attr:`counts`, tested in test
   happens in normal operation.
 * overflow: more than ``max_pending`` samples waiting on one stream (e.g. ``now`` stuck far behind)
   forces the oldest out early -- still emitted, never dropped.
+
+Further local sources (:mod:`sources`, ``names`` beyond global and local): each is one more stream whose samples
+never pair -- every one is its own item (``SyncItem.source`` = its local source index), emitted by the same
+earliest-head rule, so items still come out in the order of their first stamp. The pairing of the global and the
+first local stream does not look at them, so it is exactly what it is without them. Such an item can be stamped
+before the previous pair's processing stamp (it lies in that pair's slop window); the pipeline fuses it as a
+lagged measurement at that stamp.
 """
 
 from __future__ import annotations
@@ -54,27 +61,32 @@ class SyncItem:
     t_ns: int                    # processing stamp: the newer stamp of the item
     glob: Sample | None
     local: Sample | None
+    source: int = 0              # local source of ``local``: 0 = the first (paired) one, k = stream 1 + k
 
 
 class ApproxSync:
     """Pairs global and local samples within ``slop_ns``; see the module docstring for the rules."""
 
-    def __init__(self, slop_ns: int = 4_000_000, delay_ns: int = 50_000_000, max_pending: int = 4096) -> None:
+    def __init__(self, slop_ns: int = 4_000_000, delay_ns: int = 50_000_000, max_pending: int = 4096,
+                 names: tuple[str, ...] = _NAMES) -> None:
         if slop_ns < 0 or delay_ns < 0 or max_pending < 1:
             raise ValueError("slop and delay must be >= 0 and max_pending >= 1")
+        if len(names) < 2 or len(set(names)) != len(names):
+            raise ValueError(f"stream names {names}: global, local and distinct further ones")
         self.slop = int(slop_ns)
         self.delay = int(delay_ns)
         self.max_pending = int(max_pending)
-        self._t: tuple[list[int], list[int]] = ([], [])      # sorted stamps per stream
-        self._p: tuple[list[Any], list[Any]] = ([], [])      # payloads, parallel to _t
-        self._last_emitted: list[int | None] = [None, None]
+        self.names = tuple(names)
+        self._t: tuple[list[int], ...] = tuple([] for _ in names)      # sorted stamps per stream
+        self._p: tuple[list[Any], ...] = tuple([] for _ in names)      # payloads, parallel to _t
+        self._last_emitted: list[int | None] = [None] * len(names)
         self.horizon_ns: int | None = None    # processing stamp of the last emitted item
         self.watermark_ns: int | None = None  # newest stamp pushed
         self.counts: Counter[str] = Counter()
 
     @property
     def pending(self) -> int:
-        return len(self._t[0]) + len(self._t[1])
+        return sum(len(ts) for ts in self._t)
 
     def push(self, stream: int, t_ns: int, payload: Any = None) -> str:
         """Queue one sample; returns 'ok', 'late' or 'duplicate' (the latter two are dropped)."""
@@ -82,16 +94,16 @@ class ApproxSync:
         ts = self._t[stream]
         i = bisect.bisect_left(ts, t_ns)
         if (i < len(ts) and ts[i] == t_ns) or self._last_emitted[stream] == t_ns:
-            self.counts[f"{_NAMES[stream]}_duplicate"] += 1
+            self.counts[f"{self.names[stream]}_duplicate"] += 1
             return "duplicate"
         if self.horizon_ns is not None and t_ns < self.horizon_ns:
-            self.counts[f"{_NAMES[stream]}_late"] += 1
+            self.counts[f"{self.names[stream]}_late"] += 1
             return "late"
         ts.insert(i, t_ns)
         self._p[stream].insert(i, payload)
         if self.watermark_ns is None or t_ns > self.watermark_ns:
             self.watermark_ns = t_ns
-        self.counts[f"{_NAMES[stream]}_in"] += 1
+        self.counts[f"{self.names[stream]}_in"] += 1
         return "ok"
 
     def poll(self, now_ns: int | None = None) -> list[SyncItem]:
@@ -106,13 +118,17 @@ class ApproxSync:
         return self._drain(lambda t: True)
 
     @classmethod
-    def pair(cls, glob: list[Sample], local: list[Sample], slop_ns: int) -> list[SyncItem]:
+    def pair(cls, glob: list[Sample], local: list[Sample], slop_ns: int,
+             extra: tuple[list[Sample], ...] | list[list[Sample]] = ()) -> list[SyncItem]:
         """The items the rules above make of a *complete* set of samples (each list sorted by stamp, no duplicate
-        stamps within a stream) -- what :meth:`flush` emits once every one of them has been pushed. Used by
-        :mod:`arrival` to re-pair the samples after a late one; the same code as the live path, so both agree."""
-        s = cls(slop_ns, 0, max_pending=max(1, len(glob), len(local)))
-        s._t = ([x.t_ns for x in glob], [x.t_ns for x in local])
-        s._p = ([x.payload for x in glob], [x.payload for x in local])
+        stamps within a stream; ``extra``: the further local sources' streams) -- what :meth:`flush` emits once
+        every one of them has been pushed. Used by :mod:`arrival` to re-pair the samples after a late one; the
+        same code as the live path, so both agree."""
+        streams = (glob, local, *extra)
+        s = cls(slop_ns, 0, max_pending=max(1, *(len(x) for x in streams)),
+                names=_NAMES + tuple(f"local{k}" for k in range(1, len(extra) + 1)))
+        s._t = tuple([x.t_ns for x in xs] for xs in streams)
+        s._p = tuple([x.payload for x in xs] for xs in streams)
         return s._drain(lambda t: True)
 
     def _pop(self, stream: int, i: int) -> Sample:
@@ -141,6 +157,12 @@ class ApproxSync:
             if overflow and not final(t_e):
                 self.counts["forced_by_overflow"] += 1
             e = self._pop(s_e, 0)
+            if s_e >= 2:   # a further local source: never paired (module docstring)
+                self._last_emitted[s_e] = e.t_ns
+                self.horizon_ns = e.t_ns if self.horizon_ns is None else max(self.horizon_ns, e.t_ns)
+                self.counts[f"{self.names[s_e]}_alone"] += 1
+                out.append(SyncItem(e.t_ns, None, e, s_e - 1))
+                continue
             other = 1 - s_e
             j = self._nearest(other, t_e)
             partner = None
