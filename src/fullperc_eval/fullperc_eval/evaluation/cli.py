@@ -1,7 +1,7 @@
 """``evaluate``: offline evaluation of one bag -- the paper's Table 1 (MAE) and Table 2 (B->P segment).
 
     evaluate BAG [--out DIR] [--json FILE] [--calibration FILE] [--layout FILE] [--fusion-config FILE]
-                 [--target tool] [--quiet] [--live]
+                 [--target tool] [--quiet] [--live] [--per-sample]
 
 (the ``evaluate`` executable; ``python -m fullperc_eval.evaluation.cli`` is the same). What it computes is in
 :mod:`.metrics`; how the bag is replayed in :mod:`.replay`; the ground truth in :mod:`.ground_truth`.
@@ -39,11 +39,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quiet", action="store_true", help="no progress output")
     ap.add_argument("--live", action="store_true",
                     help="evaluate the fused poses recorded live (/fullperc/<target>/...) instead of re-running")
+    ap.add_argument("--per-sample", action="store_true",
+                    help="replay one message at a time through the fusion pipeline (the reference) instead of the "
+                         "batched replay; same result, slower (the batched replay falls back to it by itself for "
+                         "what it does not support)")
     args = ap.parse_args(argv)
     try:
         ev = evaluate_bag(args.bag, calibration=args.calibration, layout=args.layout,
                           fusion_config=args.fusion_config, target=args.target, progress=not args.quiet,
-                          live=args.live)
+                          live=args.live, per_sample=args.per_sample)
         r = ev.result
         print(format_table1([r]))
         print()

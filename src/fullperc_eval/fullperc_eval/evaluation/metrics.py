@@ -275,10 +275,12 @@ def evaluate_replay(rep: Replay, calibration: Calibration, layout, kinematics=No
 
 def evaluate_bag(bag: str | Path, *, calibration: str | Path | None = None, layout: str | Path | None = None,
                  fusion_config: str | Path | None = None, target: str = "tool", progress: bool = True,
-                 config: TargetConfig | None = None, live: bool = False) -> Evaluation:
+                 config: TargetConfig | None = None, live: bool = False, per_sample: bool = False) -> Evaluation:
     """Replay + metrics for one bag; ``config`` overrides the fusion config file (tests, benchmarks).
 
     ``live``: evaluate the fused poses recorded from ``fusion_node`` (:func:`live_replay`) instead.
+    ``per_sample``: replay one message at a time (the reference) instead of the batched replay (:mod:`.batch`),
+    which gives the same result and falls back to it by itself where it must.
     """
     try:
         BagReader(Path(bag))   # the bag itself first (metadata, storage files complete): its problems are likeliest
@@ -302,7 +304,8 @@ def evaluate_bag(bag: str | Path, *, calibration: str | Path | None = None, layo
     if live:
         rep = live_replay(bag, target=target, primary=str(flat.get("filter", "cbkf")))
     else:
-        rep = replay(bag, config, idle_flush_s=float(flat.get("idle_flush", 0.5)), progress=progress)
+        rep = replay(bag, config, idle_flush_s=float(flat.get("idle_flush", 0.5)), progress=progress,
+                     per_sample=per_sample)
     if truth is not None:
         rep.task = f"{rep.task} {target}"   # its own path, not the task's region order: named by target
     ev = evaluate_replay(rep, cal, lay, truth=truth)

@@ -73,6 +73,8 @@ class Replay:
     messages: int
     seconds: float
     single_sources: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)  # SourceTap.arrays() (sources.py)
+    path: str = "per-sample"       # how the filters were run: "batched" (batch.py) or "per-sample"
+    fallback: str = ""             # why the per-sample path ran ("" for the batched path and live replays)
 
 
 def _stamp_ns(header) -> int:
@@ -106,9 +108,23 @@ def omc_quality_by_stamp(reader: BagReader, config: TargetConfig) -> dict[int, d
     return out
 
 
-def replay(bag: str | Path, config: TargetConfig, idle_flush_s: float = 0.5, progress: bool = True) -> Replay:
-    """Run the pipeline over the raw measurements of ``bag`` the way fusion_node would have."""
-    t_start = time.perf_counter()
+@dataclass
+class Prepared:
+    """A bag opened and checked for :func:`replay` (both paths): the topics it reads and the warnings so far."""
+
+    reader: BagReader
+    omc_topics: dict[str, str]     # topic -> OMC body
+    ots_topics: dict[str, str]     # topic -> OTS tool
+    target_omc: str
+    present: list[str]             # the wanted topics the bag has, in the order counts are reported
+    total: int
+    warnings: list[str]
+
+
+def prepare(bag: str | Path, config: TargetConfig) -> Prepared:
+    """Open ``bag`` and check what the replay needs (topic types, joint states, the target's OMC topic);
+    :class:`EvaluationError` naming the problem. Shared by the per-sample and the batched replay (batch.py), so
+    both refuse the same bags with the same words."""
     try:
         reader = BagReader(bag)
     except BagError as e:
@@ -133,7 +149,38 @@ def replay(bag: str | Path, config: TargetConfig, idle_flush_s: float = 0.5, pro
             warnings.append(f"no {t} messages in the bag")
     present = [t for t in wanted if t in reader.topics]
     total = sum(reader.topics[t].count for t in present)
+    return Prepared(reader, omc_topics, ots_topics, target_omc, present, total, warnings)
 
+
+def replay(bag: str | Path, config: TargetConfig, idle_flush_s: float = 0.5, progress: bool = True,
+           per_sample: bool = False) -> Replay:
+    """Run the pipeline over the raw measurements of ``bag`` the way fusion_node would have.
+
+    By default through the batched replay (:mod:`.batch`: vectorised decoding, validation, mapping and the paper's
+    filters in one loop -- the same result), which falls back to this per-sample replay by itself for whatever it
+    does not support (``Replay.fallback`` says why); ``per_sample`` forces the per-sample replay."""
+    t_start = time.perf_counter()
+    prep = prepare(bag, config)
+    fallback = "per-sample replay requested"
+    if not per_sample:
+        from .batch import BatchUnsupported, batch_replay
+
+        try:
+            return batch_replay(prep, config, idle_flush_s, t_start)
+        except BatchUnsupported as e:
+            fallback = str(e)
+            prep = prepare(bag, config)   # a fresh reader: the batched attempt may have read part of the bag
+    rep = _per_sample_replay(prep, config, idle_flush_s, progress, t_start)
+    rep.fallback = fallback
+    return rep
+
+
+def _per_sample_replay(prep: Prepared, config: TargetConfig, idle_flush_s: float, progress: bool,
+                       t_start: float) -> Replay:
+    """The replay one message at a time through :class:`TargetPipeline` (the reference)."""
+    reader, omc_topics, ots_topics, target_omc = prep.reader, prep.omc_topics, prep.ots_topics, prep.target_omc
+    present, total, warnings = prep.present, prep.total, prep.warnings
+    c = config.chain
     pipe = TargetPipeline(config)
     omc_quality = omc_quality_by_stamp(reader, config)   # H3 hook: OMC quality for fullperc's model covariance
     tap = SourceTap()   # hook: records the measurements the filters get (raw local chain for the evaluation)
