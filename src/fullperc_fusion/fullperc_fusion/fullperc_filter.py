@@ -1,437 +1,434 @@
-"""``fullperc``: CBKF's compensated position model with per-measurement covariance, plus orientation on SO(3).
+"""``fullperc``, the filter the pipeline runs: the general form of :mod:`fullperc_reference`, restructured for speed.
 
-Issue 18 item 4. Registered as ``"fullperc"`` in :mod:`filter_registry`; ``uses_models`` asks the pipeline for the
-model covariances of :mod:`measurement_models` (the paper's four keep their fixed noise).
+Issue 16 item 3 (``filter_step_us[fullperc]``). The model, its equations and every rule (hops, gaps, position-only
+samples, the error-state reset) are those of :class:`fullperc_reference.FullpercReference`, the reference; this
+module changes how they are computed, never what: ``test_fullperc_fast.py`` runs both on long randomised streams
+(gaps, hops, resets, local only / global only / pairs, lags, full 6x6 covariances, snapshot/restore) and fails when
+they differ by more than 1e-12 (module docstring there). Registered as ``"fullperc"`` in :mod:`filter_registry`.
 
-Nominal state (``base``, SI): position p, velocity v, the global source's position bias in two parts -- b, CBKF's
-compensation term (random walk: the part that stays, e.g. the error of the calibrated global link), and g, a
-Gauss-Markov part (the OMC's systematic error that decorrelates over ~``sys_time`` of motion: distortion along
-the path, camera-set changes) --, orientation R (tool -> base), angular velocity w (base axes) and the global
-source's orientation bias beta (a rotation vector: the OMC reports R_omc = Exp(beta) R). Error state, 21 dims,
-rotation errors on the left about the base axes (the :mod:`filter_api` convention, R_true = Exp(dtheta) R):
+Why each change (the reference spends ~190 us per predict + update in ~100 numpy calls on 21x21 arrays and 3x3
+helpers; at these sizes each call's ~1 us overhead, not the arithmetic, is the cost):
 
-    dx = [dp dv db | dtheta dw dbeta | dg]      (indices 0:3 3:6 6:9 | 9:12 12:15 15:18 | 18:21)
-
-Why two bias parts (raw OMC error vs the Diana truth, :mod:`measurement_models`): the rms increment of the OMC's
-error over a lag grows from the white level towards a plateau (spec 0.07 -> 0.18 -> 0.30 mm at 8 ms / 1 s / 10 s;
-paper 0.16 -> 1.84 -> 3.19 mm; Gauss-Markov fit: tau ~3 s): a random walk (CBKF's b alone) keeps a learnt
-compensation forever, so after the local source is gone the output carries a compensation that no longer holds;
-a Gauss-Markov process forgets it at the rate the sensor's error does, and the mean offset (per bag ~0.1 mm spec,
-~1.5 mm paper) stays in b.
-
-* predict over dt (constant velocity, constant angular velocity):
-  p += v dt, R = Exp(w dt) R, g *= phi, phi = exp(-dt / sys_time);
-  F = I with F_pv = dt I, F_thth = Exp(w dt), F_thw = dt I, F_gg = phi I;
-  Q = q_a [[dt^3/3, dt^2/2], [dt^2/2, dt]] on (p, v), q_b dt on b, q_alpha the same form on (theta, w),
-  q_beta dt on beta, s^2 (1 - phi^2) on g (white acceleration / angular acceleration, random-walk biases, a
-  first-order Gauss-Markov g of stationary variance s^2: the ``sys_var`` of the newest global sample,
-  :func:`measurement_models.omc_systematic_var`, margin- and fit-error-adaptive; ``sys_std^2`` without one).
-* a global sample (lag s = filter time - sample stamp, as the paper filters: exact under constant velocity):
-  z_p = p - s v + b + g,  R_z = Exp(beta) Exp(-s w) R;
-  residual r_theta = Log(R_z R_pred^T), H rows p: [I, -s I, I, 0, 0, 0], theta: [0, 0, 0, A, -s I, I] with
-  A = Exp(beta) Exp(-s w) (the left perturbation carried through the prediction); a local sample the same
-  without b and beta.
-* R of the update: the measurement's full 6x6 ``cov`` (the models' or a device's; position-rotation correlation
-  of the lever arm included); without ``cov`` the fixed noise ``global_std`` / ``local_std`` and
-  ``rot_global_std`` / ``rot_local_std``. A sample without ``q`` updates the position only.
-* hops, as CBKF (:mod:`filters`): NIS of the global position rows above ``hop_gate`` -> the variance of b is
-  raised by y_p^2 per axis before the gain (a camera-set change persists while that set sees the body, so it goes
-  into the lasting part, as in CBKF). A rotation hop (NIS of the global rotation rows above the gate) is flagged
-  but not put into beta: the OMC's rotation jumps revert within frames and are part of its R
-  (:func:`measurement_models.omc_covariance`), so a jump kept in beta would stay wrong after the OMC recovers.
-  A lasting step of the global position goes into its bias, not into the pose.
-* error-state update (Joseph form), injection p += dp ..., R = Exp(dtheta) R, and the reset of the error state:
-  P = G P G^T with G_thth = I - [dtheta/2]x (the first-order reset Jacobian of the multiplicative update).
-* gaps longer than ``max_gap_s`` re-initialise p, v, R, w from the next sample; b and beta (and their variances)
-  are kept.
-
-CBKF's biased estimator M is left out: on the position block it is a shrinkage towards the origin of ``base``
-with m = 1 - O(1e-7) (see :mod:`filters`), i.e. micrometres, and on the other blocks it breaks the filter.
-
-Output: :class:`filter_api.Step` with ``q`` (x y z w) and ``pose_cov`` (6x6, [p, theta], base).
+* the nominal state is a list of 21 Python floats (rotation slots 9:12 always 0) and R a 9-tuple: the injection,
+  the prediction of p and g and the SO(3) functions (Exp, Log, quaternion <-> matrix) are a few float operations
+  each instead of one numpy call per 3-vector;
+* predict is P = F P F^T + Q with F and Q taken from caches keyed by (dt, w) and (dt, sys_var): the pipeline's dt
+  and the angular velocity repeat (a constant-rate stream, w = 0 for a position-only stream), so most steps are
+  two matmuls and an add instead of ~30 row/column operations and 33 scalar writes;
+* the measurement matrix H comes from a per-combination template (global/local, with/without orientation, single
+  or pair) with only the lag entries and the 3x3 block A written; U = P H^T is formed once and gives S = H U + R;
+  one ``solve`` with the stacked right-hand side [y | U^T] gives the NIS and the gain together; the hop tests'
+  3x3 NIS are Python floats;
+* the Joseph update and the reset Jacobian are the reference's, with the reset folded into the Joseph factors
+  (P = G (I - K H) P (I - K H)^T G^T + G K R K^T G^T, one product less);
+* arrays are never changed in place once stored, so :meth:`snapshot` is a tuple of references (rewind-and-replay
+  in arrival.py takes one per item) and the :class:`Step` shares P instead of copying it;
+* re-initialisation (first sample, gaps) is rare and is delegated to the reference itself.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg.lapack import dgesv as _dgesv
 
 from .filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement, Step, StepCompat, predict_interval, split_update
 from .filters import FilterParams
+from .fullperc_reference import (
+    FullpercParams,
+    FullpercReference,
+    N,
+    R_to_quat,
+    _State,
+    quat_to_R,
+    so3_exp,
+    so3_log,
+)
 
-__all__ = ["FullpercFilter", "FullpercParams", "so3_exp", "so3_log", "quat_to_R", "R_to_quat"]
+__all__ = ["FullpercFilter", "FullpercParams", "N", "R_to_quat", "quat_to_R", "so3_exp", "so3_log"]
 
-N = 21
-_I3 = np.eye(3)
-_IN = np.eye(N)
-P_, V_, B_, TH, W_, BE, G_ = (slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15), slice(15, 18),
-                              slice(18, 21))
-
-
-@dataclass
-class FullpercParams(FilterParams):
-    """The position parameters of CBKF (:class:`filters.FilterParams`, same meaning) plus the orientation's.
-
-    ang_accel_noise  q_alpha, white angular-acceleration density [rad^2/s^3]: 0.5 lets a hand-held tool change its
-                     turn rate by ~0.7 rad/s within a second.
-    rot_bias_walk    q_beta, random walk of the OMC's orientation bias [rad^2/s]: 1e-6 -> ~1 mrad per sqrt(s) as
-                     the camera set and the distortion change along the path.
-    rot_global_std   OMC orientation noise per axis [rad] without a covariance (5 mrad: raw OMC, spec bags).
-    rot_local_std    Vega orientation noise per axis [rad] without a covariance (2.2 mrad: raw Vega, spec bags).
-    init_rot_std, init_angvel_std, init_rot_bias_std  prior stds of theta [rad], w [rad/s], beta [rad].
-    sys_time         correlation time of the OMC's systematic position error [s] (3 s: Gauss-Markov fit of the raw
-                     OMC error's structure function, 3.1 s spec / 2.8 s paper, measurement_models).
-    sys_std          its per-axis std [m] for a global sample without ``sys_var`` (0.2 mm: raw OMC, spec bags).
-    """
-
-    ang_accel_noise: float = 0.5
-    rot_bias_walk: float = 1e-6
-    rot_global_std: float = 5e-3
-    rot_local_std: float = 2.2e-3
-    init_rot_std: float = 0.05
-    init_angvel_std: float = 0.5
-    init_rot_bias_std: float = 0.02
-    sys_time: float = 3.0
-    sys_std: float = 0.2e-3
-
-    def validate(self) -> FullpercParams:
-        super().validate()
-        for name in ("ang_accel_noise", "rot_bias_walk", "init_rot_std", "init_angvel_std", "init_rot_bias_std"):
-            v = float(getattr(self, name))
-            if not (np.isfinite(v) and v >= 0):
-                raise ValueError(f"filter parameter {name} must be finite and >= 0, got {v!r}")
-        for name in ("rot_global_std", "rot_local_std", "sys_time", "sys_std"):
-            v = float(getattr(self, name))
-            if not (np.isfinite(v) and v > 0):
-                raise ValueError(f"filter parameter {name} must be finite and > 0, got {v!r}")
-        return self
-
-    @classmethod
-    def from_params(cls, params: FilterParams | None) -> FullpercParams:
-        """``params`` itself when it already is one; else its position fields with the orientation defaults."""
-        if isinstance(params, FullpercParams):
-            return params
-        if params is None:
-            return cls()
-        return cls(**{k: getattr(params, k) for k in FilterParams.__dataclass_fields__})
+_I21 = np.eye(N)
+_POSE = np.array([21 * r + c for r in (0, 1, 2, 9, 10, 11) for c in (0, 1, 2, 9, 10, 11)])   # [p, theta] of P.ravel()
+_F_PV = ([0, 1, 2], [3, 4, 5])
+_F_TW = ([9, 10, 11], [12, 13, 14])
+_F_GG = ([18, 19, 20], [18, 19, 20])
+_F_TH = np.array([21 * r + c for r in (9, 10, 11) for c in (9, 10, 11)])   # F[theta, theta] in F.ravel()
+_CACHE_MAX = 64     # entries per cache; cleared when full (a stream with jittering dt still reuses most keys)
 
 
-# ---------------------------------------------------------------------------------------------- SO(3)
-def _skew(a: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
-
-
-def so3_exp(w: np.ndarray) -> np.ndarray:
-    """Exp of a rotation vector (Rodrigues); series below 1e-8 rad."""
-    th = math.sqrt(float(w @ w))
-    K = _skew(w)
+# ---------------------------------------------------------------------------------------------- SO(3) in floats
+# The reference's formulas (fullperc_reference.so3_exp / so3_log / quat_to_R / R_to_quat) on 9-tuples (row-major).
+def _exp(a: float, b: float, c: float) -> tuple:
+    """Exp of the rotation vector (a, b, c): I + s K + k K^2 (Rodrigues), the series below 1e-8 rad."""
+    th = math.sqrt(a * a + b * b + c * c)
     if th < 1e-8:
-        return _I3 + K + 0.5 * K @ K
-    return _I3 + (math.sin(th) / th) * K + ((1.0 - math.cos(th)) / (th * th)) * K @ K
+        s, k = 1.0, 0.5
+    else:
+        s, k = math.sin(th) / th, (1.0 - math.cos(th)) / (th * th)
+    aa, bb, cc, ab, ac, bc = a * a, b * b, c * c, a * b, a * c, b * c
+    return (1.0 - k * (bb + cc), -s * c + k * ab, s * b + k * ac,
+            s * c + k * ab, 1.0 - k * (aa + cc), -s * a + k * bc,
+            -s * b + k * ac, s * a + k * bc, 1.0 - k * (aa + bb))
 
 
-def so3_log(R: np.ndarray) -> np.ndarray:
-    """Log of a rotation matrix as a rotation vector, |w| <= pi (robust near 0 and near pi)."""
-    c = max(-1.0, min(1.0, 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)))
-    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+def _mul(A: tuple, B: tuple) -> tuple:
+    """A B of two row-major 3x3 tuples."""
+    a0, a1, a2, a3, a4, a5, a6, a7, a8 = A
+    b0, b1, b2, b3, b4, b5, b6, b7, b8 = B
+    return (a0 * b0 + a1 * b3 + a2 * b6, a0 * b1 + a1 * b4 + a2 * b7, a0 * b2 + a1 * b5 + a2 * b8,
+            a3 * b0 + a4 * b3 + a5 * b6, a3 * b1 + a4 * b4 + a5 * b7, a3 * b2 + a4 * b5 + a5 * b8,
+            a6 * b0 + a7 * b3 + a8 * b6, a6 * b1 + a7 * b4 + a8 * b7, a6 * b2 + a7 * b5 + a8 * b8)
+
+
+def _mul_t(A: tuple, B: tuple) -> tuple:
+    """A B^T of two row-major 3x3 tuples."""
+    a0, a1, a2, a3, a4, a5, a6, a7, a8 = A
+    b0, b1, b2, b3, b4, b5, b6, b7, b8 = B
+    return (a0 * b0 + a1 * b1 + a2 * b2, a0 * b3 + a1 * b4 + a2 * b5, a0 * b6 + a1 * b7 + a2 * b8,
+            a3 * b0 + a4 * b1 + a5 * b2, a3 * b3 + a4 * b4 + a5 * b5, a3 * b6 + a4 * b7 + a5 * b8,
+            a6 * b0 + a7 * b1 + a8 * b2, a6 * b3 + a7 * b4 + a8 * b5, a6 * b6 + a7 * b7 + a8 * b8)
+
+
+def _log(R: tuple) -> list[float]:
+    """Log of a rotation (|w| <= pi); the reference's branch near pi (rare) on arrays."""
+    c = max(-1.0, min(1.0, 0.5 * (R[0] + R[4] + R[8] - 1.0)))
+    v = [R[7] - R[5], R[2] - R[6], R[3] - R[1]]
     th = math.acos(c)
     if th < 1e-6:
-        return 0.5 * v
-    if th > math.pi - 1e-4:   # near pi: axis from the symmetric part
-        B = 0.5 * (R + _I3)
-        i = int(np.argmax(np.diag(B)))
-        ax = B[:, i] / math.sqrt(max(B[i, i], 1e-300))
-        if ax @ v < 0:
-            ax = -ax
-        return th * ax / np.linalg.norm(ax)
-    return (th / (2.0 * math.sin(th))) * v
+        return [0.5 * v[0], 0.5 * v[1], 0.5 * v[2]]
+    if th > math.pi - 1e-4:
+        return so3_log(np.array(R).reshape(3, 3)).tolist()
+    f = th / (2.0 * math.sin(th))
+    return [f * v[0], f * v[1], f * v[2]]
 
 
-def quat_to_R(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a quaternion x y z w (normalised here)."""
-    x, y, z, w = np.asarray(q, dtype=float) / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+def _quat_R(q: np.ndarray) -> tuple:
+    """Rotation of a quaternion x y z w, normalised first (quat_to_R)."""
+    x, y, z, w = q.tolist()
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    x, y, z, w = x / n, y / n, z / n, w / n
+    return (1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+            2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+            2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y))
 
 
-def R_to_quat(R: np.ndarray) -> np.ndarray:
-    """Quaternion x y z w (w >= 0) of a rotation matrix (Shepperd)."""
-    t = R[0, 0] + R[1, 1] + R[2, 2]
+def _R_quat(R: tuple) -> np.ndarray:
+    """Quaternion x y z w (w >= 0) of a rotation (Shepperd, as R_to_quat)."""
+    t = R[0] + R[4] + R[8]
     if t > 0:
         s = 2.0 * math.sqrt(t + 1.0)
-        q = np.array([(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s])
+        q = [(R[7] - R[5]) / s, (R[2] - R[6]) / s, (R[3] - R[1]) / s, 0.25 * s]
     else:
-        i = int(np.argmax([R[0, 0], R[1, 1], R[2, 2]]))
+        d = (R[0], R[4], R[8])
+        i = 0 if d[0] >= d[1] and d[0] >= d[2] else 1 if d[1] >= d[2] else 2   # np.argmax: first maximum
         j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * math.sqrt(max(1.0 + R[i, i] - R[j, j] - R[k, k], 1e-300))
-        q = np.zeros(4)
+        s = 2.0 * math.sqrt(max(1.0 + d[i] - d[j] - d[k], 1e-300))
+        q = [0.0, 0.0, 0.0, 0.0]
         q[i] = 0.25 * s
-        q[j] = (R[j, i] + R[i, j]) / s
-        q[k] = (R[k, i] + R[i, k]) / s
-        q[3] = (R[k, j] - R[j, k]) / s
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
+        q[j] = (R[3 * j + i] + R[3 * i + j]) / s
+        q[k] = (R[3 * k + i] + R[3 * i + k]) / s
+        q[3] = (R[3 * k + j] - R[3 * j + k]) / s
+    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    if q[3] < 0:
+        n = -n
+    return np.array([q[0] / n, q[1] / n, q[2] / n, q[3] / n])
 
 
-# ---------------------------------------------------------------------------------------------- filter
-@dataclass
-class _State:
-    """Everything :meth:`FullpercFilter.snapshot` copies."""
-
-    p: np.ndarray
-    v: np.ndarray
-    b: np.ndarray
-    R: np.ndarray
-    w: np.ndarray
-    beta: np.ndarray
-    P: np.ndarray
-    t_ns: int | None
-    pending_ns: int | None
-    has_R: bool
-    g: np.ndarray                  # Gauss-Markov part of the global position bias
-    sys_var: float                 # its stationary variance (newest global sample's model, else sys_std^2)
+def _nis3(S: list, y0: float, y1: float, y2: float) -> float:
+    """y^T S^-1 y of a symmetric positive definite 3x3 S (nested list) through its LDL^T factors."""
+    d0 = S[0][0]
+    l10, l20 = S[1][0] / d0, S[2][0] / d0
+    d1 = S[1][1] - l10 * S[1][0]
+    l21 = (S[2][1] - l20 * S[1][0]) / d1
+    d2 = S[2][2] - l20 * S[2][0] - l21 * l21 * d1
+    e0 = y0
+    e1 = y1 - l10 * e0
+    e2 = y2 - l20 * e0 - l21 * e1
+    return e0 * e0 / d0 + e1 * e1 / d1 + e2 * e2 / d2
 
 
-def _copy(s: _State) -> _State:
-    """A copy of every array of the state (the scalars are immutable): ~10x cheaper than copy.deepcopy."""
-    return _State(s.p.copy(), s.v.copy(), s.b.copy(), s.R.copy(), s.w.copy(), s.beta.copy(), s.P.copy(), s.t_ns,
-                  s.pending_ns, s.has_R, s.g.copy(), s.sys_var)
+def _solve(S: np.ndarray, y: np.ndarray, U: np.ndarray) -> np.ndarray:
+    """S^-1 [y | U^T] (k x 22): LAPACK's dgesv (the LU solve of np.linalg.solve) without numpy's ~4 us wrapper."""
+    B = np.empty((len(y), N + 1))
+    B[:, 0] = y
+    B[:, 1:] = U.T
+    _, _, Z, info = _dgesv(S, B)
+    if info != 0:
+        raise np.linalg.LinAlgError("singular innovation covariance")
+    return Z
+
+
+_R_IDENT = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
 
 
 class FullpercFilter(StepCompat):
-    """The ``fullperc`` filter; implements :class:`filter_api.Filter` (see the module docstring for the model)."""
+    """The ``fullperc`` filter (:class:`filter_api.Filter`); the model is :mod:`fullperc_reference`'s.
+
+    State: ``_x`` 21 floats in the error-state layout of the reference (p v b | theta(=0) w beta | g), ``_R``
+    the orientation (9-tuple), ``_P`` the 21x21 covariance, stamps and flags as the reference's ``_State``.
+    """
 
     kind = "fullperc"
-    uses_models = True   # the pipeline gives this filter the model covariances (measurement_models)
+    uses_models = True
 
     def __init__(self, params: FilterParams | None = None) -> None:
-        self.params = FullpercParams.from_params(params).validate()
-        self.hop_counts = {"position": 0, "rotation": 0}   # hops flagged so far, per kind (diagnostics)
+        self._ref = FullpercReference(params)   # re-initialisation and the non-finite reset are delegated to it
+        self.params = self._ref.params
+        self.hop_counts = self._ref.hop_counts    # one dict: counts made by either are counted once
+        self._fcache: dict = {}
+        self._qcache: dict = {}
+        self._hcache: dict = {}
+        pr = self.params
+        self._fixed = {(SOURCE_GLOBAL, True): np.diag([pr.global_std**2] * 3 + [pr.rot_global_std**2] * 3),
+                       (SOURCE_GLOBAL, False): np.diag([pr.global_std**2] * 3),
+                       (SOURCE_LOCAL, True): np.diag([pr.local_std**2] * 3 + [pr.rot_local_std**2] * 3),
+                       (SOURCE_LOCAL, False): np.diag([pr.local_std**2] * 3)}
         self.reset()
 
     # ---- state ----------------------------------------------------------------------------------
     def reset(self) -> None:
-        pr = self.params
-        self.s = _State(np.zeros(3), np.zeros(3), np.zeros(3), np.eye(3), np.zeros(3), np.zeros(3),
-                        self._prior(pr.init_bias_std**2 * _I3, pr.init_rot_bias_std**2 * _I3, pr.sys_std**2 * _I3),
-                        None, None, False, np.zeros(3), pr.sys_std**2)
+        self._ref.reset()
+        self._load(self._ref.s)
 
-    def _prior(self, Pbb: np.ndarray, Pbeta: np.ndarray, Pgg: np.ndarray) -> np.ndarray:
-        pr = self.params
-        P = np.zeros((N, N))
-        P[P_, P_] = pr.init_pos_std**2 * _I3
-        P[V_, V_] = pr.init_vel_std**2 * _I3
-        P[B_, B_] = Pbb
-        P[TH, TH] = pr.init_rot_std**2 * _I3
-        P[W_, W_] = pr.init_angvel_std**2 * _I3
-        P[BE, BE] = Pbeta
-        P[G_, G_] = Pgg
-        return P
+    def _load(self, s: _State) -> None:
+        """Take the state of a reference ``_State`` (after a re-initialisation or a reset)."""
+        self._x = s.p.tolist() + s.v.tolist() + s.b.tolist() + [0.0, 0.0, 0.0] + s.w.tolist() + s.beta.tolist() \
+            + s.g.tolist()
+        self._R = tuple(s.R.ravel().tolist())
+        self._P = s.P.copy()
+        self._t, self._pend, self._has_R, self._sys_var = s.t_ns, s.pending_ns, s.has_R, s.sys_var
+
+    @property
+    def state(self) -> _State:
+        """A copy of the state in the reference's form (``FullpercReference.s``), for tests and diagnostics."""
+        x = self._x
+        return _State(np.array(x[0:3]), np.array(x[3:6]), np.array(x[6:9]), np.array(self._R).reshape(3, 3),
+                      np.array(x[12:15]), np.array(x[15:18]), self._P.copy(), self._t, self._pend, self._has_R,
+                      np.array(x[18:21]), self._sys_var)
 
     def snapshot(self) -> object:
-        """A copy of the whole filter state, for :meth:`restore` (rewind and replay)."""
-        return _copy(self.s)
+        """The whole filter state, for :meth:`restore`: references only (nothing stored is changed in place)."""
+        return ("fullperc", self._x, self._R, self._P, self._t, self._pend, self._has_R, self._sys_var)
 
     def restore(self, obj: object) -> None:
-        """Put back a state taken by :meth:`snapshot` (the snapshot stays usable)."""
-        if not isinstance(obj, _State):
+        """Back to a :meth:`snapshot` (it stays usable)."""
+        if not (isinstance(obj, tuple) and len(obj) == 8 and obj[0] == "fullperc"):
             raise TypeError(f"not a fullperc snapshot: {type(obj).__name__}")
-        self.s = _copy(obj)
+        _, self._x, self._R, self._P, self._t, self._pend, self._has_R, self._sys_var = obj
 
     @property
     def time_ns(self) -> int | None:
-        s = self.s
-        return s.pending_ns if s.pending_ns is not None else s.t_ns
+        return self._pend if self._pend is not None else self._t
 
     @property
     def t_ns(self) -> int | None:
-        return self.s.t_ns
+        return self._t
 
     @property
     def bias(self) -> np.ndarray:
         """The whole position bias of the global source, b + g."""
-        return self.s.b + self.s.g
+        x = self._x
+        return np.array([x[6] + x[18], x[7] + x[19], x[8] + x[20]])
 
     @property
     def rot_bias(self) -> np.ndarray:
-        return self.s.beta.copy()
+        return np.array(self._x[15:18])
 
     # ---- predict --------------------------------------------------------------------------------
+    def _transition(self, dt: float, w: tuple) -> tuple:
+        """(Exp(w dt), F) of one prediction: F's dt and phi entries from a template cached by dt, Exp(w dt)
+        written into a copy (w changes with every orientation update); the template itself when w = 0."""
+        F0 = self._fcache.get(dt)
+        if F0 is None:
+            if len(self._fcache) >= _CACHE_MAX:
+                self._fcache.clear()
+            F0 = np.eye(N)
+            F0[_F_PV] = dt
+            F0[_F_TW] = dt
+            F0[_F_GG] = math.exp(-dt / self.params.sys_time)
+            self._fcache[dt] = F0
+        if w[0] == 0.0 and w[1] == 0.0 and w[2] == 0.0:
+            return _R_IDENT, F0
+        Rw = _exp(w[0] * dt, w[1] * dt, w[2] * dt)
+        F = F0.copy()
+        F.put(_F_TH, Rw)
+        return Rw, F
+
+    def _noise(self, dt: float, sys_var: float) -> np.ndarray:
+        """Q of one prediction (module docstring of the reference), cached by (dt, sys_var)."""
+        key = (dt, sys_var)
+        Q = self._qcache.get(key)
+        if Q is None:
+            if len(self._qcache) >= _CACHE_MAX:
+                self._qcache.clear()
+            pr = self.params
+            phi = math.exp(-dt / pr.sys_time)
+            Q = np.zeros((N, N))
+            for (i, j), q in (((0, 3), pr.accel_noise), ((9, 12), pr.ang_accel_noise)):
+                for k in range(3):
+                    Q[i + k, i + k] = q * dt**3 / 3
+                    Q[i + k, j + k] = Q[j + k, i + k] = q * dt**2 / 2
+                    Q[j + k, j + k] = q * dt
+            for k in range(3):
+                Q[6 + k, 6 + k] = pr.bias_walk * dt
+                Q[15 + k, 15 + k] = pr.rot_bias_walk * dt
+                Q[18 + k, 18 + k] = sys_var * (1.0 - phi * phi)
+            self._qcache[key] = Q
+        return Q
+
     def predict(self, t_ns: int) -> None:
-        """Move the state to ``t_ns`` (constant velocity and angular velocity; module docstring)."""
-        s = self.s
-        t, dt = predict_interval(t_ns, s.t_ns, s.pending_ns, self.params.max_gap_s)
+        """Move the state to ``t_ns`` (the reference's predict)."""
+        t, dt = predict_interval(t_ns, self._t, self._pend, self.params.max_gap_s)
         if dt is None:
-            s.pending_ns = t
+            self._pend = t
             return
         if dt == 0.0:
             return
-        pr = self.params
-        Rw = so3_exp(s.w * dt)
-        phi = math.exp(-dt / pr.sys_time)
-        s.p = s.p + s.v * dt
-        s.R = Rw @ s.R
-        s.g = phi * s.g
-        # P = F P F^T with F = I except F_pv = dt I, F_thth = Rw, F_thw = dt I, F_gg = phi I: as row and column
-        # operations on the blocks F touches (equal to the product, ~3x cheaper at 21x21 in numpy)
-        P = s.P.copy()
-        P[P_, :] += dt * P[V_, :]
-        P[TH, :] = Rw @ P[TH, :] + dt * P[W_, :]
-        P[G_, :] *= phi
-        P[:, P_] += dt * P[:, V_]
-        P[:, TH] = P[:, TH] @ Rw.T + dt * P[:, W_]
-        P[:, G_] *= phi
-        qa, qr = pr.accel_noise, pr.ang_accel_noise
-        for (i, j), q in (((0, 3), qa), ((9, 12), qr)):
-            for k in range(3):
-                P[i + k, i + k] += q * dt**3 / 3
-                P[i + k, j + k] += q * dt**2 / 2
-                P[j + k, i + k] += q * dt**2 / 2
-                P[j + k, j + k] += q * dt
-        for k in range(3):
-            P[6 + k, 6 + k] += pr.bias_walk * dt
-            P[15 + k, 15 + k] += pr.rot_bias_walk * dt
-            P[18 + k, 18 + k] += s.sys_var * (1.0 - phi * phi)
-        s.P = 0.5 * (P + P.T)
-        s.t_ns = t
+        x = self._x
+        Rw, F = self._transition(dt, (x[12], x[13], x[14]))
+        phi = F[18, 18]
+        x = x[:]
+        x[0], x[1], x[2] = x[0] + x[3] * dt, x[1] + x[4] * dt, x[2] + x[5] * dt
+        x[18], x[19], x[20] = phi * x[18], phi * x[19], phi * x[20]
+        self._x = x
+        self._R = _mul(Rw, self._R)
+        P = F @ self._P @ F.T + self._noise(dt, self._sys_var)
+        self._P = 0.5 * (P + P.T)
+        self._t = t
 
     # ---- update ---------------------------------------------------------------------------------
-    def _init_state(self, t: int, mg: Measurement | None, ml: Measurement | None) -> Step:
-        s = self.s
-        pr = self.params
-        keep = s.t_ns is not None
-        dt = (t - s.t_ns) * 1e-9 if keep else 0.0
-        Pbb = s.P[B_, B_] + pr.bias_walk * dt * _I3 if keep else pr.init_bias_std**2 * _I3
-        Pbe = s.P[BE, BE] + pr.rot_bias_walk * dt * _I3 if keep else pr.init_rot_bias_std**2 * _I3
-        phi = math.exp(-dt / pr.sys_time)
-        Pgg = phi * phi * s.P[G_, G_] + s.sys_var * (1 - phi * phi) * _I3 if keep else s.sys_var * _I3
-        s.g = phi * s.g if keep else np.zeros(3)
-        if not keep:
-            s.b, s.beta = np.zeros(3), np.zeros(3)
-        s.p = ml.p.copy() if ml is not None else mg.p - s.b - s.g
-        s.v, s.w = np.zeros(3), np.zeros(3)
-        s.has_R = False
-        if ml is not None and ml.q is not None:
-            s.R, s.has_R = quat_to_R(ml.q), True
-        elif mg is not None and mg.q is not None:
-            s.R, s.has_R = so3_exp(-s.beta) @ quat_to_R(mg.q), True
-        s.P = self._prior(Pbb, Pbe, Pgg)
-        s.t_ns, s.pending_ns = t, None
-        return self._step(t, mg, ml, reset=True)
-
-    def _rows(self, m: Measurement, t: int):
-        """(H, y, Rm, n_pos_rows) of one measurement at filter time t; rotation rows only with ``q``."""
-        s = self.s
-        pr = self.params
-        lag = (t - m.t_ns) * 1e-9
-        if lag > pr.max_gap_s:
-            raise ValueError(f"measurement {lag:.3f} s older than the filter time (max_gap_s {pr.max_gap_s})")
-        glob = m.source == SOURCE_GLOBAL
-        rot = m.q is not None
-        H = np.zeros((6 if rot else 3, N))
-        H[0:3, P_] = _I3
-        H[0:3, V_] = -lag * _I3
-        zp = s.p - lag * s.v
-        if glob:
-            H[0:3, B_] = _I3
-            H[0:3, G_] = _I3
-            zp = zp + s.b + s.g
-        y = np.zeros(6 if rot else 3)
-        y[0:3] = m.p - zp
-        if rot:
-            A = so3_exp(-lag * s.w) if lag > 0 else _I3
-            if glob:
-                A = so3_exp(s.beta) @ A
-                H[3:6, BE] = _I3
-            H[3:6, TH] = A
-            H[3:6, W_] = -lag * _I3
-            y[3:6] = so3_log(quat_to_R(m.q) @ (A @ s.R).T)
-        if m.cov is not None:
-            Rm = m.cov if rot else m.cov[0:3, 0:3]
-        else:
-            sp, sr = (pr.global_std, pr.rot_global_std) if glob else (pr.local_std, pr.rot_local_std)
-            Rm = np.diag([sp * sp] * 3 + ([sr * sr] * 3 if rot else []))
-        return H, y, Rm
+    def _template(self, sig: tuple) -> tuple:
+        """(H with its constant entries, per measurement the flat indices of its -lag entries and of its A block)
+        of one row layout (global / local, with / without orientation)."""
+        hit = self._hcache.get(sig)
+        if hit is None:
+            blocks, k = [], 0
+            for glob, rot in sig:
+                blocks.append((k, glob, rot))
+                k += 6 if rot else 3
+            H = np.zeros((k, N))
+            lag_idx, a_idx = [], []
+            for o, glob, rot in blocks:
+                for i in range(3):
+                    H[o + i, i] = 1.0
+                    if glob:
+                        H[o + i, 6 + i] = H[o + i, 18 + i] = 1.0
+                        if rot:
+                            H[o + 3 + i, 15 + i] = 1.0
+                rows = [o, o + 1, o + 2] + ([o + 3, o + 4, o + 5] if rot else [])
+                cols = [3, 4, 5] + ([12, 13, 14] if rot else [])
+                lag_idx.append(np.array([N * r + c for r, c in zip(rows, cols, strict=True)]))
+                a_idx.append(np.array([N * (o + 3 + r) + 9 + c for r in range(3) for c in range(3)]))
+            hit = self._hcache[sig] = (H, lag_idx, a_idx)
+        return hit
 
     def update(self, *measurements: Measurement) -> Step:
-        """Fuse one measurement or a (global, local) pair in one stacked error-state update (module docstring)."""
+        """Fuse one measurement or a (global, local) pair (the reference's update; module docstring)."""
         mg, ml = split_update(self.kind, measurements)
         t_new = max(m.t_ns for m in measurements)
         if self.time_ns is None or t_new > self.time_ns:
             self.predict(t_new)
         t = self.time_ns
-        s = self.s
-        if s.pending_ns is not None:
-            return self._init_state(t, mg, ml)
-        if not s.has_R:   # first sample with an orientation after a position-only start: take it as is
+        if self._pend is not None:
+            return self._reinit(t, mg, ml)
+        x = self._x
+        if not self._has_R:   # first sample with an orientation after a position-only start: take it as is
             m = ml if ml is not None and ml.q is not None else mg if mg is not None and mg.q is not None else None
             if m is not None:
-                s.R = quat_to_R(m.q) if m is ml else so3_exp(-s.beta) @ quat_to_R(m.q)
-                s.has_R = True
+                Rq = _quat_R(m.q)
+                self._R = Rq if m is ml else _mul(_exp(-x[15], -x[16], -x[17]), Rq)
+                self._has_R = True
         pr = self.params
-        blocks = [self._rows(m, t) for m in (mg, ml) if m is not None]
-        H = np.vstack([b[0] for b in blocks])
-        y = np.concatenate([b[1] for b in blocks])
-        k = len(y)
-        Rm = np.zeros((k, k))
-        i = 0
-        for b in blocks:
-            n = len(b[1])
-            Rm[i:i + n, i:i + n] = b[2]
-            i += n
-        P = s.P
+        ms = [m for m in (mg, ml) if m is not None]
+        H, lag_idx, offs = self._template(tuple((m.source == SOURCE_GLOBAL, m.q is not None) for m in ms))
+        H = H.copy()
+        y: list[float] = []
+        Rblocks = []
+        for m, lag_flat, a_flat in zip(ms, lag_idx, offs, strict=True):
+            lag = (t - m.t_ns) * 1e-9
+            if lag > pr.max_gap_s:
+                raise ValueError(f"measurement {lag:.3f} s older than the filter time (max_gap_s {pr.max_gap_s})")
+            glob = m.source == SOURCE_GLOBAL
+            rot = m.q is not None
+            H.put(lag_flat, -lag)
+            z0, z1, z2 = m.p.tolist()
+            zp = [x[0] - lag * x[3], x[1] - lag * x[4], x[2] - lag * x[5]]
+            if glob:
+                zp = [zp[0] + x[6] + x[18], zp[1] + x[7] + x[19], zp[2] + x[8] + x[20]]
+            y += [z0 - zp[0], z1 - zp[1], z2 - zp[2]]
+            if rot:
+                A = _exp(-lag * x[12], -lag * x[13], -lag * x[14]) if lag > 0 else _R_IDENT
+                if glob:
+                    A = _mul(_exp(x[15], x[16], x[17]), A)
+                H.put(a_flat, A)
+                y += _log(_mul_t(_quat_R(m.q), _mul(A, self._R)))
+            c = m.cov
+            Rblocks.append(self._fixed[(m.source, rot)] if c is None else c if rot else c[0:3, 0:3])
+        if len(Rblocks) == 1:
+            Rm = Rblocks[0]
+        else:
+            k0 = len(Rblocks[0])
+            Rm = np.zeros((len(y), len(y)))
+            Rm[:k0, :k0] = Rblocks[0]
+            Rm[k0:, k0:] = Rblocks[1]
         if mg is not None:
             sv = mg.extras.get("sys_var")
-            s.sys_var = float(sv) if sv is not None and math.isfinite(sv) and sv > 0 else pr.sys_std**2
-        S = H @ P @ H.T + Rm
-        nis = float(y @ np.linalg.solve(S, y))
+            self._sys_var = float(sv) if sv is not None and math.isfinite(sv) and sv > 0 else pr.sys_std**2
+        P = self._P
+        U = P @ H.T
+        S = H @ U + Rm
+        yv = np.array(y)
+        Z = _solve(S, yv, U)
+        nis = sum(a * b for a, b in zip(y, Z[:, 0].tolist(), strict=True))
         nis_g = 0.0
         hop = False
         if mg is not None:
-            ng = len(blocks[0][1])
-            nis_g = float(y[0:3] @ np.linalg.solve(S[0:3, 0:3], y[0:3]))
+            Sl = S[0:6, 0:6].tolist() if len(y) >= 6 else S.tolist()
+            nis_g = _nis3(Sl, y[0], y[1], y[2])
             hop_p = nis_g > pr.hop_gate
-            hop_r = ng == 6 and float(y[3:6] @ np.linalg.solve(S[3:6, 3:6], y[3:6])) > pr.hop_gate
+            hop_r = mg.q is not None and _nis3([r[3:6] for r in Sl[3:6]], y[3], y[4], y[5]) > pr.hop_gate
             hop = hop_p or hop_r
             self.hop_counts["position"] += hop_p
             self.hop_counts["rotation"] += hop_r
             if hop_p and pr.hop_to_bias:
                 P = P.copy()
-                P[B_, B_] += np.diag(y[0:3] ** 2)
-                S = H @ P @ H.T + Rm
-        G = np.linalg.solve(S, H @ P).T
-        dx = G @ y
-        IKH = _IN - G @ H
-        P = IKH @ P @ IKH.T + G @ Rm @ G.T
-        # inject and reset the error state
-        s.p = s.p + dx[P_]
-        s.v = s.v + dx[V_]
-        s.b = s.b + dx[B_]
-        s.R = so3_exp(dx[TH]) @ s.R
-        s.w = s.w + dx[W_]
-        s.beta = s.beta + dx[BE]
-        s.g = s.g + dx[G_]
-        Gt = _I3 - 0.5 * _skew(dx[TH])     # reset Jacobian G = I except G_thth: P = G P G^T on those rows/columns
-        P[TH, :] = Gt @ P[TH, :]
-        P[:, TH] = P[:, TH] @ Gt.T
-        s.P = 0.5 * (P + P.T)
-        if not (np.all(np.isfinite(s.P)) and np.all(np.isfinite(s.p)) and np.all(np.isfinite(s.R))):
+                P[6, 6] += y[0] * y[0]
+                P[7, 7] += y[1] * y[1]
+                P[8, 8] += y[2] * y[2]
+                U = P @ H.T
+                Z = _solve(H @ U + Rm, yv, U)
+        Gt = Z[:, 1:]                      # K^T = S^-1 U^T
+        dx = (yv @ Gt).tolist()
+        d0, d1, d2 = dx[9], dx[10], dx[11]
+        P = P - U @ Gt                     # = the reference's Joseph form for this (optimal) gain, to rounding
+        # the error-state reset P = G_r P G_r^T, G_r = I - [dtheta/2]x on the theta rows and columns
+        Gr = _I21.copy()
+        Gr.put(_F_TH, (1.0, 0.5 * d2, -0.5 * d1, -0.5 * d2, 1.0, 0.5 * d0, 0.5 * d1, -0.5 * d0, 1.0))
+        P = Gr @ P @ Gr.T
+        P = 0.5 * (P + P.T)
+        xn = [a + b for a, b in zip(x, dx, strict=True)]
+        xn[9] = xn[10] = xn[11] = 0.0
+        Rn = _mul(_exp(d0, d1, d2), self._R)
+        if not (math.isfinite(float(P.sum())) and math.isfinite(sum(xn[0:3])) and math.isfinite(sum(Rn))) and not (
+                np.all(np.isfinite(P)) and all(math.isfinite(v) for v in xn[0:3] + list(Rn))):
             self.reset()
             raise FloatingPointError("filter produced a non-finite state; it was reset")
-        s.t_ns = t
-        return self._step(t, mg, ml, innovation=y[0:3].copy(), nis=nis, nis_global=nis_g, hop=hop)
+        self._x, self._R, self._P, self._t = xn, Rn, P, t
+        return self._step(t, mg, ml, innovation=np.array(y[0:3]), nis=nis, nis_global=nis_g, hop=hop)
+
+    def _reinit(self, t: int, mg: Measurement | None, ml: Measurement | None) -> Step:
+        """A pending (re-)initialisation: the reference's rule, run by the reference on this state."""
+        r = self._ref
+        r.s = self.state
+        r._init_state(t, mg, ml)
+        self._load(r.s)
+        return self._step(t, mg, ml, reset=True)
 
     def _step(self, t: int, mg, ml, **kw) -> Step:
-        s = self.s
+        x, P = self._x, self._P
         src = (SOURCE_GLOBAL if mg is not None else 0) | (SOURCE_LOCAL if ml is not None else 0)
-        pose_cov = np.zeros((6, 6))
-        pose_cov[0:3, 0:3] = s.P[P_, P_]
-        pose_cov[0:3, 3:6] = s.P[P_, TH]
-        pose_cov[3:6, 0:3] = s.P[TH, P_]
-        pose_cov[3:6, 3:6] = s.P[TH, TH]
-        return Step(t, s.p.copy(), s.v.copy(), s.b + s.g, s.P.copy(), src,
-                    q=R_to_quat(s.R) if s.has_R else None, pose_cov=pose_cov if s.has_R else None,
-                    reset=kw.pop("reset", False), **kw)
+        has_R = self._has_R
+        return Step(t, np.array(x[0:3]), np.array(x[3:6]), np.array([x[6] + x[18], x[7] + x[19], x[8] + x[20]]),
+                    P, src, q=_R_quat(self._R) if has_R else None,
+                    pose_cov=P.ravel()[_POSE].reshape(6, 6) if has_R else None, reset=kw.pop("reset", False), **kw)

@@ -1,5 +1,8 @@
 """fullperc filter (issue 18 item 4): SO(3) helpers, orientation update, error-state reset, NEES consistency on
-data simulated from the filter's own model, hop handling, snapshot/restore."""
+data simulated from the filter's own model, hop handling, snapshot/restore. Run on the filter the pipeline uses
+(fullperc_filter, the fast form); the hand-made update of one step is checked on the general form
+(fullperc_reference, which has the matrices to hand) and on the fast one; test_fullperc_fast.py holds the two
+together at every step."""
 
 from __future__ import annotations
 
@@ -11,6 +14,7 @@ from scipy.stats import chi2
 from fullperc_fusion.filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, BadMeasurement, Filter, Measurement
 from fullperc_fusion.filter_registry import make_filter
 from fullperc_fusion.fullperc_filter import FullpercFilter, FullpercParams, N, R_to_quat, quat_to_R, so3_exp, so3_log
+from fullperc_fusion.fullperc_reference import FullpercReference
 
 MS = 1_000_000
 DT = 1 / 120
@@ -55,7 +59,7 @@ def test_orientation_converges_to_a_known_rotation_and_velocity():
         st = f.update(_m(t, SOURCE_GLOBAL, [0.1, 0.2, 0.3], q), _m(t, SOURCE_LOCAL, [0.1, 0.2, 0.3], q))
     err = so3_log(quat_to_R(st.q) @ R.T)
     assert np.linalg.norm(err) < 1e-4
-    np.testing.assert_allclose(f.s.w, w_true, atol=1e-3)
+    np.testing.assert_allclose(f.state.w, w_true, atol=1e-3)
     assert st.pose_cov.shape == (6, 6) and np.all(np.linalg.eigvalsh(st.pose_cov) > 0)
 
 
@@ -78,10 +82,11 @@ def test_a_rotation_offset_of_the_global_source_goes_into_its_orientation_bias()
 
 def test_error_state_reset_of_one_update():
     """One update by hand: Kalman correction dx, injection R = Exp(dtheta) R, and P = G P+ G^T with
-    G_thth = I - [dtheta/2]x (the reset of the multiplicative error state)."""
-    f = FullpercFilter()
-    f.update(_m(0, SOURCE_LOCAL, [0, 0, 0], [0, 0, 0, 1]))
-    f.predict(10 * MS)
+    G_thth = I - [dtheta/2]x (the reset of the multiplicative error state); the fast form gives the same."""
+    f, fast = FullpercReference(), FullpercFilter()
+    for g in (f, fast):
+        g.update(_m(0, SOURCE_LOCAL, [0, 0, 0], [0, 0, 0, 1]))
+        g.predict(10 * MS)
     P0, R0 = f.s.P.copy(), f.s.R.copy()
     q_meas = R_to_quat(so3_exp(np.array([0.03, -0.02, 0.01])))
     cov = np.diag([1e-8] * 3 + [1e-5] * 3)
@@ -96,8 +101,10 @@ def test_error_state_reset_of_one_update():
     d = dx[9:12]
     G[9:12, 9:12] = np.eye(3) - 0.5 * np.array([[0, -d[2], d[1]], [d[2], 0, -d[0]], [-d[1], d[0], 0]])
     f.update(m)
-    np.testing.assert_allclose(f.s.R, so3_exp(d) @ R0, atol=1e-14)
-    np.testing.assert_allclose(f.s.P, G @ Pp @ G.T, rtol=1e-9, atol=1e-20)
+    fast.update(m)
+    for s in (f.s, fast.state):
+        np.testing.assert_allclose(s.R, so3_exp(d) @ R0, atol=1e-14)
+        np.testing.assert_allclose(s.P, G @ Pp @ G.T, rtol=1e-9, atol=1e-20)
     assert np.linalg.norm(d) > 0.01           # a real correction, not a no-op
     # after the reset the error state is zero-mean again: the same measurement now has a smaller innovation
     _, y2, _ = f._rows(m, 10 * MS)

@@ -1,0 +1,441 @@
+"""``fullperc`` in its general form, the reference: CBKF's compensated position model with per-measurement
+covariance, plus orientation on SO(3).
+
+Issue 18 item 4. This is the model's definition, written as the textbook 21-state error-state filter in numpy
+matrix form; the filter the pipeline runs (``"fullperc"`` in :mod:`filter_registry`) is
+:class:`fullperc_filter.FullpercFilter`, the same filter restructured for speed (issue 16 item 3), which
+``test_fullperc_fast.py`` holds to this one at 1e-12. ``uses_models`` asks the pipeline for the model covariances
+of :mod:`measurement_models` (the paper's four keep their fixed noise).
+
+Nominal state (``base``, SI): position p, velocity v, the global source's position bias in two parts -- b, CBKF's
+compensation term (random walk: the part that stays, e.g. the error of the calibrated global link), and g, a
+Gauss-Markov part (the OMC's systematic error that decorrelates over ~``sys_time`` of motion: distortion along
+the path, camera-set changes) --, orientation R (tool -> base), angular velocity w (base axes) and the global
+source's orientation bias beta (a rotation vector: the OMC reports R_omc = Exp(beta) R). Error state, 21 dims,
+rotation errors on the left about the base axes (the :mod:`filter_api` convention, R_true = Exp(dtheta) R):
+
+    dx = [dp dv db | dtheta dw dbeta | dg]      (indices 0:3 3:6 6:9 | 9:12 12:15 15:18 | 18:21)
+
+Why two bias parts (raw OMC error vs the Diana truth, :mod:`measurement_models`): the rms increment of the OMC's
+error over a lag grows from the white level towards a plateau (spec 0.07 -> 0.18 -> 0.30 mm at 8 ms / 1 s / 10 s;
+paper 0.16 -> 1.84 -> 3.19 mm; Gauss-Markov fit: tau ~3 s): a random walk (CBKF's b alone) keeps a learnt
+compensation forever, so after the local source is gone the output carries a compensation that no longer holds;
+a Gauss-Markov process forgets it at the rate the sensor's error does, and the mean offset (per bag ~0.1 mm spec,
+~1.5 mm paper) stays in b.
+
+* predict over dt (constant velocity, constant angular velocity):
+  p += v dt, R = Exp(w dt) R, g *= phi, phi = exp(-dt / sys_time);
+  F = I with F_pv = dt I, F_thth = Exp(w dt), F_thw = dt I, F_gg = phi I;
+  Q = q_a [[dt^3/3, dt^2/2], [dt^2/2, dt]] on (p, v), q_b dt on b, q_alpha the same form on (theta, w),
+  q_beta dt on beta, s^2 (1 - phi^2) on g (white acceleration / angular acceleration, random-walk biases, a
+  first-order Gauss-Markov g of stationary variance s^2: the ``sys_var`` of the newest global sample,
+  :func:`measurement_models.omc_systematic_var`, margin- and fit-error-adaptive; ``sys_std^2`` without one).
+* a global sample (lag s = filter time - sample stamp, as the paper filters: exact under constant velocity):
+  z_p = p - s v + b + g,  R_z = Exp(beta) Exp(-s w) R;
+  residual r_theta = Log(R_z R_pred^T), H rows p: [I, -s I, I, 0, 0, 0], theta: [0, 0, 0, A, -s I, I] with
+  A = Exp(beta) Exp(-s w) (the left perturbation carried through the prediction); a local sample the same
+  without b and beta.
+* R of the update: the measurement's full 6x6 ``cov`` (the models' or a device's; position-rotation correlation
+  of the lever arm included); without ``cov`` the fixed noise ``global_std`` / ``local_std`` and
+  ``rot_global_std`` / ``rot_local_std``. A sample without ``q`` updates the position only.
+* hops, as CBKF (:mod:`filters`): NIS of the global position rows above ``hop_gate`` -> the variance of b is
+  raised by y_p^2 per axis before the gain (a camera-set change persists while that set sees the body, so it goes
+  into the lasting part, as in CBKF). A rotation hop (NIS of the global rotation rows above the gate) is flagged
+  but not put into beta: the OMC's rotation jumps revert within frames and are part of its R
+  (:func:`measurement_models.omc_covariance`), so a jump kept in beta would stay wrong after the OMC recovers.
+  A lasting step of the global position goes into its bias, not into the pose.
+* error-state update (Joseph form), injection p += dp ..., R = Exp(dtheta) R, and the reset of the error state:
+  P = G P G^T with G_thth = I - [dtheta/2]x (the first-order reset Jacobian of the multiplicative update).
+* gaps longer than ``max_gap_s`` re-initialise p, v, R, w from the next sample; b and beta (and their variances)
+  are kept.
+
+CBKF's biased estimator M is left out: on the position block it is a shrinkage towards the origin of ``base``
+with m = 1 - O(1e-7) (see :mod:`filters`), i.e. micrometres, and on the other blocks it breaks the filter.
+
+Output: :class:`filter_api.Step` with ``q`` (x y z w) and ``pose_cov`` (6x6, [p, theta], base).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement, Step, StepCompat, predict_interval, split_update
+from .filters import FilterParams
+
+__all__ = ["FullpercParams", "FullpercReference", "so3_exp", "so3_log", "quat_to_R", "R_to_quat"]
+
+N = 21
+_I3 = np.eye(3)
+_IN = np.eye(N)
+P_, V_, B_, TH, W_, BE, G_ = (slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15), slice(15, 18),
+                              slice(18, 21))
+
+
+@dataclass
+class FullpercParams(FilterParams):
+    """The position parameters of CBKF (:class:`filters.FilterParams`, same meaning) plus the orientation's.
+
+    ang_accel_noise  q_alpha, white angular-acceleration density [rad^2/s^3]: 0.5 lets a hand-held tool change its
+                     turn rate by ~0.7 rad/s within a second.
+    rot_bias_walk    q_beta, random walk of the OMC's orientation bias [rad^2/s]: 1e-6 -> ~1 mrad per sqrt(s) as
+                     the camera set and the distortion change along the path.
+    rot_global_std   OMC orientation noise per axis [rad] without a covariance (5 mrad: raw OMC, spec bags).
+    rot_local_std    Vega orientation noise per axis [rad] without a covariance (2.2 mrad: raw Vega, spec bags).
+    init_rot_std, init_angvel_std, init_rot_bias_std  prior stds of theta [rad], w [rad/s], beta [rad].
+    sys_time         correlation time of the OMC's systematic position error [s] (3 s: Gauss-Markov fit of the raw
+                     OMC error's structure function, 3.1 s spec / 2.8 s paper, measurement_models).
+    sys_std          its per-axis std [m] for a global sample without ``sys_var`` (0.2 mm: raw OMC, spec bags).
+    """
+
+    ang_accel_noise: float = 0.5
+    rot_bias_walk: float = 1e-6
+    rot_global_std: float = 5e-3
+    rot_local_std: float = 2.2e-3
+    init_rot_std: float = 0.05
+    init_angvel_std: float = 0.5
+    init_rot_bias_std: float = 0.02
+    sys_time: float = 3.0
+    sys_std: float = 0.2e-3
+
+    def validate(self) -> FullpercParams:
+        super().validate()
+        for name in ("ang_accel_noise", "rot_bias_walk", "init_rot_std", "init_angvel_std", "init_rot_bias_std"):
+            v = float(getattr(self, name))
+            if not (np.isfinite(v) and v >= 0):
+                raise ValueError(f"filter parameter {name} must be finite and >= 0, got {v!r}")
+        for name in ("rot_global_std", "rot_local_std", "sys_time", "sys_std"):
+            v = float(getattr(self, name))
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"filter parameter {name} must be finite and > 0, got {v!r}")
+        return self
+
+    @classmethod
+    def from_params(cls, params: FilterParams | None) -> FullpercParams:
+        """``params`` itself when it already is one; else its position fields with the orientation defaults."""
+        if isinstance(params, FullpercParams):
+            return params
+        if params is None:
+            return cls()
+        return cls(**{k: getattr(params, k) for k in FilterParams.__dataclass_fields__})
+
+
+# ---------------------------------------------------------------------------------------------- SO(3)
+def _skew(a: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+
+
+def so3_exp(w: np.ndarray) -> np.ndarray:
+    """Exp of a rotation vector (Rodrigues); series below 1e-8 rad."""
+    th = math.sqrt(float(w @ w))
+    K = _skew(w)
+    if th < 1e-8:
+        return _I3 + K + 0.5 * K @ K
+    return _I3 + (math.sin(th) / th) * K + ((1.0 - math.cos(th)) / (th * th)) * K @ K
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """Log of a rotation matrix as a rotation vector, |w| <= pi (robust near 0 and near pi)."""
+    c = max(-1.0, min(1.0, 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)))
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    th = math.acos(c)
+    if th < 1e-6:
+        return 0.5 * v
+    if th > math.pi - 1e-4:   # near pi: axis from the symmetric part
+        B = 0.5 * (R + _I3)
+        i = int(np.argmax(np.diag(B)))
+        ax = B[:, i] / math.sqrt(max(B[i, i], 1e-300))
+        if ax @ v < 0:
+            ax = -ax
+        return th * ax / np.linalg.norm(ax)
+    return (th / (2.0 * math.sin(th))) * v
+
+
+def quat_to_R(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a quaternion x y z w (normalised here)."""
+    x, y, z, w = np.asarray(q, dtype=float) / np.linalg.norm(q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def R_to_quat(R: np.ndarray) -> np.ndarray:
+    """Quaternion x y z w (w >= 0) of a rotation matrix (Shepperd)."""
+    t = R[0, 0] + R[1, 1] + R[2, 2]
+    if t > 0:
+        s = 2.0 * math.sqrt(t + 1.0)
+        q = np.array([(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s])
+    else:
+        i = int(np.argmax([R[0, 0], R[1, 1], R[2, 2]]))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * math.sqrt(max(1.0 + R[i, i] - R[j, j] - R[k, k], 1e-300))
+        q = np.zeros(4)
+        q[i] = 0.25 * s
+        q[j] = (R[j, i] + R[i, j]) / s
+        q[k] = (R[k, i] + R[i, k]) / s
+        q[3] = (R[k, j] - R[j, k]) / s
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+# ---------------------------------------------------------------------------------------------- filter
+@dataclass
+class _State:
+    """Everything :meth:`FullpercReference.snapshot` copies."""
+
+    p: np.ndarray
+    v: np.ndarray
+    b: np.ndarray
+    R: np.ndarray
+    w: np.ndarray
+    beta: np.ndarray
+    P: np.ndarray
+    t_ns: int | None
+    pending_ns: int | None
+    has_R: bool
+    g: np.ndarray                  # Gauss-Markov part of the global position bias
+    sys_var: float                 # its stationary variance (newest global sample's model, else sys_std^2)
+
+
+def _copy(s: _State) -> _State:
+    """A copy of every array of the state (the scalars are immutable): ~10x cheaper than copy.deepcopy."""
+    return _State(s.p.copy(), s.v.copy(), s.b.copy(), s.R.copy(), s.w.copy(), s.beta.copy(), s.P.copy(), s.t_ns,
+                  s.pending_ns, s.has_R, s.g.copy(), s.sys_var)
+
+
+class FullpercReference(StepCompat):
+    """The ``fullperc`` filter in general form; implements :class:`filter_api.Filter` (module docstring)."""
+
+    kind = "fullperc"
+    uses_models = True   # the pipeline gives this filter the model covariances (measurement_models)
+
+    def __init__(self, params: FilterParams | None = None) -> None:
+        self.params = FullpercParams.from_params(params).validate()
+        self.hop_counts = {"position": 0, "rotation": 0}   # hops flagged so far, per kind (diagnostics)
+        self.reset()
+
+    # ---- state ----------------------------------------------------------------------------------
+    def reset(self) -> None:
+        pr = self.params
+        self.s = _State(np.zeros(3), np.zeros(3), np.zeros(3), np.eye(3), np.zeros(3), np.zeros(3),
+                        self._prior(pr.init_bias_std**2 * _I3, pr.init_rot_bias_std**2 * _I3, pr.sys_std**2 * _I3),
+                        None, None, False, np.zeros(3), pr.sys_std**2)
+
+    def _prior(self, Pbb: np.ndarray, Pbeta: np.ndarray, Pgg: np.ndarray) -> np.ndarray:
+        pr = self.params
+        P = np.zeros((N, N))
+        P[P_, P_] = pr.init_pos_std**2 * _I3
+        P[V_, V_] = pr.init_vel_std**2 * _I3
+        P[B_, B_] = Pbb
+        P[TH, TH] = pr.init_rot_std**2 * _I3
+        P[W_, W_] = pr.init_angvel_std**2 * _I3
+        P[BE, BE] = Pbeta
+        P[G_, G_] = Pgg
+        return P
+
+    def snapshot(self) -> object:
+        """A copy of the whole filter state, for :meth:`restore` (rewind and replay)."""
+        return _copy(self.s)
+
+    def restore(self, obj: object) -> None:
+        """Put back a state taken by :meth:`snapshot` (the snapshot stays usable)."""
+        if not isinstance(obj, _State):
+            raise TypeError(f"not a fullperc snapshot: {type(obj).__name__}")
+        self.s = _copy(obj)
+
+    @property
+    def time_ns(self) -> int | None:
+        s = self.s
+        return s.pending_ns if s.pending_ns is not None else s.t_ns
+
+    @property
+    def t_ns(self) -> int | None:
+        return self.s.t_ns
+
+    @property
+    def bias(self) -> np.ndarray:
+        """The whole position bias of the global source, b + g."""
+        return self.s.b + self.s.g
+
+    @property
+    def rot_bias(self) -> np.ndarray:
+        return self.s.beta.copy()
+
+    # ---- predict --------------------------------------------------------------------------------
+    def predict(self, t_ns: int) -> None:
+        """Move the state to ``t_ns`` (constant velocity and angular velocity; module docstring)."""
+        s = self.s
+        t, dt = predict_interval(t_ns, s.t_ns, s.pending_ns, self.params.max_gap_s)
+        if dt is None:
+            s.pending_ns = t
+            return
+        if dt == 0.0:
+            return
+        pr = self.params
+        Rw = so3_exp(s.w * dt)
+        phi = math.exp(-dt / pr.sys_time)
+        s.p = s.p + s.v * dt
+        s.R = Rw @ s.R
+        s.g = phi * s.g
+        # P = F P F^T with F = I except F_pv = dt I, F_thth = Rw, F_thw = dt I, F_gg = phi I: as row and column
+        # operations on the blocks F touches (equal to the product, ~3x cheaper at 21x21 in numpy)
+        P = s.P.copy()
+        P[P_, :] += dt * P[V_, :]
+        P[TH, :] = Rw @ P[TH, :] + dt * P[W_, :]
+        P[G_, :] *= phi
+        P[:, P_] += dt * P[:, V_]
+        P[:, TH] = P[:, TH] @ Rw.T + dt * P[:, W_]
+        P[:, G_] *= phi
+        qa, qr = pr.accel_noise, pr.ang_accel_noise
+        for (i, j), q in (((0, 3), qa), ((9, 12), qr)):
+            for k in range(3):
+                P[i + k, i + k] += q * dt**3 / 3
+                P[i + k, j + k] += q * dt**2 / 2
+                P[j + k, i + k] += q * dt**2 / 2
+                P[j + k, j + k] += q * dt
+        for k in range(3):
+            P[6 + k, 6 + k] += pr.bias_walk * dt
+            P[15 + k, 15 + k] += pr.rot_bias_walk * dt
+            P[18 + k, 18 + k] += s.sys_var * (1.0 - phi * phi)
+        s.P = 0.5 * (P + P.T)
+        s.t_ns = t
+
+    # ---- update ---------------------------------------------------------------------------------
+    def _init_state(self, t: int, mg: Measurement | None, ml: Measurement | None) -> Step:
+        s = self.s
+        pr = self.params
+        keep = s.t_ns is not None
+        dt = (t - s.t_ns) * 1e-9 if keep else 0.0
+        Pbb = s.P[B_, B_] + pr.bias_walk * dt * _I3 if keep else pr.init_bias_std**2 * _I3
+        Pbe = s.P[BE, BE] + pr.rot_bias_walk * dt * _I3 if keep else pr.init_rot_bias_std**2 * _I3
+        phi = math.exp(-dt / pr.sys_time)
+        Pgg = phi * phi * s.P[G_, G_] + s.sys_var * (1 - phi * phi) * _I3 if keep else s.sys_var * _I3
+        s.g = phi * s.g if keep else np.zeros(3)
+        if not keep:
+            s.b, s.beta = np.zeros(3), np.zeros(3)
+        s.p = ml.p.copy() if ml is not None else mg.p - s.b - s.g
+        s.v, s.w = np.zeros(3), np.zeros(3)
+        s.has_R = False
+        if ml is not None and ml.q is not None:
+            s.R, s.has_R = quat_to_R(ml.q), True
+        elif mg is not None and mg.q is not None:
+            s.R, s.has_R = so3_exp(-s.beta) @ quat_to_R(mg.q), True
+        s.P = self._prior(Pbb, Pbe, Pgg)
+        s.t_ns, s.pending_ns = t, None
+        return self._step(t, mg, ml, reset=True)
+
+    def _rows(self, m: Measurement, t: int):
+        """(H, y, Rm, n_pos_rows) of one measurement at filter time t; rotation rows only with ``q``."""
+        s = self.s
+        pr = self.params
+        lag = (t - m.t_ns) * 1e-9
+        if lag > pr.max_gap_s:
+            raise ValueError(f"measurement {lag:.3f} s older than the filter time (max_gap_s {pr.max_gap_s})")
+        glob = m.source == SOURCE_GLOBAL
+        rot = m.q is not None
+        H = np.zeros((6 if rot else 3, N))
+        H[0:3, P_] = _I3
+        H[0:3, V_] = -lag * _I3
+        zp = s.p - lag * s.v
+        if glob:
+            H[0:3, B_] = _I3
+            H[0:3, G_] = _I3
+            zp = zp + s.b + s.g
+        y = np.zeros(6 if rot else 3)
+        y[0:3] = m.p - zp
+        if rot:
+            A = so3_exp(-lag * s.w) if lag > 0 else _I3
+            if glob:
+                A = so3_exp(s.beta) @ A
+                H[3:6, BE] = _I3
+            H[3:6, TH] = A
+            H[3:6, W_] = -lag * _I3
+            y[3:6] = so3_log(quat_to_R(m.q) @ (A @ s.R).T)
+        if m.cov is not None:
+            Rm = m.cov if rot else m.cov[0:3, 0:3]
+        else:
+            sp, sr = (pr.global_std, pr.rot_global_std) if glob else (pr.local_std, pr.rot_local_std)
+            Rm = np.diag([sp * sp] * 3 + ([sr * sr] * 3 if rot else []))
+        return H, y, Rm
+
+    def update(self, *measurements: Measurement) -> Step:
+        """Fuse one measurement or a (global, local) pair in one stacked error-state update (module docstring)."""
+        mg, ml = split_update(self.kind, measurements)
+        t_new = max(m.t_ns for m in measurements)
+        if self.time_ns is None or t_new > self.time_ns:
+            self.predict(t_new)
+        t = self.time_ns
+        s = self.s
+        if s.pending_ns is not None:
+            return self._init_state(t, mg, ml)
+        if not s.has_R:   # first sample with an orientation after a position-only start: take it as is
+            m = ml if ml is not None and ml.q is not None else mg if mg is not None and mg.q is not None else None
+            if m is not None:
+                s.R = quat_to_R(m.q) if m is ml else so3_exp(-s.beta) @ quat_to_R(m.q)
+                s.has_R = True
+        pr = self.params
+        blocks = [self._rows(m, t) for m in (mg, ml) if m is not None]
+        H = np.vstack([b[0] for b in blocks])
+        y = np.concatenate([b[1] for b in blocks])
+        k = len(y)
+        Rm = np.zeros((k, k))
+        i = 0
+        for b in blocks:
+            n = len(b[1])
+            Rm[i:i + n, i:i + n] = b[2]
+            i += n
+        P = s.P
+        if mg is not None:
+            sv = mg.extras.get("sys_var")
+            s.sys_var = float(sv) if sv is not None and math.isfinite(sv) and sv > 0 else pr.sys_std**2
+        S = H @ P @ H.T + Rm
+        nis = float(y @ np.linalg.solve(S, y))
+        nis_g = 0.0
+        hop = False
+        if mg is not None:
+            ng = len(blocks[0][1])
+            nis_g = float(y[0:3] @ np.linalg.solve(S[0:3, 0:3], y[0:3]))
+            hop_p = nis_g > pr.hop_gate
+            hop_r = ng == 6 and float(y[3:6] @ np.linalg.solve(S[3:6, 3:6], y[3:6])) > pr.hop_gate
+            hop = hop_p or hop_r
+            self.hop_counts["position"] += hop_p
+            self.hop_counts["rotation"] += hop_r
+            if hop_p and pr.hop_to_bias:
+                P = P.copy()
+                P[B_, B_] += np.diag(y[0:3] ** 2)
+                S = H @ P @ H.T + Rm
+        G = np.linalg.solve(S, H @ P).T
+        dx = G @ y
+        IKH = _IN - G @ H
+        P = IKH @ P @ IKH.T + G @ Rm @ G.T
+        # inject and reset the error state
+        s.p = s.p + dx[P_]
+        s.v = s.v + dx[V_]
+        s.b = s.b + dx[B_]
+        s.R = so3_exp(dx[TH]) @ s.R
+        s.w = s.w + dx[W_]
+        s.beta = s.beta + dx[BE]
+        s.g = s.g + dx[G_]
+        Gt = _I3 - 0.5 * _skew(dx[TH])     # reset Jacobian G = I except G_thth: P = G P G^T on those rows/columns
+        P[TH, :] = Gt @ P[TH, :]
+        P[:, TH] = P[:, TH] @ Gt.T
+        s.P = 0.5 * (P + P.T)
+        if not (np.all(np.isfinite(s.P)) and np.all(np.isfinite(s.p)) and np.all(np.isfinite(s.R))):
+            self.reset()
+            raise FloatingPointError("filter produced a non-finite state; it was reset")
+        s.t_ns = t
+        return self._step(t, mg, ml, innovation=y[0:3].copy(), nis=nis, nis_global=nis_g, hop=hop)
+
+    def _step(self, t: int, mg, ml, **kw) -> Step:
+        s = self.s
+        src = (SOURCE_GLOBAL if mg is not None else 0) | (SOURCE_LOCAL if ml is not None else 0)
+        pose_cov = np.zeros((6, 6))
+        pose_cov[0:3, 0:3] = s.P[P_, P_]
+        pose_cov[0:3, 3:6] = s.P[P_, TH]
+        pose_cov[3:6, 0:3] = s.P[TH, P_]
+        pose_cov[3:6, 3:6] = s.P[TH, TH]
+        return Step(t, s.p.copy(), s.v.copy(), s.b + s.g, s.P.copy(), src,
+                    q=R_to_quat(s.R) if s.has_R else None, pose_cov=pose_cov if s.has_R else None,
+                    reset=kw.pop("reset", False), **kw)
