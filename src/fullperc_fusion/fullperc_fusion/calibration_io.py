@@ -29,6 +29,7 @@ positive definite, n_inliers > n_samples.
 from __future__ import annotations
 
 import os
+import re
 import tempfile
 from collections.abc import Mapping
 from pathlib import Path
@@ -46,6 +47,7 @@ CONVENTIONS = ("T_a_b maps points from frame b into frame a; position in m; quat
 _TOP = {"version", "stamp_ns", "duration_s", "source", "conventions", "links"}
 _LINK = {"position", "quaternion_xyzw", "covariance", "n_samples", "n_inliers", "rms_trans_mm", "max_trans_mm",
          "rms_rot_mrad", "max_rot_mrad", "source"}
+_SOURCE_LINK = re.compile(r"^T_(base|rig)_[a-z][a-z0-9_]*$")   # a further local source's links (sources.py)
 _RESID = ("rms_trans_mm", "max_trans_mm", "rms_rot_mrad", "max_rot_mrad")
 
 
@@ -175,8 +177,10 @@ def parse_calibration(data: Any, source: str = "<data>") -> Calibration:
     links = m["links"]
     if not isinstance(links, Mapping) or not links:
         raise c.err("links", "expected a non-empty mapping of link name to link")
-    unknown = sorted(str(k) for k in links if k not in LINK_NAMES)
+    unknown = sorted(str(k) for k in links if k not in LINK_NAMES and not _SOURCE_LINK.match(str(k)))
     if unknown:
-        raise c.err("links", f"unknown link(s) {unknown}; known: {list(LINK_NAMES)}")
-    out = {name: _parse_link(c, links[name], f"links.{name}") for name in LINK_NAMES if name in links}
+        raise c.err("links", f"unknown link(s) {unknown}; known: {list(LINK_NAMES)} and T_base_<source> / "
+                             "T_rig_<source> of a further local source (sources.py)")
+    names = [n for n in LINK_NAMES if n in links] + sorted(str(k) for k in links if k not in LINK_NAMES)
+    out = {name: _parse_link(c, links[name], f"links.{name}") for name in names}
     return Calibration(out, stamp, dur, m["source"], version)

@@ -104,6 +104,7 @@ from .fusion_config import calibration_settings, health_params, primary_and_extr
 from .fusion_health import GLOBAL, LOCAL, InputLoad, SourceLoss, TargetHealth
 from .fusion_publish import OutputPublisher, publish_outputs
 from .pipeline import FusedOutput, TargetPipeline
+from .sources import routes
 
 # Diagnostics.set takes an int level (the diagnostic_msgs constants are bytes in rclpy).
 OK, WARN, ERROR = (diag.as_level(v) for v in (diag.OK, diag.WARN, diag.ERROR))
@@ -111,7 +112,8 @@ _PROBLEM_KEYS = ("rejected_nonfinite", "rejected_nonunit", "rejected_pose", "rej
                  "late", "duplicate", "rejected_cov", "local_skipped", "filter_error", "nonfinite_output",
                  "publish_error", "calibration_refused", "timeline_restart")
 # ROS type of a parameter declared without a default value (optional ones, empty lists)
-_ROS_TYPES = {"str_list": Parameter.Type.STRING_ARRAY, "pose7": Parameter.Type.DOUBLE_ARRAY}
+_ROS_TYPES = {"str_list": Parameter.Type.STRING_ARRAY, "pose7": Parameter.Type.DOUBLE_ARRAY,
+              "str": Parameter.Type.STRING, "float": Parameter.Type.DOUBLE}
 
 
 class FusionNode(Node):
@@ -154,8 +156,8 @@ class FusionNode(Node):
         self._link_state: dict[str, tuple[int | None, int]] = {}    # logged (bump start, recalibrations)
         self._skipped_seen: dict[str, int] = {}
         self._last_target_rx = time.monotonic()
-        routes_omc: dict[str, list[str]] = {}
-        routes_ots: dict[str, list[str]] = {}
+        self._routes: dict[str, dict[str, list[str]]] = {}   # device tag (omc, ots, further source) -> body -> targets
+        self._prefix: dict[str, str] = {}
         for t in targets:
             self.pipes[t] = make_pipeline(target_config(vals, t, filters))
             c = self.pipes[t].config.chain
@@ -164,36 +166,40 @@ class FusionNode(Node):
             self._skipped_seen[t] = 0
             self._bump_seen[t] = None
             self._link_state[t] = (None, 0)
-            for b in (c.omc_target, c.omc_base, c.omc_rig):
-                routes_omc.setdefault(b, []).append(t)
-            for b in (c.ots_target, c.ots_base):
-                routes_ots.setdefault(b, []).append(t)
+            pipe = self.pipes[t]
+            rts = routes(pipe.config.sources, c, pipe.extra_chains)
+            for r in rts:
+                self._prefix[r.tag] = r.prefix
+                for b in r.bodies:
+                    self._routes.setdefault(r.tag, {}).setdefault(b, []).append(t)
             self._pubs[(t, "")] = (
                 self.create_publisher(PoseStamped, f"/fullperc/{t}/pose", qos),
                 self.create_publisher(PoseWithCovarianceStamped, f"/fullperc/{t}/pose_cov", qos),
                 self.create_publisher(FusionStatus, f"/fullperc/{t}/status", qos))
             if vals["publish_final"] and isinstance(self.pipes[t], ArrivalPipeline):
                 self._final_pubs[t] = self.create_publisher(PoseStamped, f"/fullperc/{t}/final", qos)
-            for dev, body in (("omc", c.omc_target), ("ots", c.ots_target)):
+            for dev, body, pre in ((r.tag, r.target, r.prefix) for r in rts):
                 if (dev, body) not in self._loss:
                     self._loss[(dev, body)] = SourceLoss()
                     self._quality_subs[(dev, body)] = self.create_subscription(
-                        TrackingQuality, f"/{dev}/{body}/quality", partial(self._on_quality, (dev, body)), qos)
+                        TrackingQuality, f"{pre.rstrip('/')}/{body}/quality", partial(self._on_quality, (dev, body)),
+                        qos)
             for f in self._extra:
                 self._pubs[(t, f)] = (
                     self.create_publisher(PoseStamped, f"/fullperc/{t}/{f}/pose", qos), None,
                     self.create_publisher(FusionStatus, f"/fullperc/{t}/{f}/status", qos))
             self.create_subscription(Region, f"/fullperc/{t}/region",
                                      lambda m, t=t: self._region.__setitem__(t, int(m.label)), 10)
-            self._last_rx[t] = {"omc": None, "ots": None}
+            self._last_rx[t] = {r.tag: None for r in rts}
             self._problem_seen[t] = {}
         self._out_sets = {k: OutputPublisher(*v, always_pose=k[1] == "") for k, v in self._pubs.items()}
-        self._targets_of_omc = {b: list(dict.fromkeys(ts)) for b, ts in routes_omc.items()}
-        self._targets_of_ots = {b: list(dict.fromkeys(ts)) for b, ts in routes_ots.items()}
+        self._targets_of = {d: {b: list(dict.fromkeys(ts)) for b, ts in r.items()} for d, r in self._routes.items()}
+        self._local_k = {r.tag: r.k for r in rts}
         self._input_subs: list[tuple[str, str, object]] = []
-        for dev, routes in (("omc", self._targets_of_omc), ("ots", self._targets_of_ots)):
-            for b in routes:
-                sub = self.create_subscription(PoseStamped, f"/{dev}/{b}/pose", partial(self._on_input, dev, b), qos)
+        for dev, rt in self._targets_of.items():
+            for b in rt:
+                sub = self.create_subscription(PoseStamped, f"{self._prefix[dev].rstrip('/')}/{b}/pose",
+                                               partial(self._on_input, dev, b), qos)
                 self._input_subs.append((dev, b, sub))
         self.create_service(Trigger, "~/initialize", self._on_initialize)
         # own (reentrant) group: the answer waits for the collection, and the default group's callbacks (the data)
@@ -256,7 +262,7 @@ class FusionNode(Node):
         for m in [msg, *take_queued(self._quality_subs[key])]:
             loss.quality(int(m.frame_number), stamp_to_ns(m.header.stamp), bool(m.visible))
             if key[0] == "omc" and m.visible:   # H3: the OMC model covariance of filters with uses_models (fullperc)
-                for t in self._targets_of_omc.get(key[1], ()):
+                for t in self._targets_of["omc"].get(key[1], ()):
                     self.pipes[t].push_omc_quality(key[1], stamp_to_ns(m.header.stamp),
                                                    {"fit_error": float(m.fit_error),
                                                     "markers_used": float(m.markers_used)})
@@ -289,9 +295,9 @@ class FusionNode(Node):
         p, q = pose_to_pq(msg.pose)
         now = time.monotonic()
         clock_ns = self.get_clock().now().nanoseconds or None   # the time guard's clock; 0: sim time not started
-        if self._cal_run is not None:
+        if self._cal_run is not None and dev in ("omc", "ots"):
             self._cal_run[0].add(dev, body, t_ns, p, q)
-        targets = self._targets_of_omc[body] if dev == "omc" else self._targets_of_ots[body]
+        targets = self._targets_of[dev][body]
         for t in targets:
             pipe = self.pipes[t]
             c = pipe.config.chain
@@ -301,10 +307,11 @@ class FusionNode(Node):
                     self._last_rx[t]["omc"] = now
                     self._last_target_rx = now
                     self._source_sample(t, GLOBAL, ok, now)
-            else:
-                ok = pipe.push_ots(body, t_ns, (p, q), now_ns=clock_ns)
-                if body == c.ots_target:
-                    self._last_rx[t]["ots"] = now
+            else:   # ots: the first local source; a further one by its index (sources.py)
+                k = self._local_k[dev]
+                ok = pipe.push_local(k, body, t_ns, (p, q), now_ns=clock_ns)
+                if body == (c if k == 0 else pipe.extra_chains[k - 1].cfg).ots_target:
+                    self._last_rx[t][dev] = now
                     self._last_target_rx = now
                     self._source_sample(t, LOCAL, ok, now)
         return targets
@@ -424,6 +431,9 @@ class FusionNode(Node):
                 out.setdefault("base", ("omc", "base", L.T_omc_base))
             if L.T_base_ots is not None and pipe.config.chain.local_chain != "tracked":
                 out.setdefault("ots", ("base", "ots", L.T_base_ots))
+            for x, ch in zip(pipe.config.sources.extras, pipe.extra_chains, strict=True):   # base -> <source>
+                if ch.links.T_base_ots is not None and ch.cfg.local_chain != "tracked":
+                    out.setdefault(x.name, ("base", x.name, ch.links.T_base_ots))
         if self._T_base_diana is not None:
             out["diana_base"] = ("base", "diana_base", self._T_base_diana)
         return list(out.values())
@@ -493,7 +503,8 @@ class FusionNode(Node):
                     level = max(level, WARN)
                     msgs.append(f"{key} x{n}: {pipe.problems.get(key, '')}")
             rx = self._last_rx[t]
-            for dev, name in (("omc", "OMC (global)"), ("ots", "OTS (local)")):
+            for dev, name in (("omc", "OMC (global)"), ("ots", "OTS (local)"), *((d, f"{d} (local)") for d in rx
+                                                                                 if d not in ("omc", "ots"))):
                 last = rx[dev]
                 if last is None:
                     msgs.append(f"no {name} sample received yet")
@@ -522,9 +533,11 @@ class FusionNode(Node):
             msgs.append(f"overload: processing lag {lag * 1e-6:.0f} ms or more since the last report > lag_warn "
                         f"{self._lag_warn * 1e3:g} ms (node clock - stamp of the newest fused sample; up to "
                         f"{self._load.depth_max} samples waiting)")
-        c = self.pipes[target].config.chain
-        for dev, body, name in (("omc", c.omc_target, f"OMC body '{c.omc_target}'"),
-                                ("ots", c.ots_target, f"OTS tool '{c.ots_target}'")):
+        pipe = self.pipes[target]
+        for r in routes(pipe.config.sources, pipe.config.chain, pipe.extra_chains):
+            dev, body = r.tag, r.target
+            name = f"OMC body '{body}'" if dev == "omc" else f"OTS tool '{body}'" if dev == "ots" else \
+                f"{dev} tool '{body}'"
             loss = self._loss.get((dev, body))
             if loss is None:
                 continue

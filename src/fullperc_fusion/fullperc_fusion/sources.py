@@ -45,13 +45,13 @@ from __future__ import annotations
 import re
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from fullperc_common.params import ParameterError
 
-from .calibration import Calibration
+from .calibration import LINK_NAMES, Calibration
 from .frame_chain import LOCAL_CHAINS, ChainConfig
 
 ROLES = ("global", "local")
@@ -152,6 +152,9 @@ def read_source_values(get: Callable[[str, Any], Any], vals: dict[str, Any], tar
                                      f"it), got {glob or 'none'}")
     if not loc:
         raise _err("sources", names, "at least one source needs role local")
+    if "ots" in names and "ots" != loc[0] or "omc" in names and "omc" != glob[0]:
+        raise _err("sources", names, "the names omc and ots are kept for the global and the first local source "
+                                     "(the legacy parameters are theirs)")
     out["_global"], out["_locals"] = glob[0], loc
 
     def rd(s: str, key: str, kind: str, default: Any) -> Any:
@@ -202,8 +205,11 @@ def read_source_values(get: Callable[[str, Any], Any], vals: dict[str, Any], tar
 def source_set(vals: dict[str, Any], target: str, base: ChainConfig) -> tuple[SourceSet, ChainConfig]:
     """The target's :class:`SourceSet` and its first local source's chain (``base`` with the source block's
     settings); ``base`` unchanged and the built-in omc + ots without ``sources``."""
+    cal0 = base.calibration   # the first local source's chain: the file's links of the built-in names only
+    if cal0 is not None and set(cal0.links) - set(LINK_NAMES):
+        cal0 = replace(cal0, links={k: v for k, v in cal0.links.items() if k in LINK_NAMES})
     if not vals.get("sources"):
-        return SourceSet(), base
+        return SourceSet(), (base if cal0 is base.calibration else replace(base, calibration=cal0))
     g, locs = vals["_global"], vals["_locals"]
     spec = {s: SourceSpec(s, vals[f"{s}.role"], vals[f"{s}.topic_prefix"], vals[f"{s}.noise_std"],
                           vals[f"{s}.noise_model"]) for s in (g, *locs)}
@@ -214,7 +220,7 @@ def source_set(vals: dict[str, Any], target: str, base: ChainConfig) -> tuple[So
                        ots_base=vals[f"{s}.base_tool"], omc_rig=vals[f"{s}.rig_body"],
                        local_chain=vals[f"{s}.chain"], T_base_ots=_pose(T_base), T_rig_ots=_pose(T_rig))
 
-    first = chain_of(locs[0], base.calibration)
+    first = chain_of(locs[0], cal0)
     extras = []
     for s in locs[1:]:
         cal = renamed_calibration(base.calibration, s)
@@ -254,3 +260,25 @@ def model_cov_std(spec: SourceSpec, default_std: float, rot_std: float) -> np.nd
     the filters' fixed noise for its role (``default_std``) without one."""
     std = spec.noise_std if spec.noise_std is not None else default_std
     return np.diag([std**2] * 3 + [rot_std**2] * 3)
+
+
+class Route(NamedTuple):
+    """One device stream a target's pipeline takes in (fusion_node's subscriptions): ``tag`` omc (the global
+    source), ots (the first local) or the further source's name; ``k`` -1 global, else the local source index."""
+
+    tag: str
+    k: int
+    prefix: str
+    bodies: tuple[str, ...]   # every body / tool of this device the pipeline uses (target first)
+    target: str               # the target's own body / tool (its samples are measurements)
+
+
+def routes(sources: SourceSet, chain: ChainConfig, extra_chains: list) -> list[Route]:
+    """The device streams of one target (``TargetPipeline.config.sources``, ``.config.chain``, ``.extra_chains``)."""
+    c = chain
+    rigs = tuple(ch.cfg.omc_rig for ch in extra_chains)
+    out = [Route("omc", -1, sources.glob.topic_prefix, (c.omc_target, c.omc_base, c.omc_rig, *rigs), c.omc_target),
+           Route("ots", 0, sources.locals[0].topic_prefix, (c.ots_target, c.ots_base), c.ots_target)]
+    for k, (x, ch) in enumerate(zip(sources.extras, extra_chains, strict=True), start=1):
+        out.append(Route(x.name, k, x.topic_prefix, (ch.cfg.ots_target, ch.cfg.ots_base), ch.cfg.ots_target))
+    return out

@@ -1,0 +1,249 @@
+"""Sources by configuration (sources.py): parsing and its errors, three synchronizer streams, a chain and a noise
+per local source, arrival == ordered with two local sources, accuracy from the second local source."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from scipy.spatial.transform import Rotation as Rot
+
+from fullperc_common.params import ParameterError
+from fullperc_common.transforms import inv_T, make_T
+from fullperc_fusion import fusion_config as fc
+from fullperc_fusion.arrival import ArrivalPipeline
+from fullperc_fusion.frame_chain import ChainConfig
+from fullperc_fusion.pipeline import TargetConfig, TargetPipeline
+from fullperc_fusion.sources import SourceSet, SourceSpec
+from fullperc_fusion.synchronizer import ApproxSync, Sample
+
+MS = 1_000_000
+_spec = importlib.util.spec_from_file_location("_pipeline_streams", Path(__file__).with_name("test_pipeline.py"))
+_tp = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(_tp)
+T0, S, truth, T_OMC_BASE, T_OMC_OTS = _tp.T0, _tp.S, _tp.truth, _tp.T_OMC_BASE, _tp.T_OMC_OTS
+OMC_OFFSET = _tp.OMC_OFFSET
+ALL = ("cbkf", "ckf", "bkf", "kf", "omc")
+T_OMC_ATR = make_T([-1.0, 2.0, 1.2], Rot.from_euler("zyx", [-60, 10, 5], degrees=True).as_quat())
+T_OMC_ATR_RIG = T_OMC_ATR @ inv_T(make_T([0.02, 0.03, -0.05], Rot.from_euler("y", 7, degrees=True).as_quat()))
+TWO_LOCAL = {"sources": ["omc", "ots", "atracsys"], "omc": {"role": "global"}, "ots": {"role": "local"},
+             "atracsys": {"role": "local", "topic_prefix": "/atracsys", "base_tool": "ref", "noise_std": 2.0e-4},
+             "tool": {"atracsys": "probe7"}}
+
+
+def _write(tmp_path, params: dict):
+    p = tmp_path / "f.yaml"
+    p.write_text(yaml.safe_dump({"fusion_node": {"ros__parameters": params}}))
+    return p
+
+
+# ---------------------------------------------------------------------------------------------- configuration
+def test_no_sources_is_the_built_in_pair_and_reads_nothing_more():
+    seen = []
+    cfg = fc.target_config(lambda n, d: seen.append(n), "tool")
+    assert [s.name for s in (cfg.sources.glob, *cfg.sources.locals)] == ["omc", "ots"]
+    assert cfg.sources.stream_names == ("global", "local") and not any("." in n and n.startswith(("omc.", "ots."))
+                                                                       for n in seen)
+
+
+def test_two_local_sources_are_mapped(tmp_path):
+    cfg, _ = fc.load_fusion_config(_write(tmp_path, {**TWO_LOCAL, "local_chain": "direct"}), filters=("cbkf",))
+    s = cfg.sources
+    assert s.glob.name == "omc" and [x.name for x in s.locals] == ["ots", "atracsys"]
+    assert s.stream_names == ("global", "local", "atracsys")
+    assert cfg.chain.local_chain == "direct" and cfg.chain.ots_target == "tool"   # the first local: legacy values
+    a = s.extras[0]
+    assert a.topic("probe7") == "/atracsys/probe7/pose" and a.noise_std == 2.0e-4 and a.noise_model == "std"
+    assert (a.chain.ots_target, a.chain.ots_base, a.chain.local_chain, a.chain.omc_rig) == \
+        ("probe7", "ref", "static", "atracsys_rig")
+    # the first local source's block overrides the legacy parameters
+    cfg, _ = fc.load_fusion_config(_write(tmp_path, {**TWO_LOCAL, "ots": {"role": "local", "chain": "tracked",
+                                                                          "base_tool": "b2"}}), filters=("cbkf",))
+    assert (cfg.chain.local_chain, cfg.chain.ots_base) == ("tracked", "b2")
+
+
+@pytest.mark.parametrize("change, match", [
+    ({"atracsys": {"role": "remote"}}, "'atracsys.role'"),
+    ({"ots": {"role": "global"}}, "exactly one source needs role global"),
+    ({"sources": ["omc"]}, "at least one source needs role local"),
+    ({"sources": ["omc", "ots", "ots"]}, "listed twice"),
+    ({"sources": ["omc", "ots", "tool"], "tool": {"role": "local"}}, "clashes"),
+    ({"sources": ["omc", "ots", "noise"]}, "clashes"),
+    ({"sources": ["omc", "ots", "Vega-2"]}, "lower-case identifier"),
+    ({"sources": ["omc", "ots", "vega2"]}, "source 'vega2' .* has no block"),
+    ({"atracsys": {"role": "local", "chain": "flying"}}, "'atracsys.chain'"),
+    ({"atracsys": {"role": "local", "noise_std": -1.0}}, "'atracsys.noise_std'"),
+    ({"atracsys": {"role": "local", "noise_model": "omc"}}, "'atracsys.noise_model'"),
+    ({"atracsys": {"role": "local", "topic_prefix": "atracsys"}}, "'atracsys.topic_prefix'"),
+    ({"ots": {"role": "local", "T_base": [0, 0, 0, 0, 0, 0, 1]}, "T_base_ots": [0, 0, 0, 0, 0, 0, 1]}, "give it once"),
+    ({"sources": ["atracsys", "omc", "ots"]}, "omc and ots are kept"),
+])
+def test_bad_source_configurations_are_refused_naming_the_parameter(tmp_path, change, match):
+    with pytest.raises(ParameterError, match=match):
+        fc.load_fusion_config(_write(tmp_path, {**TWO_LOCAL, **change}), filters=("cbkf",))
+
+
+def test_shipped_two_local_example_loads():
+    path = Path(__file__).resolve().parents[1] / "config" / "fusion_two_local.yaml"
+    cfg, _ = fc.load_fusion_config(path, filters=("cbkf",))
+    assert len(cfg.sources.locals) == 2 and cfg.sources.extras[0].topic_prefix == "/atracsys"
+
+
+# ---------------------------------------------------------------------------------------------- synchronizer
+def _samples(ts):
+    return [Sample(int(t), None) for t in ts]
+
+
+def test_a_third_stream_never_pairs_and_leaves_the_pairing_unchanged():
+    rng = np.random.default_rng(3)
+    g = np.unique(np.round(np.cumsum(rng.uniform(3, 6, 300)) * MS))
+    lo = np.unique(np.round(np.cumsum(rng.uniform(2, 5, 400)) * MS + 0.7 * MS))
+    x = np.unique(np.round(np.cumsum(rng.uniform(1, 4, 500)) * MS + 0.3 * MS))
+    two = ApproxSync.pair(_samples(g), _samples(lo), 4 * MS)
+    three = ApproxSync.pair(_samples(g), _samples(lo), 4 * MS, [_samples(x)])
+    paired = [i for i in three if i.source == 0]
+    assert [(i.glob and i.glob.t_ns, i.local and i.local.t_ns) for i in paired] == \
+        [(i.glob and i.glob.t_ns, i.local and i.local.t_ns) for i in two]
+    extra = [i for i in three if i.source == 1]
+    assert [i.local.t_ns for i in extra] == list(x) and all(i.glob is None for i in extra)
+    firsts = [min(s.t_ns for s in (i.glob, i.local) if s is not None) for i in three]
+    assert firsts == sorted(firsts)   # the order of the first stamps
+    # the incremental (polled) synchronizer gives the same items as the complete set
+    s = ApproxSync(4 * MS, 20 * MS, names=("global", "local", "atracsys"))
+    out = []
+    ev = sorted([(t, 0) for t in g] + [(t, 1) for t in lo] + [(t, 2) for t in x])
+    for t, k in ev:
+        assert s.push(k, int(t)) == "ok"
+        out += s.poll()
+    out += s.flush()
+    assert [(i.t_ns, i.source, i.glob and i.glob.t_ns) for i in out] == \
+        [(i.t_ns, i.source, i.glob and i.glob.t_ns) for i in three]
+    assert s.counts["atracsys_alone"] == len(x) and s.counts["atracsys_in"] == len(x)
+
+
+# ---------------------------------------------------------------------------------------------- pipelines
+def stream3(duration=3.0, ots=(0.5, 1.5), atr=(0.5, 3.0), seed=1):
+    """('omc'|'ots'|'atracsys', body, t_ns, T) in arrival order: the OMC tool biased by OMC_OFFSET, the OTS and the
+    Atracsys (its own pose, 300 Hz, 5 ms late) seeing the tool in their windows and the base marker always."""
+    rng = np.random.default_rng(seed)
+    ev = []
+    for k in range(int(duration * 240)):
+        t = k / 240
+        ns = T0 + round(t * S)
+        Tm = T_OMC_BASE @ truth(t)
+        Tm[:3, 3] += OMC_OFFSET + rng.normal(0, 3e-4, 3)
+        ev += [(ns + 2 * MS, "omc", "tool", ns, Tm), (ns + 2 * MS, "omc", "base", ns, T_OMC_BASE),
+               (ns + 2 * MS, "omc", "ots_rig", ns, _tp.T_OMC_RIG), (ns + 2 * MS, "omc", "atracsys_rig", ns,
+                                                                    T_OMC_ATR_RIG)]
+    for dev, T_omc_dev, hz, off, late, win in (("ots", T_OMC_OTS, 400, 0.003, 15, ots),
+                                               ("atracsys", T_OMC_ATR, 300, 0.0017, 5, atr)):
+        for k in range(int(duration * hz)):
+            t = off + k / hz
+            ns = T0 + round(t * S)
+            ev.append((ns + late * MS, dev, "base", ns, inv_T(T_omc_dev) @ T_OMC_BASE))
+            if win[0] <= t < win[1]:
+                Tl = inv_T(T_omc_dev) @ T_OMC_BASE @ truth(t)
+                Tl[:3, 3] += rng.normal(0, 1e-4, 3)
+                ev.append((ns + late * MS, dev, "tool", ns, Tl))
+    ev.sort(key=lambda e: e[0])
+    return [e[1:] for e in ev]
+
+
+def _cfg(filters=ALL, atr_chain="static", noise_std=None, **kw):
+    extra = SourceSpec("atracsys", "local", "/atracsys", noise_std, "std",
+                       ChainConfig(local_chain=atr_chain, omc_rig="atracsys_rig", static_links="average"))
+    return TargetConfig(filters=filters, chain=ChainConfig(static_links="average", **kw),
+                        sources=SourceSet(locals=(SourceSet().locals[0], extra)))
+
+
+def _push(pipe, ev):
+    dev, body, ns, T = ev
+    if dev == "omc":
+        return pipe.push_omc(body, ns, T)
+    return pipe.push_local(0 if dev == "ots" else 1, body, ns, T)
+
+
+def _run(pipe, events):
+    outs = []
+    for ev in events:
+        _push(pipe, ev)
+        outs += pipe.poll()
+    return outs + pipe.flush()
+
+
+def _err_mm(outs, name, t0, t1):
+    e = [np.linalg.norm(o.p - truth((o.t_ns - T0) / S)[:3, 3]) for o in outs
+         if o.filter == name and t0 <= (o.t_ns - T0) / S < t1]
+    assert e
+    return 1e3 * float(np.mean(e))
+
+
+def test_each_local_source_has_its_own_chain_and_the_second_keeps_the_accuracy():
+    """The Atracsys sits elsewhere (its own T_base_atracsys, estimated from its view of the base marker): its
+    samples land on the truth in base; after the OTS goes silent (1.5 s) CBKF stays at local accuracy through the
+    Atracsys while the biased OMC is off by its offset; both local sources were fused."""
+    pipe = TargetPipeline(_cfg())
+    outs = _run(pipe, stream3())
+    assert pipe.counts["ots_fused"] > 100 and pipe.counts["atracsys_fused"] > 100
+    off_mm = 1e3 * np.linalg.norm(OMC_OFFSET)
+    assert _err_mm(outs, "omc", 2.0, 3.0) > 0.8 * off_mm
+    assert _err_mm(outs, "cbkf", 2.0, 3.0) < 0.3
+    local_only = [o for o in outs if o.filter == "kf" and o.t_global is None and o.t_local is not None
+                  and (o.t_ns - T0) / S > 2.0]
+    assert local_only, "Atracsys samples are their own local-only items"
+    np.testing.assert_allclose(pipe.extra_chains[0].links.T_base_ots, inv_T(T_OMC_BASE) @ T_OMC_ATR, atol=1e-9)
+    # without the Atracsys the OMC-only phase is global only
+    alone = TargetPipeline(TargetConfig(filters=ALL, chain=ChainConfig(static_links="average")))
+    outs1 = _run(alone, [e for e in stream3() if e[0] != "atracsys"])
+    assert not [o for o in outs1 if o.filter == "kf" and o.t_local is not None and (o.t_ns - T0) / S > 2.0]
+
+
+def test_noise_std_is_the_sources_own_noise():
+    """Only Atracsys samples after the links: the paper's KF weighs them with the source's noise_std (a larger
+    std -> a larger posterior position variance), and the covariance's position block is noise_std^2."""
+    ev = [e for e in stream3(ots=(0, 0)) if not (e[0] == "omc" and e[1] == "tool")]
+    var = {}
+    for std in (1e-4, 1e-2):
+        pipe = TargetPipeline(_cfg(filters=("kf",), noise_std=std))
+        outs = _run(pipe, ev)
+        assert pipe._fixed_local[1][0, 0] == std**2
+        var[std] = float(np.mean([o.cov[0, 0] for o in outs[-50:]]))
+    assert var[1e-2] > 100 * var[1e-4]
+
+
+@pytest.mark.parametrize("atr_chain", ["static", "tracked", "direct"])
+@pytest.mark.parametrize("reorder_ms", [0, 30])
+def test_arrival_final_estimates_equal_ordered_processing_with_two_local_sources(atr_chain, reorder_ms):
+    """test_arrival.py's equality check with a second local source: every filter, every output, exactly."""
+    events = stream3()
+    if reorder_ms:
+        rng = np.random.default_rng(reorder_ms)
+        recv = [ev[2] + int(rng.uniform(0, reorder_ms * MS)) for ev in events]
+        events = [ev for _, ev in sorted(zip(recv, events, strict=True), key=lambda x: x[0])]
+    cfg = _cfg(atr_chain=atr_chain)
+    opipe = TargetPipeline(cfg)
+    ordered = _run(opipe, events)
+    apipe = ArrivalPipeline(cfg)
+    final = []
+    for ev in events:
+        _push(apipe, ev)
+        apipe.poll()
+        final += apipe.take_final()
+    apipe.flush()
+    final += apipe.take_final()
+    do = {(o.filter, o.t_ns, o.t_local): o for o in ordered}
+    da = {(o.filter, o.t_ns, o.t_local): o for o in final}
+    assert len(do) == len(ordered) and len(da) == len(final)
+    assert len(do) > 3000 and do.keys() == da.keys()
+    for k, o in do.items():
+        a = da[k]
+        assert np.array_equal(o.p, a.p) and np.array_equal(o.cov, a.cov) and np.array_equal(o.bias, a.bias), k
+        assert (o.sources, o.t_global, o.t_local) == (a.sources, a.t_global, a.t_local), k
+    assert apipe.counts["items"] == opipe.counts["items"]
+    assert apipe.counts["atracsys_fused"] == opipe.counts["atracsys_fused"] > 100
+    assert apipe.counts["late"] == opipe.counts["late"] == 0
+    if reorder_ms:
+        assert apipe.counts["rewinds"] > 0
