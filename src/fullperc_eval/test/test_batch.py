@@ -120,10 +120,15 @@ def test_invalid_sample_falls_back(tmp_path):
     _assert_same(a, replay(bag, cfg, progress=False, per_sample=True))
 
 
-@pytest.mark.parametrize("cfg", [TargetConfig(filters=("cbkf", "fullperc")),
-                                 TargetConfig(filters=FIVE, chain=ChainConfig(local_chain="direct"))],
-                         ids=["fullperc", "direct"])
-def test_unsupported_configuration_falls_back(synth, cfg):
+def test_filters_without_batched_form_run_per_sample_beside_the_batched_ones(synth):
+    cfg = TargetConfig(filters=("omc", "cbkf", "fullperc", "kf"))
+    a = replay(synth, cfg, progress=False)
+    assert a.path == "batched+per-sample" and "fullperc" in a.fallback
+    _assert_same(a, replay(synth, cfg, progress=False, per_sample=True))
+
+
+def test_unsupported_configuration_falls_back(synth):
+    cfg = TargetConfig(filters=FIVE, chain=ChainConfig(local_chain="direct"))
     assert unsupported_reason(cfg)
     a = replay(synth, cfg, progress=False)
     assert a.path == "per-sample" and a.fallback == unsupported_reason(cfg)

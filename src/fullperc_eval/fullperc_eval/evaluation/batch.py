@@ -51,19 +51,29 @@ from fullperc_fusion.synchronizer import GLOBAL, LOCAL
 
 from .replay import JOINT_TOPIC, Prepared, Replay, _task_name
 
-__all__ = ["BatchUnsupported", "batch_replay", "unsupported_reason"]
+__all__ = ["BatchUnsupported", "batch_replay", "split_filters", "unsupported_reason"]
 
 _UNIT_TOL = 1e-2   # pose_to_T's default
+
+
+def _batched(f: str, config: TargetConfig) -> bool:
+    """True for the paper's five filters as registered (a name registered to another implementation: False)."""
+    if f != "omc" and f not in FILTER_KINDS:
+        return False
+    return type(make_filter(f, config.params)) is (PassThrough if f == "omc" else ClosedFormFilter)
+
+
+def split_filters(config: TargetConfig) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """(filters with a batched form, the others) of ``config``, each in the configured order."""
+    fast = tuple(f for f in config.filters if _batched(f, config))
+    return fast, tuple(f for f in config.filters if f not in fast)
 
 
 def unsupported_reason(config: TargetConfig) -> str:
     """Why the batched replay cannot run ``config`` ('' when it can): see the module docstring."""
     for f in config.filters:
-        if f != "omc" and f not in FILTER_KINDS:
+        if not _batched(f, config):
             return f"filter '{f}' has no batched form"
-        want = PassThrough if f == "omc" else ClosedFormFilter
-        if type(make_filter(f, config.params)) is not want:   # a name registered to another implementation
-            return f"filter '{f}' is not the paper's {want.__name__}"
     c = config.chain
     if c.local_chain != "static":
         return f"local chain '{c.local_chain}' (batched: static only)"

@@ -283,7 +283,7 @@ def evaluate_bag(bag: str | Path, *, calibration: str | Path | None = None, layo
     which gives the same result and falls back to it by itself where it must.
     """
     try:
-        BagReader(Path(bag))   # the bag itself first (metadata, storage files complete): its problems are likeliest
+        reader = BagReader(Path(bag))   # the bag itself first (metadata, storage files complete): likeliest problems
     except BagError as e:
         raise EvaluationError(str(e)) from None
     flat: dict[str, Any] = {"idle_flush": 0.5}
@@ -305,7 +305,7 @@ def evaluate_bag(bag: str | Path, *, calibration: str | Path | None = None, layo
         rep = live_replay(bag, target=target, primary=str(flat.get("filter", "cbkf")))
     else:
         rep = replay(bag, config, idle_flush_s=float(flat.get("idle_flush", 0.5)), progress=progress,
-                     per_sample=per_sample)
+                     per_sample=per_sample, reader=reader)
     if truth is not None:
         rep.task = f"{rep.task} {target}"   # its own path, not the task's region order: named by target
     ev = evaluate_replay(rep, cal, lay, truth=truth)

@@ -9,6 +9,7 @@ live give the same poses. :func:`live_replay` instead reads the fused poses ``fu
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 import time
 from dataclasses import dataclass, field
@@ -121,14 +122,15 @@ class Prepared:
     warnings: list[str]
 
 
-def prepare(bag: str | Path, config: TargetConfig) -> Prepared:
+def prepare(bag: str | Path, config: TargetConfig, reader: BagReader | None = None) -> Prepared:
     """Open ``bag`` and check what the replay needs (topic types, joint states, the target's OMC topic);
     :class:`EvaluationError` naming the problem. Shared by the per-sample and the batched replay (batch.py), so
     both refuse the same bags with the same words."""
-    try:
-        reader = BagReader(bag)
-    except BagError as e:
-        raise EvaluationError(str(e)) from None
+    if reader is None:
+        try:
+            reader = BagReader(bag)
+        except BagError as e:
+            raise EvaluationError(str(e)) from None
     c = config.chain
     omc_topics = {f"/omc/{b}/pose": b for b in dict.fromkeys((c.omc_target, c.omc_base, c.omc_rig))}
     ots_topics = {f"/ots/{b}/pose": b for b in dict.fromkeys((c.ots_target, c.ots_base))}
@@ -153,23 +155,37 @@ def prepare(bag: str | Path, config: TargetConfig) -> Prepared:
 
 
 def replay(bag: str | Path, config: TargetConfig, idle_flush_s: float = 0.5, progress: bool = True,
-           per_sample: bool = False) -> Replay:
+           per_sample: bool = False, reader: BagReader | None = None) -> Replay:
     """Run the pipeline over the raw measurements of ``bag`` the way fusion_node would have.
 
     By default through the batched replay (:mod:`.batch`: vectorised decoding, validation, mapping and the paper's
-    filters in one loop -- the same result), which falls back to this per-sample replay by itself for whatever it
-    does not support (``Replay.fallback`` says why); ``per_sample`` forces the per-sample replay."""
+    filters in one loop -- the same result). Filters it has no batched form for (``fullperc``) are run per sample
+    on their own and their outputs merged (filters are independent of one another; the per-sample run gives the
+    counts, warnings and tap, which do not depend on the filters); anything else it does not support falls back to
+    the per-sample replay of every filter (``Replay.fallback`` says why). ``per_sample`` forces the per-sample
+    replay. ``reader``: the bag already opened (its metadata is not read again)."""
     t_start = time.perf_counter()
-    prep = prepare(bag, config)
+    prep = prepare(bag, config, reader)
     fallback = "per-sample replay requested"
     if not per_sample:
-        from .batch import BatchUnsupported, batch_replay
+        from .batch import BatchUnsupported, batch_replay, split_filters
 
+        fast, slow = split_filters(config)
         try:
-            return batch_replay(prep, config, idle_flush_s, t_start)
+            if not slow:
+                return batch_replay(prep, config, idle_flush_s, t_start)
+            if fast:
+                rep_b = batch_replay(prep, dataclasses.replace(config, filters=fast), idle_flush_s, t_start)
+                rep = _per_sample_replay(prepare(bag, config), dataclasses.replace(config, filters=slow),
+                                         idle_flush_s, progress, t_start)
+                rep.outputs = {f: (rep_b.outputs if f in fast else rep.outputs)[f] for f in config.filters}
+                rep.path, rep.seconds = "batched+per-sample", time.perf_counter() - t_start
+                rep.fallback = f"per sample: {', '.join(slow)} (no batched form)"
+                return rep
+            fallback = f"no batched form for {', '.join(slow)}"
         except BatchUnsupported as e:
             fallback = str(e)
-            prep = prepare(bag, config)   # a fresh reader: the batched attempt may have read part of the bag
+        prep = prepare(bag, config)   # a fresh reader: the batched attempt may have read part of the bag
     rep = _per_sample_replay(prep, config, idle_flush_s, progress, t_start)
     rep.fallback = fallback
     return rep
