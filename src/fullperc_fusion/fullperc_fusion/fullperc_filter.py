@@ -362,7 +362,7 @@ class FullpercFilter(StepCompat):
                 if glob:
                     A = _mul(_exp(x[15], x[16], x[17]), A)
                 H.put(a_flat, A)
-                y += _log(_mul_t(_quat_R(m.q), _mul(A, self._R)))
+                y += _log(_mul_t(_quat_R(m.q), self._R if A is _R_IDENT else _mul(A, self._R)))
             c = m.cov
             Rblocks.append(self._fixed[(m.source, rot)] if c is None else c if rot else c[0:3, 0:3])
         if len(Rblocks) == 1:
