@@ -25,6 +25,12 @@ process's main (``args`` None) SIGINT/SIGTERM are ignored while the interpreter 
 threads raise after the stop was requested (a device thread publishing into the closing node) are reported in
 one line, not as a traceback. A signal that arrives while Python is still importing the node's module (before
 ``main()`` runs) is outside this function: there Python's defaults apply.
+
+Executor: ``single`` (rclpy's SingleThreadedExecutor) or ``events`` (rclpy.experimental.EventsExecutor, less
+Python per message), chosen by :mod:`~fullperc_common.executor_choice`: ``FULLPERC_EXECUTOR=events|single``, else
+the node's default (``events`` for fusion_node). A bad value is bad configuration (status 2). A node that
+``events`` cannot run (guard conditions) spins on ``single`` with one line on stderr. Everything above holds for
+both: the EventsExecutor's own signal handlers are replaced by ours.
 """
 
 from __future__ import annotations
@@ -40,6 +46,7 @@ import traceback
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
+from . import executor_choice
 from .params import ParameterError, parameter_exception_message
 from .share import share_path
 
@@ -164,6 +171,7 @@ class _StopRequest:
         self.requested = False
         self.signals: list[int] = []
         self.executor = None
+        self.install: Callable[[], None] = lambda: None   # (re-)installs this handler; run_node sets it
 
     def __call__(self, signum, _frame) -> None:
         self.requested = True
@@ -203,9 +211,20 @@ def run_node(factory: Callable[[], object], name: str, fatal: tuple[type[BaseExc
         if problem:
             return _fatal(name, problem)
 
+    try:
+        kind = executor_choice.choose(name)
+    except ValueError as e:
+        return _fatal(name, str(e))
+
     stop = _StopRequest()
     main_thread = threading.current_thread() is threading.main_thread()
     old_handlers = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)} if main_thread else {}
+    if main_thread:   # the EventsExecutor replaces our handlers when it is created and destroyed: put them back
+        def install() -> None:
+            for s in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(s, stop)
+
+        stop.install = install
     old_hook = threading.excepthook
 
     def thread_hook(a) -> None:
@@ -218,7 +237,7 @@ def run_node(factory: Callable[[], object], name: str, fatal: tuple[type[BaseExc
     threading.excepthook = thread_hook
     held: dict = {"node": None, "initialised": False}
     try:
-        status = _start_and_spin(factory, name, fatal, args, stop, held)
+        status = _start_and_spin(factory, name, fatal, args, stop, held, kind)
     finally:
         stop.requested = True  # from here on a signal only sets the flag again; thread errors are one line
         close_ok = _release(name, held)
@@ -238,10 +257,10 @@ def run_node(factory: Callable[[], object], name: str, fatal: tuple[type[BaseExc
 
 
 def _start_and_spin(factory, name: str, fatal: tuple[type[BaseException], ...], args, stop: _StopRequest,
-                    held: dict) -> int:
+                    held: dict, kind: str = "single") -> int:
     import rclpy
     from rclpy.exceptions import NameValidationException, ParameterException
-    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.executors import ExternalShutdownException
     from rclpy.signals import SignalHandlerOptions
 
     try:
@@ -261,7 +280,15 @@ def _start_and_spin(factory, name: str, fatal: tuple[type[BaseException], ...], 
         return _fatal(name, _describe(e))
     if stop.requested:
         return 0
-    executor = SingleThreadedExecutor(context=context)
+    if kind == "events":
+        problem = executor_choice.events_problem(node)
+        if problem:
+            print(f"[{name}] executor 'events' not usable ({problem}): spinning on 'single'", file=sys.stderr,
+                  flush=True)
+            kind = "single"
+        else:
+            executor_choice.adapt_for_events(node)
+    executor = executor_choice.make_executor(kind, context, stop.install)
     executor.add_node(node)
     stop.executor = executor
     try:
@@ -278,6 +305,9 @@ def _start_and_spin(factory, name: str, fatal: tuple[type[BaseException], ...], 
         stop.executor = None
         with contextlib.suppress(Exception):
             executor.shutdown(timeout_sec=1.0)
+        box = [executor]
+        del executor
+        executor_choice.drop_executor(box, stop.install)
     return 0
 
 

@@ -45,6 +45,8 @@ class Child(Node):
 
     def tick(self) -> None:
         self.n += 1
+        if self.n == 1:
+            print(f"spinning on {type(self.executor).__name__}", flush=True)
         if self.n == 50 and PHASE != "startup":
             os.kill(os.getpid(), SIG)
             time.sleep(0.05)
