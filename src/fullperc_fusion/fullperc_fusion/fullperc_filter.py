@@ -29,6 +29,7 @@ helpers; at these sizes each call's ~1 us overhead, not the arithmetic, is the c
 from __future__ import annotations
 
 import math
+from operator import add, mul
 
 import numpy as np
 from scipy.linalg.lapack import dgesv as _dgesv
@@ -293,7 +294,8 @@ class FullpercFilter(StepCompat):
         x[18], x[19], x[20] = phi * x[18], phi * x[19], phi * x[20]
         self._x = x
         self._R = _mul(Rw, self._R)
-        P = F @ self._P @ F.T + self._noise(dt, self._sys_var)
+        Q = self._qcache.get((dt, self._sys_var))
+        P = F @ self._P @ F.T + (Q if Q is not None else self._noise(dt, self._sys_var))
         self._P = 0.5 * (P + P.T)
         self._t = t
 
@@ -380,7 +382,7 @@ class FullpercFilter(StepCompat):
         S = H @ U + Rm
         yv = np.array(y)
         Z = _solve(S, yv, U)
-        nis = sum(a * b for a, b in zip(y, Z[:, 0].tolist(), strict=True))
+        nis = sum(map(mul, y, Z[:, 0].tolist()))
         nis_g = 0.0
         hop = False
         if mg is not None:
@@ -407,7 +409,7 @@ class FullpercFilter(StepCompat):
         Gr.put(_F_TH, (1.0, 0.5 * d2, -0.5 * d1, -0.5 * d2, 1.0, 0.5 * d0, 0.5 * d1, -0.5 * d0, 1.0))
         P = Gr @ P @ Gr.T
         P = 0.5 * (P + P.T)
-        xn = [a + b for a, b in zip(x, dx, strict=True)]
+        xn = list(map(add, x, dx))
         xn[9] = xn[10] = xn[11] = 0.0
         Rn = _mul(_exp(d0, d1, d2), self._R)
         if not (math.isfinite(float(P.sum())) and math.isfinite(sum(xn[0:3])) and math.isfinite(sum(Rn))) and not (
