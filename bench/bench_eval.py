@@ -3,12 +3,17 @@
 Figures (medians over repeats; a "measurement" is one message the evaluator reads: an OMC/OTS pose of the
 target, base or rig, or a joint state):
   eval_throughput_all5     evaluate_bag, bag decode included, the paper's five methods side by side
-                           (omc, kf, bkf, ckf, cbkf)                                      baseline: bulk decode
-                           (+ with_rosbags_decode: the same evaluation reading through rosbags per message, as
-                           before the bulk path, same run)
-  eval_throughput_cbkf     the same with the cbkf filter alone                             baseline: bulk decode
+                           (omc, kf, bkf, ckf, cbkf), through the batched replay (evaluation/batch.py, the
+                           default)                                                        baseline: bulk decode
+                           (+ with_rosbags_decode: the per-sample evaluation reading through rosbags per message,
+                           as before the bulk path, same run)
+  eval_throughput_all5_per_sample  the same through the per-sample replay (``evaluate --per-sample``, the
+                           reference; ``speedup`` = batched / per-sample in this run)     baseline: bulk decode
+  eval_throughput_cbkf     the same with the cbkf filter alone (batched; ``per_sample`` field: the per-sample
+                           replay's rate in this run)                                      baseline: bulk decode
   eval_throughput_every    the same with every method `evaluate` runs by default, when that is more than the five
-                           (a filter registered since, e.g. fullperc)                      baseline: bulk decode
+                           (a filter registered since, e.g. fullperc: run per sample beside the batched five;
+                           ``per_sample`` field: everything per sample)                    baseline: bulk decode
   eval_decode_bulk         bag.reader.decoded_messages of the same topics (what evaluate reads through, one pass
                            over the MCAP file + numpy CDR decode: the floor)              baseline: rosbags
   eval_read_only           rosbags' reader + deserializer per message (the evaluator's reading before issue 16)
@@ -16,6 +21,7 @@ ratio = value / baseline (for the throughputs: the share of the decoding rate th
 
 Bag: bags/paper/G-B-P (the committed sample) when present, else a 20 s synthetic recording (same rates).
 Run: python bench/bench_eval.py [--profile]   (--profile: cProfile of one evaluate_bag, top functions on stderr)
+The per-sample figures are measured in the same run, so the batched/per-sample ratio is visible in one run.
 """
 
 from __future__ import annotations
@@ -53,6 +59,8 @@ def main() -> None:
         topics = [f"/omc/{b}/pose" for b in ("tool", "base", "ots_rig")] + \
                  [f"/ots/{b}/pose" for b in ("tool", "base")] + [JOINT_TOPIC]
         n = evaluate_bag(bag, progress=False, config=cfg_all).result["messages"]
+        from fullperc_eval.evaluation.replay import replay as replay_fn
+        path_all = replay_fn(bag, cfg_all, progress=False).path   # "batched" unless it fell back (then: why not)
 
         def read_only():
             r = BagReader(bag).open()
@@ -82,25 +90,36 @@ def main() -> None:
         def with_rosbags_decode():   # the evaluator before the bulk path: rosbags per message (same outputs)
             replay_mod.decoded_messages = bag_reader.decoded_messages_reference
             try:
-                evaluate_bag(bag, progress=False, config=cfg_all)
+                evaluate_bag(bag, progress=False, config=cfg_all, per_sample=True)
             finally:
                 replay_mod.decoded_messages = bag_reader.decoded_messages
 
         t_before = median_time(with_rosbags_decode, repeats=REPEATS)
-        t_every = None
+        t_all_ps = median_time(lambda: evaluate_bag(bag, progress=False, config=cfg_all, per_sample=True),
+                               repeats=REPEATS)
+        t_one_ps = median_time(lambda: evaluate_bag(bag, progress=False, config=cfg_one, per_sample=True),
+                               repeats=REPEATS)
+        t_every = t_every_ps = None
         if tuple(cfg_every.filters) != tuple(cfg_all.filters):
             t_every = median_time(lambda: evaluate_bag(bag, progress=False, config=cfg_every), repeats=REPEATS)
+            t_every_ps = median_time(lambda: evaluate_bag(bag, progress=False, config=cfg_every, per_sample=True),
+                                     repeats=REPEATS)
         name = bag.name if tmp is None else "synthetic 20 s"
         emit("eval_read_only", n / t_read, "measurements/s", bag=name, measurements=n)
         emit("eval_decode_bulk", n / t_bulk, "measurements/s", baseline=n / t_read, bag=name, measurements=n)
         emit("eval_throughput_all5", n / t_all, "measurements/s", baseline=n / t_bulk, bag=name, measurements=n,
              seconds=round(t_all, 3), methods=list(cfg_all.filters),
-             with_rosbags_decode=round(n / t_before, 1), speedup_vs_rosbags_decode=round(t_before / t_all, 3))
+             path=path_all, with_rosbags_decode=round(n / t_before, 1),
+             speedup_vs_rosbags_decode=round(t_before / t_all, 3))
+        emit("eval_throughput_all5_per_sample", n / t_all_ps, "measurements/s", baseline=n / t_bulk, bag=name,
+             measurements=n, seconds=round(t_all_ps, 3), methods=list(cfg_all.filters),
+             speedup=round(t_all_ps / t_all, 3))
         emit("eval_throughput_cbkf", n / t_one, "measurements/s", baseline=n / t_bulk, bag=name, measurements=n,
-             seconds=round(t_one, 3))
-        if t_every is not None:
+             seconds=round(t_one, 3), per_sample=round(n / t_one_ps, 1), speedup=round(t_one_ps / t_one, 3))
+        if t_every is not None and t_every_ps is not None:
             emit("eval_throughput_every", n / t_every, "measurements/s", baseline=n / t_bulk, bag=name,
-                 measurements=n, seconds=round(t_every, 3), methods=list(cfg_every.filters))
+                 measurements=n, seconds=round(t_every, 3), methods=list(cfg_every.filters),
+                 per_sample=round(n / t_every_ps, 1), speedup=round(t_every_ps / t_every, 3))
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)

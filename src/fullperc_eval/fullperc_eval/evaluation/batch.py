@@ -49,6 +49,7 @@ from fullperc_fusion.filters import FILTER_KINDS, PassThrough
 from fullperc_fusion.pipeline import TargetConfig, TargetPipeline
 from fullperc_fusion.synchronizer import GLOBAL, LOCAL
 
+from .config import EvaluationError
 from .replay import JOINT_TOPIC, Prepared, Replay, _task_name
 
 __all__ = ["BatchUnsupported", "batch_replay", "split_filters", "unsupported_reason"]
@@ -96,7 +97,12 @@ def unsupported_reason(config: TargetConfig) -> str:
 def _decode(prep: Prepared):
     """Per topic: (bag-order indices, decoded batch); the bag order as (topic index, index within topic)."""
     reader = prep.reader
-    raw = _raw_messages(reader, prep.present)
+    try:
+        raw = _raw_messages(reader, prep.present)
+    except BagError:
+        raise
+    except Exception as err:  # noqa: BLE001 - a decompressor's own error on a damaged chunk (e.g. ZstdError)
+        raise EvaluationError(f"bag {str(reader.path)!r} is corrupt: {type(err).__name__}: {err}") from None
     per: dict[str, tuple] = {}
     for k, topic in enumerate(prep.present):
         idx = np.flatnonzero(raw.topic == k)
