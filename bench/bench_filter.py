@@ -12,6 +12,9 @@ reference (``filters.FusionFilter`` for the paper's kinds, ``fullperc_reference.
 orientation and its model covariance (measurement_models: the OMC's from fit error and view margin, rotated into
 base, with ``sys_var``; the local one with a calibrated link's covariance through a 1.5 m lever arm, which couples
 position, rotation and the axes) -- against the reference on the same items.
+``fullperc_array_floor_us``: the array operations of one fullperc step in its fast form alone (predict F P F^T + Q,
+U = P H^T, S, the LAPACK solve, P - U K^T, the reset, the symmetrisations, the Step's arrays; k = 6 rows, a global
+sample with orientation) with no filter logic: the floor of a joint 21-state step in numpy.
 Older lines: ``<kind>_step_*`` time ``FusionFilter.step`` (Measurement construction included) against a bare 6-state
 constant-velocity numpy KF step (predict + 3-D update written inline, no validation, no NIS, no biased
 estimator) -- the floor for a Python/numpy filter step in general matrix form.
@@ -25,6 +28,7 @@ import time
 
 import numpy as np
 from benchlib import emit, emit_error, median_time
+from scipy.linalg.lapack import dgesv
 from scipy.spatial.transform import Rotation as Rot
 
 from fullperc_common.transforms import inv_T, make_T
@@ -104,6 +108,41 @@ def step_items_6dof(n: int) -> list[tuple[int, list[Measurement]]]:
                                   R_to_quat(so3_exp(rng.normal(0, 2e-3, 3)) @ R), Cl))
         items.append((max(m.t_ns for m in ms), ms))
     return items
+
+
+def array_floor_step(k: int = 6, n: int = 500) -> float:
+    """Seconds per step of only the numpy work of one fast-form fullperc step (module docstring)."""
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(21, 21))
+    P, F, Q, I21 = A @ A.T, np.eye(21), np.eye(21) * 1e-6, np.eye(21)
+    H0, Rm, th = np.zeros((k, 21)), np.eye(k), np.arange(9)
+    t0 = time.perf_counter()
+    for _ in range(n):
+        Pp = F @ P @ F.T + Q
+        Pp = 0.5 * (Pp + Pp.T)
+        H = H0.copy()
+        H.put([0, 1, 2], 1.0)
+        yv = np.array([0.0] * k)
+        U = Pp @ H.T
+        S = H @ U + Rm
+        B = np.empty((k, 22))
+        B[:, 0] = yv
+        B[:, 1:] = U.T
+        Z = dgesv(S, B)[2]
+        Z[:, 0].tolist()
+        S.tolist()
+        Gt = Z[:, 1:]
+        (yv @ Gt).tolist()
+        P1 = Pp - U @ Gt
+        Gr = I21.copy()
+        Gr.put(th, 0.0)
+        P2 = Gr @ P1 @ Gr.T
+        P2 = 0.5 * (P2 + P2.T)
+        float(P2.sum())
+        for _ in range(4):
+            np.array([0.0, 0.0, 0.0])
+        P2.ravel()[th].reshape(3, 3)
+    return (time.perf_counter() - t0) / n
 
 
 REFERENCES = {"fullperc": FullpercReference}   # general forms of the other registered filters (tests' references)
@@ -194,6 +233,9 @@ def run_pipeline(ev, filters):
 def main() -> None:
     zs = np.random.default_rng(1).normal(0, 1e-3, size=(N, 3)) + [0.5, 0.2, 0.3]
     filter_step_figures(zs)
+    floor = statistics.median(array_floor_step() for _ in range(9))
+    emit("fullperc_array_floor_us", floor * 1e6, "us", note="numpy work of one joint 21-state fullperc step alone "
+         "(k = 6), no filter logic: the floor of filter_step_us[fullperc,6dof] in this form")
     base = median_time(lambda: bare_kf_steps(zs), repeats=5) / N
     emit("bare_numpy_kf6_step", base * 1e6, "us")
     for kind in FILTER_KINDS:

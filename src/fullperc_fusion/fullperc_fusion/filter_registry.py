@@ -26,7 +26,8 @@ FILTERS: dict[str, FilterFactory] = {
     "bkf": partial(ClosedFormFilter, "bkf"),
     "kf": partial(ClosedFormFilter, "kf"),
     "omc": PassThrough,                      # the raw global source, for comparison
-    # ours (issue 18): CBKF's compensated position + per-measurement model covariance + orientation on SO(3)
+    # ours (issue 18): CBKF's compensated position + per-measurement model covariance + orientation on SO(3); the
+    # fast form (fullperc_filter) of the general fullperc_reference.FullpercReference, the tests' reference
     "fullperc": FullpercFilter,
 }
 

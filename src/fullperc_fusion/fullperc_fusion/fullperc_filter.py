@@ -6,24 +6,38 @@ module changes how they are computed, never what: ``test_fullperc_fast.py`` runs
 (gaps, hops, resets, local only / global only / pairs, lags, full 6x6 covariances, snapshot/restore) and fails when
 they differ by more than 1e-12 (module docstring there). Registered as ``"fullperc"`` in :mod:`filter_registry`.
 
-Why each change (the reference spends ~190 us per predict + update in ~100 numpy calls on 21x21 arrays and 3x3
-helpers; at these sizes each call's ~1 us overhead, not the arithmetic, is the cost):
+Why each change (the reference runs each step as well over 100 numpy operations on 21x21 arrays, 3x3 helpers and
+single elements; at these sizes an operation's ~1-2 us overhead, not the arithmetic, is the cost):
 
 * the nominal state is a list of 21 Python floats (rotation slots 9:12 always 0) and R a 9-tuple: the injection,
   the prediction of p and g and the SO(3) functions (Exp, Log, quaternion <-> matrix) are a few float operations
   each instead of one numpy call per 3-vector;
-* predict is P = F P F^T + Q with F and Q taken from caches keyed by (dt, w) and (dt, sys_var): the pipeline's dt
-  and the angular velocity repeat (a constant-rate stream, w = 0 for a position-only stream), so most steps are
-  two matmuls and an add instead of ~30 row/column operations and 33 scalar writes;
-* the measurement matrix H comes from a per-combination template (global/local, with/without orientation, single
-  or pair) with only the lag entries and the 3x3 block A written; U = P H^T is formed once and gives S = H U + R;
-  one ``solve`` with the stacked right-hand side [y | U^T] gives the NIS and the gain together; the hop tests'
-  3x3 NIS are Python floats;
-* the Joseph update and the reset Jacobian are the reference's, with the reset folded into the Joseph factors
-  (P = G (I - K H) P (I - K H)^T G^T + G K R K^T G^T, one product less);
+* predict is P = F P F^T + Q with F from a template cached by dt (only Exp(w dt) written into a copy) and Q cached
+  by (dt, sys_var): two matmuls and an add instead of ~30 row/column operations and 33 scalar writes;
+* the measurement matrix H comes from a per-layout template (global/local, with/without orientation, single or
+  pair) with only the lag entries and the 3x3 block A written; U = P H^T is formed once and gives S = H U + R;
+  one LAPACK ``dgesv`` (the LU solve of ``np.linalg.solve``, without its ~4 us wrapper) on [y | U^T] gives the
+  NIS and the gain together; the hop tests' 3x3 NIS are Python floats (LDL^T);
+* the covariance update is P - U S^-1 U^T, equal to the reference's Joseph form for the optimal gain (to
+  rounding: the comparison holds at 1e-12), followed by the reference's reset G_r P G_r^T;
 * arrays are never changed in place once stored, so :meth:`snapshot` is a tuple of references (rewind-and-replay
   in arrival.py takes one per item) and the :class:`Step` shares P instead of copying it;
 * re-initialisation (first sample, gaps) is rare and is delegated to the reference itself.
+
+Measured (``python bench/bench_filter.py``, same run, load ~2.7 on 2 cores): 50.6 us per predict + update on the
+cbkf line's position-only items (reference 126.1 us, CBKF's closed form 15.5 us), 61.1 us with orientations and
+model covariances on every sample (reference 166.4 us). The floor of this form is its array work: the ~30 numpy
+operations of one step alone (``fullperc_array_floor_us`` in the same benchmark) take about half of that, so the
+issue's 20 us is out of reach for the joint 21-state form in numpy.
+
+Why not two small filters (position per axis, orientation apart) as the paper's kinds (fast_filter): they are
+exact only while the covariance has no entry between the position and orientation errors or between position
+axes, and the pipeline's measurements always bring such entries: the local sample's covariance carries the
+calibrated link's rotation error through the lever arm (position-rotation terms, and cross-axis position terms up
+to ~20 % of the diagonal), and the OMC's isotropic covariance rotated into ``base`` has cross-axis entries of
+~1e-16 relative from rounding (counted in the pipeline on bags/spec/P-B-G: all 3,339 OMC samples; 652 of the 675
+local samples with position-rotation terms, the other 23 with cross-axis ones). A split that is exact would never
+engage; one with a tolerance would not be the same filter.
 """
 
 from __future__ import annotations
