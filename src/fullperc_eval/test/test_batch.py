@@ -18,11 +18,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fullperc_eval.evaluation.batch import unsupported_reason
+from fullperc_common.transforms import T_to_pq
+from fullperc_eval.evaluation.batch import _matrices, _to_pq, unsupported_reason
 from fullperc_eval.evaluation.metrics import evaluate_bag
 from fullperc_eval.evaluation.replay import replay
 from fullperc_eval.sim.dataset import synthetic_content, write_bag
-from fullperc_fusion.frame_chain import ChainConfig
+from fullperc_fusion.frame_chain import ChainConfig, pose_to_T
 from fullperc_fusion.pipeline import TargetConfig
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -51,7 +52,8 @@ def _assert_same(a, b) -> None:
                for x, y in zip(a.omc_base_poses, b.omc_base_poses, strict=True))
 
 
-def _synthetic(path: Path, *, ots_latency_ms: float = 30.0, bad_quat: bool = False) -> Path:
+def _synthetic(path: Path, *, ots_latency_ms: float = 30.0, bad_quat: bool = False, base_drift_m: float = 0.0,
+               ots_bump_m: float = 0.0) -> Path:
     c, _ = synthetic_content(14.0, omc_offset=(0.003, 0.0, 0.0), omc_offset_after=(0.006, 0.002, 0.0),
                              t_offset_change_s=11.0, ots_window_s=(2.0, 9.0), omc_noise_m=2e-4, ots_noise_m=1e-4,
                              seed=3)
@@ -69,6 +71,14 @@ def _synthetic(path: Path, *, ots_latency_ms: float = 30.0, bad_quat: bool = Fal
         q = c.omc.bodies["tool"].quat_xyzw.copy()
         q[600] = (0.0, 0.0, 0.0, 1.5)   # finite but far from unit norm: the pipeline rejects it
         c.omc.bodies["tool"] = dataclasses.replace(c.omc.bodies["tool"], quat_xyzw=q)
+    if base_drift_m:   # the OMC base marker creeps during the link calibration: the collection is refused
+        b = c.omc.bodies["base"]
+        c.omc.bodies["base"] = dataclasses.replace(b, position=b.position + np.outer(np.clip(t / 10.0, 0, 1),
+                                                                                      (base_drift_m, 0.0, 0.0)))
+    if ots_bump_m:     # the Vega is bumped after the calibration: the link monitor reports it
+        b = c.ots.bodies["base"]
+        bump = np.outer(to >= 11.0, (0.0, ots_bump_m, 0.0))
+        c.ots.bodies["base"] = dataclasses.replace(b, position=b.position + bump)
     return write_bag(path, c)
 
 
@@ -109,6 +119,32 @@ def test_late_samples_fall_back_with_the_per_sample_result(tmp_path):
     assert a.path == "per-sample" and "late" in a.fallback
     assert b.pipeline_stats.get("late", 0) > 0
     _assert_same(a, b)
+
+
+@pytest.mark.parametrize(("kw", "why", "key"), [({"base_drift_m": 0.004}, "refused", "calibration_refused"),
+                                                ({"ots_bump_m": 0.006}, "bump", "link_bumped_checks")],
+                         ids=["refused-calibration", "bumped-link"])
+def test_link_events_fall_back(tmp_path, kw, why, key):
+    bag = _synthetic(tmp_path / "links", **kw)
+    cfg = TargetConfig(filters=FIVE)
+    a = replay(bag, cfg, progress=False)
+    assert a.path == "per-sample" and why in a.fallback
+    assert a.pipeline_stats.get(key, 0) > 0
+    _assert_same(a, replay(bag, cfg, progress=False, per_sample=True))
+
+
+def test_matrices_equal_pose_to_T():
+    rng = np.random.default_rng(7)
+    q = rng.standard_normal((2000, 4))
+    q /= np.linalg.norm(q, axis=1)[:, None]
+    q *= 1.0 + rng.uniform(-5e-3, 5e-3, (2000, 1))   # off unit norm within pose_to_T's tolerance: renormalised
+    p = rng.uniform(-2, 2, (2000, 3))
+    T = _matrices(p, q)
+    assert all(np.array_equal(T[i], pose_to_T((p[i], q[i]))) for i in range(len(p)))
+    P, Q = _to_pq(T @ T[::-1])
+    for i in range(len(p)):
+        pr, qr = T_to_pq(T[i] @ T[len(p) - 1 - i])
+        assert np.array_equal(P[i], pr) and np.array_equal(Q[i], qr)
 
 
 def test_invalid_sample_falls_back(tmp_path):

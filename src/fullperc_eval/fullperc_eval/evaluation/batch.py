@@ -10,11 +10,11 @@ Offline, the whole recording is known at once, so most of that work can be done 
 2. validation of every pose at once (stamp > 0, finite, quaternion within 1e-2 of unit norm: the tests of
    :func:`~fullperc_fusion.poses.pose_to_T`), and the target samples' matrices with pose_to_T's formulas;
 3. the control flow in bag order, as the per-sample replay runs it, but only what decides something: the
-   pipeline's own static-link estimation and link monitor (``TargetPipeline.push_omc`` / ``push_ots`` of the
-   base and rig bodies -- the same code, so the links come from exactly the same samples; once the links are
-   final, OMC base / rig samples change nothing and are skipped, the OTS's base sightings still feed the
-   monitor), the pipeline's own synchronizer (``pipe.sync``, payload = the sample's index) with the idle flush,
-   and for each item the links in use when it came out;
+   pipeline's own static-link estimation and link monitor (its ``FrameChain.observe_omc`` / ``observe_ots`` and
+   ``LinkMonitor.add`` with the matrices of step 2 -- the same code, so the links come from exactly the same
+   samples; once the links are final, OMC base / rig samples change nothing and are skipped, the OTS's base
+   sightings still feed the monitor), the pipeline's own synchronizer (``pipe.sync``, payload = the sample's
+   index) with the idle flush, and for each item the links in use when it came out;
 4. mapping into ``base``: one stacked matrix product per link estimate and stream (``inv(T_omc_base) @ T``,
    ``T_base_ots @ T``), quaternions with :func:`~fullperc_common.transforms.T_to_pq`'s closed form vectorised;
 5. filtering: :func:`fullperc_fusion.batch_filter.run_closed_form` (KF/BKF/CKF/CBKF in one loop on floats) and
@@ -26,7 +26,8 @@ the sample bags and synthetic streams). What it does not reproduce raises :class
 :func:`.replay.replay` runs the per-sample path instead: a filter other than the paper's five (``fullperc``, a
 re-registered name), a local chain other than ``static``, link re-calibration on a bump, further local sources or
 fixed source noise (sources by configuration), a device covariance, any invalid sample (bad stamp, NaN,
-non-unit quaternion), a late or duplicate sample, a filter step that would raise, an output that is not finite,
+non-unit quaternion), a late or duplicate sample, a refused static-link calibration, a bump seen by the link
+monitor, a filter step that would raise, an output that is not finite,
 joint states that are not 7 named positions, a record the bulk decoder cannot read.
 """
 
@@ -294,10 +295,12 @@ def batch_replay(prep: Prepared, config: TargetConfig, idle_flush_s: float, t_st
             order.add("items")
             emitted.append((ig if use_g else -1, il if use_l else -1, Tob if use_g else None, Tbo if use_l else None))
 
+    chain, monitor = pipe.chain, pipe.monitor
+    mon_src: np.ndarray | None = None
+    mats = {k: list(_matrices(poses[t].p, poses[t].q)) for k, t in enumerate(topic_names) if kind_of[k] >= 3}
     ts_list = raw.timestamp.tolist()
     topic_list = raw.topic.tolist()
     within_list = within.tolist()
-    n_keys = 0
     for pos, kind in enumerate(kinds):
         if kind == 0:
             continue
@@ -315,19 +318,28 @@ def batch_replay(prep: Prepared, config: TargetConfig, idle_flush_s: float, t_st
             continue
         if kind == 3 and not links.collecting:
             continue   # final links: an OMC base / rig sample changes nothing any more
-        pb = poses[topic_names[k]]
-        body = role[topic_names[k]][1]
+        name = topic_names[k]
+        t, T = stamps[k][j], mats[k][j]
+        # TargetPipeline.push_omc / push_ots of a link body, minus the validation done above: the chain's own
+        # link estimation, then (OTS base) the link monitor as _watch_link feeds it (static chain: reference
+        # inv(T_base_ots), set when the link changes)
         if kind == 3:
-            pipe.push_omc(body, stamps[k][j], (pb.p[j], pb.q[j]))
+            chain.observe_omc(role[name][1], t, T)
         else:
-            pipe.push_ots(body, stamps[k][j], (pb.p[j], pb.q[j]))
-        if len(pipe.counts) != n_keys:
-            order.seen(pipe.counts)
-            n_keys = len(pipe.counts)
+            if links.collecting:
+                chain.observe_ots(role[name][1], t, T)
+            if links.T_base_ots is not mon_src:
+                mon_src = links.T_base_ots
+                monitor.set_reference(None if mon_src is None else inv_T(mon_src))
+            chk = monitor.add(t, T)
+            if chk is not None and chk.bumped:
+                raise BatchUnsupported("the link monitor saw a bump of the static link")
+        if links.refusals:
+            raise BatchUnsupported("a static-link calibration was refused")
     take(sync.flush())
     if sync.counts.get("forced_by_overflow"):
         raise BatchUnsupported("synchronizer overflow")
-    if any(k not in ("calibration_refused", "link_bumped_checks") for k in pipe.counts):
+    if pipe.counts:
         raise BatchUnsupported(f"pipeline events {sorted(pipe.counts)}")
     return _assemble(prep, config, pipe, order, emitted, poses, per, jb, warnings, raw, t_start, reader)
 
