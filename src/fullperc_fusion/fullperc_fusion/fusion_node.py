@@ -1,8 +1,10 @@
 """fusion_node: driver poses in, fused target poses in ``base`` out. A thin wrapper of TargetPipeline.
 
-Subscribes (per target, shared between targets where the topic is the same):
+Subscribes (per target, shared between targets where the topic is the same; prefixes and further local sources
+from ``sources``, :mod:`sources`):
   /omc/<body>/pose  for the target's OMC body, the base body and the OTS rig body (PoseStamped, ``omc``)
   /ots/<tool>/pose  for the target's OTS tool and the base tool (PoseStamped, ``ots``)
+  <prefix>/<tool>/pose  of every further local source: the target's tool and its base tool
   /fullperc/<target>/region (fullperc_msgs/Region, optional: fills FusionStatus.region)
 Publishes:
   /fullperc/<target>/pose      PoseStamped, frame ``base``, stamp = acquisition stamp of the newest sample
@@ -161,8 +163,10 @@ class FusionNode(Node):
         for t in targets:
             self.pipes[t] = make_pipeline(target_config(vals, t, filters))
             c = self.pipes[t].config.chain
+            extra_tools = "".join(f", {x.name} tool '{ch.cfg.ots_target}'" for x, ch in
+                                  zip(self.pipes[t].config.sources.extras, self.pipes[t].extra_chains, strict=True))
             self.health[t] = TargetHealth(t, {GLOBAL: f"OMC body '{c.omc_target}'",
-                                              LOCAL: f"OTS tool '{c.ots_target}'"}, health)
+                                              LOCAL: f"OTS tool '{c.ots_target}'{extra_tools}"}, health)
             self._skipped_seen[t] = 0
             self._bump_seen[t] = None
             self._link_state[t] = (None, 0)

@@ -247,3 +247,41 @@ def test_arrival_final_estimates_equal_ordered_processing_with_two_local_sources
     assert apipe.counts["late"] == opipe.counts["late"] == 0
     if reorder_ms:
         assert apipe.counts["rewinds"] > 0
+
+
+def _est(T):
+    from fullperc_common.transforms import T_to_pq
+    from fullperc_fusion.calibration import LinkEstimate
+
+    p, q = T_to_pq(T)
+    return LinkEstimate(p, q, np.eye(6) * 1e-10, 100, 100, 0.1, 0.2, 0.1, 0.2, "test")
+
+
+def test_a_calibration_file_gives_the_further_sources_link_by_its_name(tmp_path):
+    """T_base_atracsys in the calibration file is the Atracsys chain's static link from the first sample on (and not
+    the OTS's); the OTS's T_base_ots stays the OTS's; an unknown link name is still refused."""
+    from fullperc_fusion.calibration import Calibration
+    from fullperc_fusion.calibration_io import save_calibration
+
+    T_ba, T_bo = inv_T(T_OMC_BASE) @ T_OMC_ATR, inv_T(T_OMC_BASE) @ T_OMC_OTS
+    cal = tmp_path / "cal.yaml"
+    save_calibration(cal, Calibration({"T_omc_base": _est(T_OMC_BASE), "T_base_ots": _est(T_bo),
+                                       "T_base_atracsys": _est(T_ba)}, T0, 10.0, "test"))
+    cfg, _ = fc.load_fusion_config(_write(tmp_path, {**TWO_LOCAL, "calibration_file": str(cal)}), filters=("kf",))
+    pipe = TargetPipeline(cfg)
+    atr = pipe.extra_chains[0].links
+    assert atr.local_ready and atr.global_ready and "calibration file" in atr.sources["T_base_ots"]
+    np.testing.assert_allclose(atr.T_base_ots, T_ba, atol=1e-12)
+    np.testing.assert_allclose(pipe.chain.links.T_base_ots, T_bo, atol=1e-12)
+    assert not hasattr(pipe.chain.links, "T_base_atracsys")
+    Tl = inv_T(T_OMC_ATR) @ T_OMC_BASE @ truth(0.0)
+    assert pipe.push_local(1, "probe7", T0, Tl)
+    (o,) = pipe.flush()
+    np.testing.assert_allclose(o.p, truth(0.0)[:3, 3], atol=1e-9)
+    with pytest.raises(ParameterError, match="T_base_atracsys"):
+        fc.load_fusion_config(_write(tmp_path, {**TWO_LOCAL, "calibration_file": str(cal),
+                                                "atracsys": {"role": "local", "T_base": [0, 0, 0, 0, 0, 0, 1]}}))
+    text = cal.read_text().replace("T_base_atracsys", "T_bogus")
+    cal.write_text(text)
+    with pytest.raises(ParameterError, match="unknown link"):
+        fc.load_fusion_config(_write(tmp_path, {**TWO_LOCAL, "calibration_file": str(cal)}))
