@@ -175,3 +175,14 @@ def test_supported_configurations():
     assert unsupported_reason(TargetConfig(filters=FIVE)) == ""
     assert unsupported_reason(TargetConfig(filters=("cbkf",))) == ""
     assert unsupported_reason(TargetConfig(filters=FIVE, chain=ChainConfig(local_chain="tracked")))
+
+
+def test_cli_per_sample_option_gives_the_same_json(synth, tmp_path):
+    """``evaluate`` (every method: the five batched, fullperc per sample) and ``evaluate --per-sample``."""
+    from fullperc_eval.evaluation.cli import main
+
+    a, b = tmp_path / "batched.json", tmp_path / "per_sample.json"
+    assert main([str(synth), "--quiet", "--json", str(a)]) == 0
+    assert main([str(synth), "--quiet", "--json", str(b), "--per-sample"]) == 0
+    assert a.read_text() == b.read_text()
+    assert "fullperc" in json.loads(a.read_text())["mae_mm"]

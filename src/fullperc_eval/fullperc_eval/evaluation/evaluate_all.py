@@ -1,7 +1,7 @@
 """``make eval``: evaluate every bag in a directory, print the six-row Table 1 (+ Table 2), write one JSON.
 
     python -m fullperc_eval.evaluation.evaluate_all --bags bags --json bags/eval.json [--reports DIR] [--quiet]
-                                                    [--targets tool instrument | --targets all]
+                                                    [--targets tool instrument | --targets all] [--per-sample]
 
 A bag is any sub-directory with a ``metadata.yaml``; rows come in the paper's task order (G-B-P, P-G-B,
 P-G-B-P, P-B-G, B-G-P, P-B-G-P), other bags after them by name. The JSON is::
@@ -123,6 +123,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--targets", nargs="+", default=[ARM_TARGET], metavar="TARGET",
                     help=f"targets to evaluate in each bag (default: {ARM_TARGET}; 'all': the tool and every target "
                          f"with {TRUTH_PREFIX}/<target> in the bag)")
+    ap.add_argument("--per-sample", action="store_true",
+                    help="replay one message at a time (the reference) instead of the batched replay (same result)")
     args = ap.parse_args(argv)
     t0 = time.monotonic()
     rows: list[dict[str, Any]] = []
@@ -134,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
         for bag in bags:
             for target in bag_targets(bag, args.targets):
                 t1 = time.monotonic()
-                ev = evaluate_bag(bag, progress=not args.quiet, target=target)
+                ev = evaluate_bag(bag, progress=not args.quiet, target=target, per_sample=args.per_sample)
                 r = ev.result
                 r["bag"] = os.path.relpath(bag)
                 (rows if target == ARM_TARGET else others.setdefault(target, [])).append(r)
