@@ -252,23 +252,25 @@ class FullpercFilter(StepCompat):
 
     # ---- predict --------------------------------------------------------------------------------
     def _transition(self, dt: float, w: tuple) -> tuple:
-        """(Exp(w dt), F) of one prediction: F's dt and phi entries from a template cached by dt, Exp(w dt)
+        """(Exp(w dt), F, phi) of one prediction: F's dt and phi entries from a template cached by dt, Exp(w dt)
         written into a copy (w changes with every orientation update); the template itself when w = 0."""
-        F0 = self._fcache.get(dt)
-        if F0 is None:
+        hit = self._fcache.get(dt)
+        if hit is None:
             if len(self._fcache) >= _CACHE_MAX:
                 self._fcache.clear()
+            phi = math.exp(-dt / self.params.sys_time)
             F0 = np.eye(N)
             F0[_F_PV] = dt
             F0[_F_TW] = dt
-            F0[_F_GG] = math.exp(-dt / self.params.sys_time)
-            self._fcache[dt] = F0
+            F0[_F_GG] = phi
+            hit = self._fcache[dt] = (F0, phi)
+        F0, phi = hit
         if w[0] == 0.0 and w[1] == 0.0 and w[2] == 0.0:
-            return _R_IDENT, F0
+            return _R_IDENT, F0, phi
         Rw = _exp(w[0] * dt, w[1] * dt, w[2] * dt)
         F = F0.copy()
         F.put(_F_TH, Rw)
-        return Rw, F
+        return Rw, F, phi
 
     def _noise(self, dt: float, sys_var: float) -> np.ndarray:
         """Q of one prediction (module docstring of the reference), cached by (dt, sys_var)."""
@@ -301,8 +303,7 @@ class FullpercFilter(StepCompat):
         if dt == 0.0:
             return
         x = self._x
-        Rw, F = self._transition(dt, (x[12], x[13], x[14]))
-        phi = F[18, 18]
+        Rw, F, phi = self._transition(dt, (x[12], x[13], x[14]))
         x = x[:]
         x[0], x[1], x[2] = x[0] + x[3] * dt, x[1] + x[4] * dt, x[2] + x[5] * dt
         x[18], x[19], x[20] = phi * x[18], phi * x[19], phi * x[20]
