@@ -15,6 +15,8 @@ position, rotation and the axes) -- against the reference on the same items.
 ``fullperc_array_floor_us``: the array operations of one fullperc step in its fast form alone (predict F P F^T + Q,
 U = P H^T, S, the LAPACK solve, P - U K^T, the reset, the symmetrisations, the Step's arrays; k = 6 rows, a global
 sample with orientation) with no filter logic: the floor of a joint 21-state step in numpy.
+``pipeline_samples_per_s_fullperc``: ``fullperc`` alone through TargetPipeline (its model covariances and
+orientation, snapshots included), against the same run with the reference registered in its place.
 Older lines: ``<kind>_step_*`` time ``FusionFilter.step`` (Measurement construction included) against a bare 6-state
 constant-velocity numpy KF step (predict + 3-D update written inline, no validation, no NIS, no biased
 estimator) -- the floor for a Python/numpy filter step in general matrix form.
@@ -248,6 +250,20 @@ def main() -> None:
         dt = median_time(lambda filters=filters: run_pipeline(ev, filters), repeats=3)
         emit(f"pipeline_samples_per_s_{'+'.join(filters)}", n_in / dt, "samples/s",
              note="target samples (OMC 120 Hz + OTS 60 Hz) pushed, synchronised, fused; real time needs 180/s")
+    if "fullperc" in FILTERS:
+        fast, ref = [], []
+        factory = FILTERS["fullperc"]
+        for _ in range(3):   # interleaved; the registry entry swapped for the reference only around its run
+            fast.append(median_time(lambda: run_pipeline(ev, ("fullperc",)), repeats=1))
+            FILTERS["fullperc"] = FullpercReference
+            try:
+                ref.append(median_time(lambda: run_pipeline(ev, ("fullperc",)), repeats=1))
+            finally:
+                FILTERS["fullperc"] = factory
+        emit("pipeline_samples_per_s_fullperc", n_in / statistics.median(fast), "samples/s",
+             baseline=n_in / statistics.median(ref),
+             note="fullperc alone through TargetPipeline (model covariances, orientation) vs the same pipeline with "
+                  "the general FullpercReference registered instead")
 
 
 if __name__ == "__main__":
