@@ -379,38 +379,7 @@ def _assemble(prep: Prepared, config: TargetConfig, pipe: TargetPipeline, order:
                 lp[rr], lq[rr] = P, Q
     g_t = np.where(has_g, pg.t_ns[np.maximum(ig, 0)], 0) if n else np.zeros(0, np.int64)
     l_t = np.where(has_l, pl.t_ns[np.maximum(il, 0)], 0) if (n and pl is not None) else np.zeros(n, np.int64)
-    t_item = np.maximum(np.where(has_g, g_t, np.iinfo(np.int64).min), np.where(has_l, l_t, np.iinfo(np.int64).min))
-    # ---- filters
-    kf = [f for f in config.filters if f in FILTER_KINDS]
-    hg, hl = has_g.tolist(), has_l.tolist()
-    res = run_closed_form(kf, config.params, t_item.tolist(),
-                          [t if h else None for t, h in zip(g_t.tolist(), hg, strict=True)],
-                          [p if h else None for p, h in zip(gp.tolist(), hg, strict=True)],
-                          [t if h else None for t, h in zip(l_t.tolist(), hl, strict=True)],
-                          [p if h else None for p, h in zip(lp.tolist(), hl, strict=True)])
-    std_g, std_l = config.orientation_std_global, config.orientation_std_local
-    outputs: dict[str, dict[str, np.ndarray]] = {}
-    for f in config.filters:
-        if f == "omc":
-            sel = has_g
-            m = int(sel.sum())
-            cov = np.zeros((m, 6, 6))
-            cov[:, 0:3, 0:3] = np.eye(3) * config.params.global_std**2
-            cov[:, 3:6, 3:6] = np.eye(3) * std_g**2
-            o = {"t_ns": g_t[sel].astype(np.int64), "p": gp[sel].copy(),
-                 "sources": np.full(m, SOURCE_GLOBAL, np.int64), "hop": np.zeros(m, bool), "bias": np.zeros((m, 3)),
-                 "q": gq[sel].copy(), "cov": cov, "orientation_source": np.full(m, SOURCE_GLOBAL, np.int64)}
-        else:
-            r = res[f]
-            cov = np.zeros((n, 6, 6))
-            cov[:, [0, 1, 2], [0, 1, 2]] = r.pos_var
-            cov[:, 3:6, 3:6] = np.where(has_l[:, None, None], np.eye(3) * std_l**2, np.eye(3) * std_g**2)
-            o = {"t_ns": t_item.astype(np.int64), "p": r.p, "sources": r.sources, "hop": r.hop, "bias": r.bias,
-                 "q": np.where(has_l[:, None], lq, gq), "cov": cov,
-                 "orientation_source": np.where(has_l, SOURCE_LOCAL, SOURCE_GLOBAL).astype(np.int64)}
-        if not (np.isfinite(o["p"]).all() and np.isfinite(o["cov"]).all() and np.isfinite(o["q"]).all()):
-            raise BatchUnsupported(f"a non-finite output of {f}")
-        outputs[f] = o
+    outputs = filter_outputs(config, config.filters, has_g, has_l, g_t, l_t, gp, gq, lp, lq)
     # ---- the single-source tap (sources.SourceTap.arrays): each measurement fed, one row per stamp, by stamp
     single = {}
     for role_name, has, tt, pp, qq in (("global", has_g, g_t, gp, gq), ("local", has_l, l_t, lp, lq)):
@@ -436,3 +405,96 @@ def _assemble(prep: Prepared, config: TargetConfig, pipe: TargetPipeline, order:
                  messages=int(len(raw.topic)), seconds=time.perf_counter() - t_start, single_sources=single)
     rep.path = "batched"
     return rep
+
+
+def filter_outputs(config: TargetConfig, filters, has_g: np.ndarray, has_l: np.ndarray, g_t: np.ndarray,
+                   l_t: np.ndarray, gp: np.ndarray, gq: np.ndarray, lp: np.ndarray,
+                   lq: np.ndarray) -> dict[str, dict[str, np.ndarray]]:
+    """The outputs (:meth:`.replay.Outputs.arrays`) of ``filters`` (the paper's five) over the items, given per
+    item which samples were fused (``has_g`` / ``has_l``), their stamps and positions / quaternions in base:
+    what TargetPipeline._process_item makes of each filter's step (orientation and its covariance from the local
+    sample when there is one, else the global one; ``omc`` only where a global sample was fused)."""
+    n = len(has_g)
+    t_item = np.maximum(np.where(has_g, g_t, np.iinfo(np.int64).min), np.where(has_l, l_t, np.iinfo(np.int64).min))
+    # ---- filters
+    kf = [f for f in filters if f in FILTER_KINDS]
+    hg, hl = has_g.tolist(), has_l.tolist()
+    res = run_closed_form(kf, config.params, t_item.tolist(),
+                          [t if h else None for t, h in zip(g_t.tolist(), hg, strict=True)],
+                          [p if h else None for p, h in zip(gp.tolist(), hg, strict=True)],
+                          [t if h else None for t, h in zip(l_t.tolist(), hl, strict=True)],
+                          [p if h else None for p, h in zip(lp.tolist(), hl, strict=True)])
+    std_g, std_l = config.orientation_std_global, config.orientation_std_local
+    outputs: dict[str, dict[str, np.ndarray]] = {}
+    for f in filters:
+        if f == "omc":
+            sel = has_g
+            m = int(sel.sum())
+            cov = np.zeros((m, 6, 6))
+            cov[:, 0:3, 0:3] = np.eye(3) * config.params.global_std**2
+            cov[:, 3:6, 3:6] = np.eye(3) * std_g**2
+            o = {"t_ns": g_t[sel].astype(np.int64), "p": gp[sel].copy(),
+                 "sources": np.full(m, SOURCE_GLOBAL, np.int64), "hop": np.zeros(m, bool), "bias": np.zeros((m, 3)),
+                 "q": gq[sel].copy(), "cov": cov, "orientation_source": np.full(m, SOURCE_GLOBAL, np.int64)}
+        else:
+            r = res[f]
+            cov = np.zeros((n, 6, 6))
+            cov[:, [0, 1, 2], [0, 1, 2]] = r.pos_var
+            cov[:, 3:6, 3:6] = np.where(has_l[:, None, None], np.eye(3) * std_l**2, np.eye(3) * std_g**2)
+            o = {"t_ns": t_item.astype(np.int64), "p": r.p, "sources": r.sources, "hop": r.hop, "bias": r.bias,
+                 "q": np.where(has_l[:, None], lq, gq), "cov": cov,
+                 "orientation_source": np.where(has_l, SOURCE_LOCAL, SOURCE_GLOBAL).astype(np.int64)}
+        if not (np.isfinite(o["p"]).all() and np.isfinite(o["cov"]).all() and np.isfinite(o["q"]).all()):
+            raise BatchUnsupported(f"a non-finite output of {f}")
+        outputs[f] = o
+    return outputs
+
+
+class ItemTap:
+    """Records each item's measurements as the filters get them (a do-nothing filter, like sources.SourceTap).
+
+    Why: with a filter that has no batched form (``fullperc``) the per-sample pipeline has to run anyway; with this
+    tap in its filter table the paper's five need not be stepped there: :meth:`outputs` runs them batched over the
+    recorded items afterwards (:func:`filter_outputs`), the same result, without their per-sample cost.
+    """
+
+    kind = "item_tap"
+    NAME = "_item_tap"   # its key in TargetPipeline.filters: not a registry name, never configured or output
+
+    def __init__(self) -> None:
+        self.items: list[tuple] = []
+
+    def reset(self) -> None:
+        """Nothing to forget: the record is the evaluation's, not a state."""
+
+    def predict(self, t_ns: int) -> None:
+        """No state to move."""
+
+    def update(self, *measurements) -> None:
+        mg = next((m for m in measurements if m.source == SOURCE_GLOBAL), None)
+        ml = next((m for m in measurements if m.source == SOURCE_LOCAL), None)
+        self.items.append((mg, ml))
+        return None
+
+    def snapshot(self) -> int:
+        return len(self.items)
+
+    def restore(self, snap: int) -> None:
+        del self.items[int(snap):]
+
+    def outputs(self, config: TargetConfig, filters) -> dict[str, dict[str, np.ndarray]]:
+        """``filters``' outputs over the recorded items; BatchUnsupported where a measurement carries a covariance
+        (the closed form's fixed noise would not apply)."""
+        n = len(self.items)
+        has_g = np.array([g is not None for g, _ in self.items], bool)
+        has_l = np.array([m is not None for _, m in self.items], bool)
+        g_t, l_t = np.zeros(n, np.int64), np.zeros(n, np.int64)
+        gp, gq, lp, lq = np.zeros((n, 3)), np.zeros((n, 4)), np.zeros((n, 3)), np.zeros((n, 4))
+        for i, (mg, ml) in enumerate(self.items):
+            for m, tt, pp, qq in ((mg, g_t, gp, gq), (ml, l_t, lp, lq)):
+                if m is None:
+                    continue
+                if m.cov is not None or m.q is None:
+                    raise BatchUnsupported("a measurement with a covariance or without orientation")
+                tt[i], pp[i], qq[i] = m.t_ns, m.p, m.q
+        return filter_outputs(config, filters, has_g, has_l, g_t, l_t, gp, gq, lp, lq)

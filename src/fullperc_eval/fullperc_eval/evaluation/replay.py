@@ -168,17 +168,18 @@ def replay(bag: str | Path, config: TargetConfig, idle_flush_s: float = 0.5, pro
     prep = prepare(bag, config, reader)
     fallback = "per-sample replay requested"
     if not per_sample:
-        from .batch import BatchUnsupported, batch_replay, split_filters
+        from .batch import BatchUnsupported, ItemTap, batch_replay, split_filters, unsupported_reason
 
         fast, slow = split_filters(config)
         try:
             if not slow:
                 return batch_replay(prep, config, idle_flush_s, t_start)
-            if fast:
-                rep_b = batch_replay(prep, dataclasses.replace(config, filters=fast), idle_flush_s, t_start)
-                rep = _per_sample_replay(prepare(bag, config), dataclasses.replace(config, filters=slow),
-                                         idle_flush_s, progress, t_start)
-                rep.outputs = {f: (rep_b.outputs if f in fast else rep.outputs)[f] for f in config.filters}
+            if fast and not unsupported_reason(dataclasses.replace(config, filters=fast)):
+                tap = ItemTap()
+                rep = _per_sample_replay(prep, dataclasses.replace(config, filters=slow), idle_flush_s, progress,
+                                         t_start, taps={ItemTap.NAME: tap})
+                fast_out = tap.outputs(config, fast)
+                rep.outputs = {f: (fast_out if f in fast else rep.outputs)[f] for f in config.filters}
                 rep.path, rep.seconds = "batched+per-sample", time.perf_counter() - t_start
                 rep.fallback = f"per sample: {', '.join(slow)} (no batched form)"
                 return rep
@@ -192,8 +193,9 @@ def replay(bag: str | Path, config: TargetConfig, idle_flush_s: float = 0.5, pro
 
 
 def _per_sample_replay(prep: Prepared, config: TargetConfig, idle_flush_s: float, progress: bool,
-                       t_start: float) -> Replay:
-    """The replay one message at a time through :class:`TargetPipeline` (the reference)."""
+                       t_start: float, taps: dict[str, Any] | None = None) -> Replay:
+    """The replay one message at a time through :class:`TargetPipeline` (the reference); ``taps``: further
+    do-nothing filters that record what the filters get (batch.ItemTap)."""
     reader, omc_topics, ots_topics, target_omc = prep.reader, prep.omc_topics, prep.ots_topics, prep.target_omc
     present, total, warnings = prep.present, prep.total, prep.warnings
     c = config.chain
@@ -201,6 +203,7 @@ def _per_sample_replay(prep: Prepared, config: TargetConfig, idle_flush_s: float
     omc_quality = omc_quality_by_stamp(reader, config)   # H3 hook: OMC quality for fullperc's model covariance
     tap = SourceTap()   # hook: records the measurements the filters get (raw local chain for the evaluation)
     pipe.filters[SourceTap.NAME] = tap
+    pipe.filters.update(taps or {})
     outs = {f: Outputs() for f in config.filters}
     joint_t: list[int] = []
     joint_q: list[np.ndarray] = []
