@@ -51,7 +51,7 @@ from fullperc_fusion.pipeline import TargetConfig, TargetPipeline
 from fullperc_fusion.synchronizer import GLOBAL, LOCAL
 
 from .config import EvaluationError
-from .replay import JOINT_TOPIC, Prepared, Replay, _task_name
+from .replay_data import JOINT_TOPIC, Prepared, Replay, _task_name
 
 __all__ = ["BatchUnsupported", "batch_replay", "split_filters", "unsupported_reason"]
 
