@@ -85,6 +85,8 @@ def replay(bag: str | Path, config: TargetConfig, idle_flush_s: float = 0.5, pro
             fallback = f"no batched form for {', '.join(slow)}"
         except BatchUnsupported as e:
             fallback = str(e)
+        if progress:   # why this bag takes the slow path (evaluate prints progress unless --quiet)
+            print(f"note: per-sample replay of {Path(bag).name}: {fallback}", file=sys.stderr, flush=True)
         prep = prepare(bag, config)   # a fresh reader: the batched attempt may have read part of the bag
     rep = _per_sample_replay(prep, config, idle_flush_s, progress, t_start)
     rep.fallback = fallback
