@@ -285,3 +285,22 @@ def test_a_calibration_file_gives_the_further_sources_link_by_its_name(tmp_path)
     cal.write_text(text)
     with pytest.raises(ParameterError, match="unknown link"):
         fc.load_fusion_config(_write(tmp_path, {**TWO_LOCAL, "calibration_file": str(cal)}))
+
+
+def test_model_covariance_per_source_for_filters_that_use_models():
+    """fullperc (uses_models): an Atracsys with noise_model vega gets the Vega distance model through its own chain,
+    one with noise_std its diagonal -- a 1 cm std makes the fused position variance far larger than the model's."""
+    from fullperc_fusion.fullperc_filter import FullpercParams
+
+    ev = [e for e in stream3(ots=(0, 0)) if not (e[0] == "omc" and e[1] == "tool")]
+    var = {}
+    for model, std in (("vega", None), ("std", 1e-2)):
+        extra = SourceSpec("atracsys", "local", "/atracsys", std, model,
+                           ChainConfig(omc_rig="atracsys_rig", static_links="average"))
+        cfg = TargetConfig(filters=("fullperc",), params=FullpercParams(), chain=ChainConfig(static_links="average"),
+                           sources=SourceSet(locals=(SourceSet().locals[0], extra)))
+        pipe = TargetPipeline(cfg)
+        outs = _run(pipe, ev)
+        assert pipe.counts["atracsys_fused"] > 100
+        var[model] = float(np.mean([o.cov[0, 0] for o in outs[-50:]]))
+    assert var["std"] > 100 * var["vega"], var
