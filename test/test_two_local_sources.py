@@ -181,3 +181,19 @@ def test_two_local_sources_fused_and_the_second_keeps_accuracy_when_the_first_go
     assert err_b < 1e3 * BOUND, (f"OTS silent, Atracsys on: mean error {err_b:.3f} mm > {1e3 * BOUND:.3f} mm "
                                  f"(OMC only: {err_omc:.3f} mm)")
     print(f"mean error: both locals {err_a:.3f} mm, Atracsys only {err_b:.3f} mm, OMC only {err_omc:.3f} mm")
+
+
+@pytest.mark.parametrize("bad, match", [
+    ("    sources: [omc, ots, atracsys]\n    omc: {role: global}\n    ots: {role: local}\n"
+     "    atracsys: {role: global}\n", "exactly one source needs role global"),
+    ("    sources: [omc, ots, atracsys]\n    omc: {role: global}\n    ots: {role: local}\n",
+     "source 'atracsys' (parameter 'sources') has no block"),
+    ("    sources: [omc, atracsys]\n    omc: {role: global}\n    atracsys: {role: remote}\n", "'atracsys.role'"),
+])
+def test_a_bad_sources_configuration_stops_the_node_with_exit_2(procs, tmp_path, bad, match):
+    params = tmp_path / "bad.yaml"
+    params.write_text("fusion_node:\n  ros__parameters:\n" + bad)
+    node = procs.start([installed_exe("fullperc_fusion", "fusion_node"), "--ros-args", "--params-file", str(params)],
+                       name="fusion_node")
+    wait_for(lambda: node.poll() is not None, 120, what="the node to exit")
+    assert node.returncode == 2 and match in procs.log(node), procs.log(node)

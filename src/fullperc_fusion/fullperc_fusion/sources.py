@@ -141,7 +141,7 @@ def read_source_values(get: Callable[[str, Any], Any], vals: dict[str, Any], tar
         role = conv(f"{s}.role", "str", None, get(f"{s}.role", None))
         if role is None:
             raise ParameterError(f"source '{s}' (parameter 'sources') has no block: give '{s}: {{role: global|local, "
-                                 "...}}'")
+                                 "...}'")
         if role not in ROLES:
             raise _err(f"{s}.role", role, f"one of {ROLES}")
         roles[s] = role
