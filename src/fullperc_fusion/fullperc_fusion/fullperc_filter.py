@@ -24,9 +24,9 @@ single elements; at these sizes an operation's ~1-2 us overhead, not the arithme
   in arrival.py takes one per item) and the :class:`Step` shares P instead of copying it;
 * re-initialisation (first sample, gaps) is rare and is delegated to the reference itself.
 
-Measured (``python bench/bench_filter.py``, same run, load ~2.7 on 2 cores): 50.6 us per predict + update on the
-cbkf line's position-only items (reference 126.1 us, CBKF's closed form 15.5 us), 61.1 us with orientations and
-model covariances on every sample (reference 166.4 us). The floor of this form is its array work: the ~30 numpy
+Measured (``python bench/bench_filter.py``, one run, load 2.2-2.4 on 2 cores): 53.2 us per predict + update on the
+cbkf line's position-only items (reference 141.8 us, CBKF's closed form 16.5 us), 59.3 us with orientations and
+model covariances on every sample (reference 168.0 us). The floor of this form is its array work: the ~30 numpy
 operations of one step alone (``fullperc_array_floor_us`` in the same benchmark) take about half of that, so the
 issue's 20 us is out of reach for the joint 21-state form in numpy.
 
