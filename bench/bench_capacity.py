@@ -15,8 +15,15 @@ alone, without the scheduling delays a shared machine adds.
 Raw baseline (same run): ``raw_dds_p99_ms``, the p99 of the publisher's /omc/t0/pose received here directly (the
 median over the steps) -- a count has no ratio to a latency, so it is a field, not ``baseline``.
 each with the per-step results (lost, p99, publisher's achieved rates, the node's drop counters) in ``steps``.
+
+Executor dimension: each figure is printed once per executor of the nodes (``executor``: ``events`` = the
+EventsExecutor, fusion_node's default; ``single`` = rclpy's SingleThreadedExecutor, the baseline;
+fullperc_common.executor_choice). The searches run REPEATS times, the executors alternating within a repeat
+(their order swapped every repeat, so neither always runs on the busier moment); ``value`` is the median of the
+repeats' capacities, ``runs`` lists each, every step carries the load averages of its run.
 Run: python bench/bench_capacity.py   (FULLPERC_BENCH_CAP_S: seconds per step, default 6;
-FULLPERC_BENCH_CAP_STEPS: e.g. "1,2,4,8,12,16")
+FULLPERC_BENCH_CAP_STEPS: e.g. "1,2,4,8,12,16"; FULLPERC_BENCH_EXECUTORS: default "events,single";
+FULLPERC_BENCH_REPEATS: default 3)
 """
 
 from __future__ import annotations
@@ -36,13 +43,15 @@ DURATION = float(os.environ.get("FULLPERC_BENCH_CAP_S", "6"))
 STEPS = [int(s) for s in os.environ.get("FULLPERC_BENCH_CAP_STEPS", "1,2,4,8,12,16").split(",") if s]
 P99_MAX_MS = 5.0
 MIN_RATE = 0.95      # the publisher must reach this share of the device rates, else the step says so
+EXECUTORS = [e for e in os.environ.get("FULLPERC_BENCH_EXECUTORS", "events,single").split(",") if e]
+REPEATS = int(os.environ.get("FULLPERC_BENCH_REPEATS", "3"))
 
 
-def step(n: int, procs: int, domain: int) -> dict:
+def step(n: int, procs: int, domain: int, executor: str) -> dict:
     targets = [f"t{k}" for k in range(n)]
     parts = [targets[i::procs] for i in range(procs) if targets[i::procs]]
     try:
-        res = run_live([target_params(p) for p in parts], targets, domain, DURATION)
+        res = run_live([target_params(p) for p in parts], targets, domain, DURATION, executor=executor)
     except (RuntimeError, subprocess.TimeoutExpired) as e:     # e.g. nodes never subscribed: the step failed
         return {"targets": n, "processes": len(parts), "ok": False, "error": f"{type(e).__name__}: {e}"[:300],
                 "lost": None, "samples": None, "p99_ms": None, "raw_p99_ms": None, "publisher_ok": True,
@@ -60,43 +69,56 @@ def step(n: int, procs: int, domain: int) -> dict:
             "node_load": res.node_load(), "nodes_alive": res.nodes_alive,
             "node_cpu_s": [round(c, 2) for c in res.node_cpu_s], "seconds": DURATION,
             "cpu_us_per_fused_pose": round(1e6 * sum(res.node_cpu_s) / res.fused_total, 1) if res.fused_total else None,
-            "ok": lost == 0 and p99 <= P99_MAX_MS and res.nodes_alive}
+            "load": res.load, "ok": lost == 0 and p99 <= P99_MAX_MS and res.nodes_alive}
 
 
-def search(procs: int, domain: int) -> tuple[int, list[dict]]:
+def search(procs: int, domain: int, executor: str) -> tuple[int, list[dict]]:
     best, steps = 0, []
     for k, n in enumerate([n for n in STEPS if n >= procs]):   # two processes need two targets
-        s = step(n, procs, domain + k)
+        s = step(n, procs, domain + k, executor)
         steps.append(s)
-        print(f"# capacity procs={procs} {s}", file=sys.stderr, flush=True)
+        print(f"# capacity procs={procs} executor={executor} {s}", file=sys.stderr, flush=True)
         if not s["ok"]:
             break
         best = n
     return best, steps
 
 
+def why_failed(steps: list[dict]) -> str | None:
+    """The first failing step of a search, in one line (the measured reason the capacity is not higher)."""
+    failed = next((s for s in steps if not s["ok"]), None)
+    if failed is None:
+        return None
+    if "error" in failed:
+        return f"{failed['targets']} targets: {failed['error']}"
+    return (f"{failed['targets']} targets: lost {failed['lost']} of {failed['samples']}, p99 "
+            f"{failed['p99_ms']} ms (limit {P99_MAX_MS} ms)"
+            + ("" if failed["publisher_ok"] else "; the stand-in publisher fell behind the device rates")
+            + ("" if failed["nodes_alive"] else "; a fusion_node process died"))
+
+
 def main() -> None:
     domain = 100 + os.getpid() % 50
     for name, procs in (("capacity_targets", 1), ("capacity_targets_2proc", 2)):
-        best, steps = search(procs, domain + 20 * (procs - 1))
-        raw = [s["raw_p99_ms"] for s in steps if s["raw_p99_ms"] is not None]
-        failed = next((s for s in steps if not s["ok"]), None)
-        why = None
-        if failed is not None and "error" in failed:
-            why = f"{failed['targets']} targets: {failed['error']}"
-        elif failed is not None:
-            why = (f"{failed['targets']} targets: lost {failed['lost']} of {failed['samples']}, p99 "
-                   f"{failed['p99_ms']} ms (limit {P99_MAX_MS} ms)"
-                   + ("" if failed["publisher_ok"] else "; the stand-in publisher fell behind the device rates")
-                   + ("" if failed["nodes_alive"] else "; a fusion_node process died"))
-        # CPU a target costs one process (CPU time, not wall time: less sensitive to other load than latency)
-        shares = [sum(s["node_cpu_s"]) / s["seconds"] / s["targets"] for s in steps if s.get("node_cpu_s")]
-        share = float(np.median(shares)) if shares else None
-        emit(name, best, "targets", raw_dds_p99_ms=float(np.median(raw)) if raw else None,
-             cpu_share_per_target=round(share, 3) if share else None,
-             targets_per_core_by_cpu=int(1 / share) if share else None,
-             criterion=f"0 lost and p99 <= {P99_MAX_MS} ms at 240 + 400 Hz per target", first_failure=why,
-             steps=steps)
+        runs: dict[str, list[tuple[int, list[dict]]]] = {e: [] for e in EXECUTORS}
+        for r in range(REPEATS):
+            order = EXECUTORS if r % 2 == 0 else EXECUTORS[::-1]
+            for j, ex in enumerate(order):
+                runs[ex].append(search(procs, domain + 20 * (procs - 1) + 8 * j, ex))
+        for ex in EXECUTORS:
+            steps = [s for _, st in runs[ex] for s in st]
+            raw = [s["raw_p99_ms"] for s in steps if s["raw_p99_ms"] is not None]
+            # CPU a target costs one process (CPU time, not wall time: less sensitive to other load than latency)
+            shares = [sum(s["node_cpu_s"]) / s["seconds"] / s["targets"] for s in steps if s.get("node_cpu_s")]
+            share = float(np.median(shares)) if shares else None
+            per_pose = [s["cpu_us_per_fused_pose"] for s in steps if s.get("cpu_us_per_fused_pose")]
+            emit(name, float(np.median([b for b, _ in runs[ex]])), "targets", executor=ex,
+                 runs=[b for b, _ in runs[ex]], raw_dds_p99_ms=float(np.median(raw)) if raw else None,
+                 cpu_share_per_target=round(share, 3) if share else None,
+                 targets_per_core_by_cpu=int(1 / share) if share else None,
+                 cpu_us_per_fused_pose=float(np.median(per_pose)) if per_pose else None,
+                 criterion=f"0 lost and p99 <= {P99_MAX_MS} ms at 240 + 400 Hz per target",
+                 first_failure=[why_failed(st) for _, st in runs[ex]], steps=steps)
 
 
 if __name__ == "__main__":

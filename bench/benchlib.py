@@ -8,6 +8,7 @@ measured in the same run and reported as a ratio.
 from __future__ import annotations
 
 import json
+import os
 import statistics
 import sys
 import time
@@ -25,13 +26,23 @@ def median_time(fn: Callable[[], object], repeats: int = 7, number: int = 1) -> 
     return statistics.median(times)
 
 
+def load() -> list[float]:
+    """The machine's 1/5/15-minute load averages now: shared machines make every timing depend on them."""
+    try:
+        return [round(x, 2) for x in os.getloadavg()]
+    except OSError:
+        return []
+
+
 def emit(name: str, value: float, unit: str, baseline: float | None = None, **extra) -> dict:
-    """Print one machine-readable result line; ``ratio`` = value / baseline when given."""
+    """Print one machine-readable result line; ``ratio`` = value / baseline when given; ``load`` = the load
+    averages when the line is printed (unless the caller passes its own, e.g. measured during the run)."""
     rec: dict = {"name": name, "value": round(float(value), 6), "unit": unit}
     if baseline is not None:
         rec["baseline"] = round(float(baseline), 6)
         rec["ratio"] = round(float(value) / float(baseline), 4) if baseline else None
     rec.update(extra)
+    rec.setdefault("load", load())
     print(json.dumps(rec), flush=True)
     return rec
 
@@ -39,6 +50,7 @@ def emit(name: str, value: float, unit: str, baseline: float | None = None, **ex
 def emit_error(name: str, unit: str, why: str, **extra) -> dict:
     """A figure that could not be measured: ``value`` null and ``error`` saying why (the name stays listed)."""
     rec: dict = {"name": name, "value": None, "unit": unit, "error": why, **extra}
+    rec.setdefault("load", load())
     print(json.dumps(rec), flush=True)
     return rec
 

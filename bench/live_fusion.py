@@ -64,6 +64,7 @@ class LiveResult:
     diag: dict[str, dict[str, str]] = field(default_factory=dict)
     node_cpu_s: list[float] = field(default_factory=list)   # CPU seconds of each node process while data flowed
     fused_total: int = 0                     # fused poses received over the whole run (warm-up included)
+    load: list[float] = field(default_factory=list)   # load averages right after the data (1 min ~ the run)
 
     def node_load(self) -> dict[str, dict[str, str]]:
         """Per /diagnostics target entry: the node's own load figures (queue depth, processing lag, rewinds), as
@@ -105,8 +106,11 @@ def target_params(targets: list[str]) -> list[str]:
 
 
 def run_live(nodes: list[list[str]], targets: list[str], domain: int, duration: float,
-             omc_hz: float = 240.0, ots_hz: float = 400.0) -> LiveResult:
-    """Run ``len(nodes)`` fusion_node processes (each with the given extra ``--ros-args``) against the publisher."""
+             omc_hz: float = 240.0, ots_hz: float = 400.0, executor: str | None = None) -> LiveResult:
+    """Run ``len(nodes)`` fusion_node processes (each with the given extra ``--ros-args``) against the publisher.
+
+    ``executor``: ``events`` | ``single`` sets ``FULLPERC_EXECUTOR`` for the nodes (fullperc_common.executor_choice);
+    None leaves the node's default."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseStamped
@@ -115,6 +119,8 @@ def run_live(nodes: list[list[str]], targets: list[str], domain: int, duration: 
     from rclpy.qos import QoSProfile, ReliabilityPolicy
 
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    if executor is not None:
+        env["FULLPERC_EXECUTOR"] = executor
     os.environ.update(ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     procs = [subprocess.Popen([str(fusion_exe()), "--ros-args", "-p", "init_samples:=20", *p], env=env,
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
@@ -148,14 +154,21 @@ def run_live(nodes: list[list[str]], targets: list[str], domain: int, duration: 
                           daemon=True)
     th.start()
     stamps_file = Path(tempfile.mkdtemp(prefix="live_bench_")) / "stamps.json"
+    # CPU is counted from when every node is constructed (its pose publisher seen here): importing and building a
+    # node costs ~1.2-1.6 s of CPU, which a 6 s step would otherwise book as 0.2-0.27 core of load
+    t_wait = time.monotonic()
+    while (any(node.count_publishers(f"/fullperc/{t}/pose") < 1 for t in targets)
+           and time.monotonic() - t_wait < 120 and all(p.poll() is None for p in procs)):
+        time.sleep(0.05)
     cpu0 = [cpu_seconds(p.pid) for p in procs]
     try:
         pub = subprocess.run([sys.executable, str(HERE / "e2e_publisher.py"), "--duration", str(duration),
                               "--wait-subscribers", "2", "--wait-base", str(len(nodes)), "--tools", ",".join(targets),
                               "--omc-hz", str(omc_hz), "--ots-hz", str(ots_hz), "--stamps", str(stamps_file)],
                              env=env, capture_output=True, text=True, timeout=duration + 180)
-        # CPU while data flowed (the publisher's discovery wait and 1 s pauses add idle time only)
+        # CPU while data flowed (the publisher's discovery wait and 1 s pauses add idle spinning only)
         cpu = [cpu_seconds(p.pid) - c for p, c in zip(procs, cpu0, strict=True)]
+        run_load = [round(x, 2) for x in os.getloadavg()]
         time.sleep(2.5)   # one more diagnostics period after the last sample
     finally:
         stop.set()
@@ -195,4 +208,4 @@ def run_live(nodes: list[list[str]], targets: list[str], domain: int, duration: 
             if DROP_WORDS & set(k2.split("_")) and v.strip().lstrip("-").isdigit():
                 counters[k2] = counters.get(k2, 0) + int(v)
     return LiveResult(lat, (r[:, 0] - r[:, 1]) / 1e6, lost, n_sent, counters, summary, alive, diag, cpu,
-                      sum(len(v) for v in fused.values()))
+                      sum(len(v) for v in fused.values()), run_load)

@@ -215,8 +215,15 @@ def test_1khz_omc_and_1khz_ots_every_sample_fused_or_its_loss_counted_and_warned
     v = out.diag[-1][2]
     dropped = sum(int(v.get(f"{s}_{k}", 0)) for s in ("global", "local") for k in ("late", "duplicate"))
     lost = sum(int(v.get(k, 0)) for k in ("omc_samples_lost", "ots_samples_lost"))
-    for key in ("queue_depth_max", "lag_max_ms", "callback_delay_max_ms"):   # measured while data came in
+    # measured while data came in; the callback delay needs rclpy's message info, which the EventsExecutor
+    # (fusion_node's default executor) cannot deliver (fullperc_common.executor_choice): there it stays "None"
+    from fullperc_common.executor_choice import choose
+
+    info = choose("fusion_node") == "single"
+    for key in ("queue_depth_max", "lag_max_ms", *(("callback_delay_max_ms",) if info else ())):
         assert any(d[2].get(key) not in (None, "None") for d in out.diag), key
+    if not info:
+        assert all(d[2].get("callback_delay_max_ms") in (None, "None") for d in out.diag), "no invented delay"
     if dropped or lost:
         warned = [m for lvl, m, _ in out.diag if lvl >= 1 and ("lost samples" in m or "late x" in m)]
         assert warned, f"{dropped} dropped, {lost} lost, but no WARN naming them"
