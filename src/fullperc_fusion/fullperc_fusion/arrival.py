@@ -202,12 +202,16 @@ class ArrivalPipeline(TargetPipeline):
             self.newest_ns = t
         k = bisect.bisect_left(self._tes, t - 2 * self.config.slop_ns)
         old = self._entries[k:]
-        streams: list[list[Sample]] = [[] for _ in self._names]
-        for e in old:
-            if e.item.glob is not None:
-                streams[GLOBAL].append(e.item.glob)
-            if e.item.local is not None:
-                streams[_stream(e.item)].append(e.item.local)
+        if len(self._names) == 2:   # global + one local source: the samples of the window per stream, directly
+            streams: list[list[Sample]] = [[e.item.glob for e in old if e.item.glob is not None],
+                                           [e.item.local for e in old if e.item.local is not None]]
+        else:
+            streams = [[] for _ in self._names]
+            for e in old:
+                if e.item.glob is not None:
+                    streams[GLOBAL].append(e.item.glob)
+                if e.item.local is not None:
+                    streams[_stream(e.item)].append(e.item.local)
         bisect.insort(streams[stream], Sample(t, payload), key=lambda s: s.t_ns)
         items = ApproxSync.pair(streams[GLOBAL], streams[LOCAL], self.config.slop_ns, streams[2:])
         j = 0

@@ -124,6 +124,11 @@ class ApproxSync:
         stamps within a stream; ``extra``: the further local sources' streams) -- what :meth:`flush` emits once
         every one of them has been pushed. Used by :mod:`arrival` to re-pair the samples after a late one; the
         same code as the live path, so both agree."""
+        if not extra:   # the two paired streams (every target without further local sources): the short path
+            s = cls(slop_ns, 0, max_pending=max(1, len(glob), len(local)))
+            s._t = ([x.t_ns for x in glob], [x.t_ns for x in local])
+            s._p = ([x.payload for x in glob], [x.payload for x in local])
+            return s._drain(lambda t: True)
         streams = (glob, local, *extra)
         s = cls(slop_ns, 0, max_pending=max(1, *(len(x) for x in streams)),
                 names=_NAMES + tuple(f"local{k}" for k in range(1, len(extra) + 1)))
