@@ -344,9 +344,10 @@ class FullpercFilter(StepCompat):
         """Fuse one measurement or a (global, local) pair (the reference's update; module docstring)."""
         mg, ml = split_update(self.kind, measurements)
         t_new = max(m.t_ns for m in measurements)
-        if self.time_ns is None or t_new > self.time_ns:
+        now = self._pend if self._pend is not None else self._t
+        if now is None or t_new > now:
             self.predict(t_new)
-        t = self.time_ns
+        t = self._pend if self._pend is not None else self._t
         if self._pend is not None:
             return self._reinit(t, mg, ml)
         x = self._x
@@ -370,10 +371,11 @@ class FullpercFilter(StepCompat):
             rot = m.q is not None
             H.put(lag_flat, -lag)
             z0, z1, z2 = m.p.tolist()
-            zp = [x[0] - lag * x[3], x[1] - lag * x[4], x[2] - lag * x[5]]
-            if glob:
-                zp = [zp[0] + x[6] + x[18], zp[1] + x[7] + x[19], zp[2] + x[8] + x[20]]
-            y += [z0 - zp[0], z1 - zp[1], z2 - zp[2]]
+            if glob:   # z - (p - lag v + b + g), in the reference's order of operations
+                y += [z0 - (x[0] - lag * x[3] + x[6] + x[18]), z1 - (x[1] - lag * x[4] + x[7] + x[19]),
+                      z2 - (x[2] - lag * x[5] + x[8] + x[20])]
+            else:
+                y += [z0 - (x[0] - lag * x[3]), z1 - (x[1] - lag * x[4]), z2 - (x[2] - lag * x[5])]
             if rot:
                 A = _exp(-lag * x[12], -lag * x[13], -lag * x[14]) if lag > 0 else _R_IDENT
                 if glob:
