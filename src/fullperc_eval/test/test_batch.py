@@ -175,6 +175,13 @@ def test_supported_configurations():
     assert unsupported_reason(TargetConfig(filters=FIVE)) == ""
     assert unsupported_reason(TargetConfig(filters=("cbkf",))) == ""
     assert unsupported_reason(TargetConfig(filters=FIVE, chain=ChainConfig(local_chain="tracked")))
+    from fullperc_fusion.sources import SourceSet, SourceSpec
+
+    d = SourceSet()
+    extra = SourceSpec("atracsys", "local", "/atracsys", None, "std", ChainConfig())
+    assert "further" in unsupported_reason(TargetConfig(filters=FIVE, sources=SourceSet(d.glob, (*d.locals, extra))))
+    noisy = dataclasses.replace(d.locals[0], noise_std=2e-4)
+    assert "noise_std" in unsupported_reason(TargetConfig(filters=FIVE, sources=SourceSet(d.glob, (noisy,))))
 
 
 def test_cli_per_sample_option_gives_the_same_json(synth, tmp_path):
