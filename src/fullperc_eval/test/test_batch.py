@@ -193,3 +193,17 @@ def test_cli_per_sample_option_gives_the_same_json(synth, tmp_path):
     assert main([str(synth), "--quiet", "--json", str(b), "--per-sample"]) == 0
     assert a.read_text() == b.read_text()
     assert "fullperc" in json.loads(a.read_text())["mae_mm"]
+
+
+@pytest.mark.parametrize("chain", [ChainConfig(ots_target="absent"), ChainConfig(omc_base="absent"),
+                                   ChainConfig(static_links="average")],
+                         ids=["no-ots-target", "no-omc-base-link", "average-links"])
+def test_sample_bag_other_chains_batched_and_equal(chain):
+    """No OTS target (global-only items), no OMC base (the global link never comes: local-only outputs), the
+    average link mode: still batched, still equal."""
+    if not (SAMPLE / "metadata.yaml").is_file():
+        pytest.skip("sample bag not present")
+    cfg = TargetConfig(filters=FIVE, chain=chain)
+    a = replay(SAMPLE, cfg, progress=False)
+    assert a.path == "batched"
+    _assert_same(a, replay(SAMPLE, cfg, progress=False, per_sample=True))
