@@ -159,3 +159,34 @@ def test_replay_outputs_equal_with_per_message_rosbags_decoding(monkeypatch: pyt
     for f, arrays in slow.outputs.items():
         for k, v in arrays.items():
             assert fast.outputs[f][k].tobytes() == v.tobytes(), (f, k)
+
+
+@pytest.mark.skipif(not BAGS, reason="no committed sample bags under bags/")
+def test_a_chunk_that_does_not_decompress_is_a_bag_error(tmp_path: Path) -> None:
+    """Compressed chunk data the decompressor refuses (here: the zstd frame's magic number overwritten) is named as
+    a corrupt bag with the chunk's offset, like a size or CRC mismatch -- never the decompressor's own exception."""
+    import shutil
+    import struct
+
+    src = BAGS[0]
+    files = sorted(p.name for p in src.glob("*.mcap"))
+    bag = tmp_path / "bag"
+    shutil.copytree(src, bag)
+    buf = bytearray((bag / files[0]).read_bytes())
+    off = 8
+    while off + 9 <= len(buf):
+        op, size = struct.unpack_from("<BQ", buf, off)
+        if op == 0x06:   # Chunk: start, end, uncompressed size, crc, compression, records
+            clen = struct.unpack_from("<I", buf, off + 9 + 28)[0]
+            comp = bytes(buf[off + 9 + 32:off + 9 + 32 + clen]).decode()
+            rstart = off + 9 + 32 + clen + 8
+            break
+        off += 9 + size
+    else:
+        pytest.fail("no chunk in the sample bag")
+    if comp != "zstd":
+        pytest.skip(f"sample bag chunks are {comp!r}, not zstd")
+    buf[rstart:rstart + 4] = b"\0\0\0\0"
+    (bag / files[0]).write_bytes(bytes(buf))
+    with pytest.raises(BagError, match=r"corrupt: chunk at byte \d+ does not decompress \(zstd: "):
+        read_raw(bag, files, ["/omc/tool/pose"])

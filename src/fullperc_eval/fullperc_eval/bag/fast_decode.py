@@ -240,7 +240,8 @@ def _decompressor(name: str) -> Callable[[bytes], bytes] | None:
 def read_raw(path: Path, files: Sequence[str], topics: Sequence[str]) -> RawMessages | None:
     """Records of ``topics`` from a one-file chunked MCAP bag, in rosbags' order; None when not that kind of bag.
 
-    Raises :class:`BagError` on a corrupt chunk (size or CRC mismatch), as rosbags would fail there too.
+    Raises :class:`BagError` on a corrupt chunk (size or CRC mismatch, or compressed data the decompressor refuses),
+    as rosbags would fail there too.
     """
     if len(files) != 1:
         return None
@@ -289,7 +290,11 @@ def read_raw(path: Path, files: Sequence[str], topics: Sequence[str]) -> RawMess
                     return False
                 (rlen,) = struct.unpack_from("<Q", body, off + 32 + clen)
                 rstart = off + 40 + clen
-                raw = dec(bytes(body[rstart:rstart + rlen]))
+                try:
+                    raw = dec(bytes(body[rstart:rstart + rlen]))
+                except Exception as err:  # noqa: BLE001 - zstd / lz4 raise their own error types
+                    raise BagError(f"bag {str(path)!r} is corrupt: chunk at byte {off - 9} does not decompress "
+                                   f"({comp}: {type(err).__name__}: {err})") from None
                 if len(raw) != usize or (crc and crc32(raw) != crc):
                     raise BagError(f"bag {str(path)!r} is corrupt: chunk at byte {off - 9} fails its "
                                    "size or CRC check")
