@@ -188,6 +188,9 @@ PARAMS: tuple[Param, ...] = (
           "period -> WARN (overload; beyond `history` late samples are dropped)"),
     Param("publish_final", True, "bool", None, "", "",
           "arrival: publish /fullperc/<target>/final, the primary filter's estimates once final (= offline)"),
+    Param("status_rate", 0.0, "float", lambda v: math.isfinite(v) and v >= 0, "must be finite and >= 0", "Hz",
+          "most FusionStatus messages per second per target and filter, by fused stamp (0 = one per fused output); "
+          "an output flagged as a hop, or whose link_bumped changed, always goes out"),
     Param("stale_timeout", 1.0, "float", _pos, "must be finite and > 0", "s",
           "silence after which /diagnostics reports a source as silent"),
     Param("problem_hold", _H.hold_s, "float", _pos, "must be finite and > 0", "s",

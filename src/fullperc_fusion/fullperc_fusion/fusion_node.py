@@ -47,7 +47,8 @@ mapping the offline evaluator uses), documented in config/fusion.yaml; names of 
   noise.accel, noise.bias_walk, noise.global_std, noise.local_std, init.pos_std, init.vel_std,
   init.bias_std, hop_gate, hop_to_bias, max_gap (see filters.FilterParams)
   slop [s], reorder_delay [s], clock stamps|host, max_future [s] 0.1, idle_flush [s], stale_timeout [s],
-  problem_hold [s], processing arrival|ordered, history [s] 0.2, lag_warn [s] 0.2, publish_final true
+  problem_hold [s], processing arrival|ordered, history [s] 0.2, lag_warn [s] 0.2, publish_final true,
+  status_rate [Hz] 0 (0 = every output)
   qos_reliability reliable|best_effort, qos_depth
   alarm.hop_window [s] 2.0, alarm.hop_max 5, alarm.bias_max [m] 0.02, alarm.reject_timeout [s] 1.0
   calibration_file '' (calibration YAML loaded at start; a bad file stops the node naming file and field),
@@ -196,7 +197,8 @@ class FusionNode(Node):
                                      lambda m, t=t: self._region.__setitem__(t, int(m.label)), 10)
             self._last_rx[t] = {r.tag: None for r in rts}
             self._problem_seen[t] = {}
-        self._out_sets = {k: OutputPublisher(*v, always_pose=k[1] == "") for k, v in self._pubs.items()}
+        self._out_sets = {k: OutputPublisher(*v, always_pose=k[1] == "", status_rate=vals["status_rate"])
+                          for k, v in self._pubs.items()}
         self._targets_of = {d: {b: list(dict.fromkeys(ts)) for b, ts in r.items()} for d, r in self._routes.items()}
         self._local_k = {r.tag: r.k for r in rts}
         self._input_subs: list[tuple[str, str, object]] = []

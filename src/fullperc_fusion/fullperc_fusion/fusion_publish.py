@@ -13,6 +13,10 @@ a 36-element list checked element by element. Here:
   when a subscription is matched (``get_subscription_count``): with volatile QoS a message no reader is matched
   to reaches nobody, so skipping it cannot be observed. With every filter on, those were 6 of the 9 messages
   of an item nobody recorded. The primary's pose and pose_cov, and /tf, are always published.
+* status at a capped rate (``status_rate`` [Hz], issue 16 item 4: many targets per node): at most one FusionStatus
+  per ``1 / status_rate`` of fused stamps per topic set -- by stamp, not by the host clock, so a replay gives the
+  same messages -- except that an output flagged as a hop, or whose ``link_bumped`` differs from the last status
+  sent, always goes out: a reader never misses the events the status exists for. 0 = every output.
 """
 
 from __future__ import annotations
@@ -55,9 +59,12 @@ def _fill_vector3(v: Any, xyz: Any) -> None:
 class OutputPublisher:
     """The messages of one (target, key) topic set, built once and refilled per output (module docstring)."""
 
-    def __init__(self, pose_pub: Any, cov_pub: Any | None, status_pub: Any, always_pose: bool) -> None:
+    def __init__(self, pose_pub: Any, cov_pub: Any | None, status_pub: Any, always_pose: bool,
+                 status_rate: float = 0.0) -> None:
         self.pose_pub, self.cov_pub, self.status_pub = pose_pub, cov_pub, status_pub
         self.always_pose = always_pose      # the primary's pose (and pose_cov) are never skipped
+        self.status_period_ns = int(round(1e9 / status_rate)) if status_rate > 0 else 0
+        self._status_last: tuple[int, bool] | None = None   # (stamp, link_bumped) of the last status sent
         self.ps = PoseStamped()
         self.ps.header.frame_id = "base"
         self.pc = PoseWithCovarianceStamped()
@@ -75,7 +82,7 @@ class OutputPublisher:
         fill_pose(self.ps.pose, o.p, o.q)   # checked even when nothing goes out: the refusal is counted as before
         pose_on = self.always_pose or self._wanted(self.pose_pub)
         cov_on = self.cov_pub is not None and (self.always_pose or self._wanted(self.cov_pub))
-        st_on = self._wanted(self.status_pub)
+        st_on = self._wanted(self.status_pub) and self._status_due(o)
         sec, nsec = divmod(int(o.t_ns), 1_000_000_000)
         if pose_on:
             stamp = self.ps.header.stamp
@@ -105,6 +112,16 @@ class OutputPublisher:
             st.region = region
             st.link_bumped = bool(o.link_bumped)
             self.status_pub.publish(st)
+            self._status_last = (int(o.t_ns), st.link_bumped)
+
+    def _status_due(self, o: FusedOutput) -> bool:
+        """The status cap (module docstring): due when uncapped, first, a hop, a link_bumped change, or a period of
+        fused stamps after the last one sent (a stamp earlier than that one -- a restarted timeline -- too)."""
+        last = self._status_last
+        if not self.status_period_ns or last is None or o.hop or bool(o.link_bumped) != last[1]:
+            return True
+        dt = int(o.t_ns) - last[0]
+        return dt >= self.status_period_ns or dt < 0
 
 
 def publish_outputs(sets: dict[tuple[str, str], OutputPublisher], target: str, outs: Iterable[FusedOutput],

@@ -110,3 +110,34 @@ def test_a_refused_pose_publishes_nothing_and_is_reported():
                           tf_of=lambda o: o)
     assert tfs == [] and [f for f, _ in errors] == ["cbkf", "kf"]
     assert all(p is None or p.sent == [] for v in pubs.values() for p in v)
+
+
+def test_status_rate_caps_status_by_stamp_but_never_drops_a_hop_or_a_bump_change():
+    """status_rate 50 Hz over 400 Hz outputs: one status per 20 ms of fused stamps (pose and pose_cov every output);
+    hops and link_bumped changes always go out; a restarted (earlier) timeline starts a new period."""
+    from dataclasses import replace
+
+    pose_pub, cov_pub, st_pub = FakePub(1), FakePub(1), FakePub(1)
+    pub = OutputPublisher(pose_pub, cov_pub, st_pub, always_pose=True, status_rate=50.0)
+    t0, dt = 1_000_000_000, 2_500_000
+    hops = {37, 38, 101}
+    bumped_from = 150
+    outs = [replace(_out(t_ns=t0 + i * dt), hop=i in hops, link_bumped=i >= bumped_from) for i in range(400)]
+    outs.append(_out(t_ns=t0 - 5 * dt))   # time restarted (e.g. a replay jumped back)
+    for o in outs:
+        pub.publish("tool", o, region=1)
+    assert len(pose_pub.sent) == len(cov_pub.sent) == len(outs)
+    sent = [(m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec, m.hop, m.link_bumped) for m in st_pub.sent]
+    stamps = [s[0] for s in sent]
+    assert all(t0 + i * dt in stamps for i in hops), "every hop is published"
+    assert t0 + bumped_from * dt in stamps, "the first output with link_bumped is published"
+    assert stamps[-1] == t0 - 5 * dt, "a restarted timeline is published at once"
+    regular = [t for t, hop, _ in sent[:-1] if not hop and t != t0 + bumped_from * dt]
+    assert min(np.diff(regular)) >= 20_000_000 - dt   # no two periodic ones closer than a period (minus one step)
+    assert 45 <= len(sent) <= 60                         # 1 s of stamps at 50 Hz plus the events
+    # uncapped (the default): every output
+    st2 = FakePub(1)
+    pub2 = OutputPublisher(FakePub(1), FakePub(1), st2, always_pose=True)
+    for o in outs:
+        pub2.publish("tool", o, region=1)
+    assert len(st2.sent) == len(outs)
