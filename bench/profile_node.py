@@ -28,6 +28,7 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -75,7 +76,8 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=20.0, help="seconds of data")
     ap.add_argument("--delay", type=float, default=10.0, help="start recording this long after the node started")
     ap.add_argument("--record", type=float, default=8.0, help="seconds recorded")
-    ap.add_argument("--out", default="/tmp/fusion_node_profile.txt", help="py-spy raw output")
+    ap.add_argument("--out", default=str(Path(tempfile.gettempdir()) / "fusion_node_profile.txt"),
+                    help="py-spy raw output")
     a = ap.parse_args()
     spies: list[subprocess.Popen] = []
     cpu: dict[str, dict[str, float]] = {}
