@@ -12,6 +12,10 @@ approximate-time pair at the newer of its two stamps, at most ``slop`` later). T
 counts as lost (a node with a backlog of seconds does not serve the OR). The first second after the first fused
 pose is skipped (the static links are averaged from the first samples then; every node runs with
 ``init_samples:=20`` instead of 30 to shorten that, all else at the node's defaults unless a bench passes more).
+The nodes run with ``static_links:=average``: the figures are the steady state of a calibrated OR. With the default
+``calibrate`` every step (a few seconds) would fall inside the 10 s start-up collection, whose per-sample
+bookkeeping and one-off robust mean at its end (measured with bench/profile_node.py) are start-up costs, not
+the per-sample cost of fusing.
 Every run uses LOCALHOST discovery and its own domain id.
 """
 
@@ -122,7 +126,8 @@ def run_live(nodes: list[list[str]], targets: list[str], domain: int, duration: 
     if executor is not None:
         env["FULLPERC_EXECUTOR"] = executor
     os.environ.update(ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    procs = [subprocess.Popen([str(fusion_exe()), "--ros-args", "-p", "init_samples:=20", *p], env=env,
+    procs = [subprocess.Popen([str(fusion_exe()), "--ros-args", "-p", "init_samples:=20",
+                               "-p", "static_links:=average", *p], env=env,
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
              for p in nodes]
     ctx = Context()
