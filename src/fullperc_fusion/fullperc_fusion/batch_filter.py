@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .fast_filter import biased_factor
 from .filter_api import SOURCE_GLOBAL, SOURCE_LOCAL
 from .filters import FILTER_KINDS, FilterParams
 
@@ -43,15 +44,6 @@ class BatchOutput:
     hop: np.ndarray        # (N,) bool
     sources: np.ndarray    # (N,) int: SOURCE_GLOBAL | SOURCE_LOCAL bits
     reset: np.ndarray      # (N,) bool: the item (re-)initialised the state
-
-
-def _factor(x: float, var: float) -> float:
-    """fast_filter._factor (eq. 7 for one state)."""
-    if var <= 0:
-        return 1.0
-    x2 = x * x
-    den = var + x2
-    return x2 / den if den > 0 else 1.0
 
 
 class _State:
@@ -235,9 +227,9 @@ def _update_axes(s: _State, t: int, zg, zl, lg: float, ll: float, rg: float, rl:
         xp, xv = X[a] + dx0, X[3 + a] + dx1
         xb = X[6 + a] + dx2 if hb else 0.0
         if biased:
-            mp = _factor(xp, n0) if sp else 1.0
-            mv = _factor(xv, n3) if sv else 1.0
-            mb = _factor(xb, n5) if sb else 1.0
+            mp = biased_factor(xp, n0) if sp else 1.0
+            mv = biased_factor(xv, n3) if sv else 1.0
+            mb = biased_factor(xb, n5) if sb else 1.0
             if prior:
                 b0, b1, b2, b3, b4, b5 = c0, c1, c2, c3, c4, c5
             else:

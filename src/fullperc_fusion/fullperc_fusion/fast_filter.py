@@ -96,7 +96,7 @@ class _AxisCov:
         return [c[0] for c in self.blocks]
 
 
-def _factor(x: float, var: float) -> float:
+def biased_factor(x: float, var: float) -> float:
     """biased_factors of eq. (7) for one state (same cases as filters.biased_factors)."""
     if var <= 0:
         return 1.0
@@ -367,9 +367,9 @@ class ClosedFormFilter(StepCompat):
             xb = X[6 + a] + dx[2] if hb else 0.0
             if m_diag is not None:
                 sp, sv, sb = self._shrink
-                mp = _factor(xp, n[0]) if sp else 1.0
-                mv = _factor(xv, n[3]) if sv else 1.0
-                mb = _factor(xb, n[5]) if sb else 1.0
+                mp = biased_factor(xp, n[0]) if sp else 1.0
+                mv = biased_factor(xv, n[3]) if sv else 1.0
+                mb = biased_factor(xb, n[5]) if sb else 1.0
                 base = c if prior else n
                 n = [base[0] * (mp * mp), base[1] * (mp * mv), base[2] * (mp * mb),
                      base[3] * (mv * mv), base[4] * (mv * mb), base[5] * (mb * mb)]
