@@ -282,8 +282,37 @@ def stop_group(p: subprocess.Popen, grace: float) -> int | None:
     try:
         os.killpg(p.pid, signal.SIGKILL)
     except ProcessLookupError:
-        pass
+        return p.poll()
+    # SIGKILL takes effect when the kernel next schedules each member: on a busy machine that is not at once. Wait
+    # (bounded: an orphan's zombie stays a group member until init reaps it) until the group is gone, so that a
+    # caller that got the exit codes back finds nothing of the graph still running.
+    end = time.monotonic() + GROUP_GONE_WAIT_S
+    while time.monotonic() < end and _group_has_live_members(p.pid):
+        time.sleep(0.01)
     return p.poll()
+
+
+GROUP_GONE_WAIT_S = 5.0
+
+
+def _group_has_live_members(pgid: int) -> bool:
+    """True while a process of group ``pgid`` is alive (not a zombie); from /proc, else ``killpg(pgid, 0)``."""
+    try:
+        entries = [d for d in os.listdir("/proc") if d.isdigit()]
+    except OSError:
+        try:
+            os.killpg(pgid, 0)
+        except ProcessLookupError:
+            return False
+        return True
+    for d in entries:
+        try:
+            fields = Path(f"/proc/{d}/stat").read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            continue
+        if int(fields[2]) == pgid and fields[0] != "Z":   # fields after "(comm)": state, ppid, pgrp, ...
+            return True
+    return False
 
 
 @dataclass
