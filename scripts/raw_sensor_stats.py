@@ -32,7 +32,7 @@ from fullperc_fusion.margin import margin_at
 from fullperc_fusion.pipeline import TargetPipeline
 
 # columns of a sample row
-T, EX, EY, EZ, FIT, MARGIN, DIST, RX, RY, RZ = range(10)
+T, EX, EY, EZ, FIT, MARGIN, DIST, RX, RY, RZ, PX, PY, PZ = range(13)
 
 
 def _stamp(h) -> int:
@@ -41,7 +41,8 @@ def _stamp(h) -> int:
 
 def bag_rows(bag: Path, layout) -> tuple[np.ndarray, np.ndarray]:
     """(OMC rows, OTS rows) of one bag: time [s], position error (3) [m], fit error [m], margin [deg] (OMC),
-    distance to the Vega [m] (OTS), rotation error vector (3) [rad]; errors in base, measured minus true."""
+    distance to the Vega [m] (OTS), rotation error vector (3) [rad], true position in base (3) [m]; errors in base,
+    measured minus true."""
     cfg, _ = replay_config()
     cfg.filters = ("omc",)
     pipe = TargetPipeline(cfg)
@@ -85,7 +86,7 @@ def bag_rows(bag: Path, layout) -> tuple[np.ndarray, np.ndarray]:
         rv = Rotation.from_matrix(Tb[:3, :3] @ T0[:3, :3].T).as_rotvec()
         margin = margin_at(layout, Td[:3, 3])[0] if dev == "omc" else np.nan
         rows[dev].append((t * 1e-9, *(Tb[:3, 3] - T0[:3, 3]), fit.get((dev, t), -1.0), margin,
-                          float(np.linalg.norm(Td[:3, 3])), *rv))
+                          float(np.linalg.norm(Td[:3, 3])), *rv, *T0[:3, 3]))
     return np.array(rows["omc"]), np.array(rows["ots"])
 
 
