@@ -126,6 +126,29 @@ def fit_gauss_markov(lags_s: np.ndarray, rms: np.ndarray) -> tuple[float, float,
     return best[1], best[2], best[3]
 
 
+def fit_two_gauss_markov(lags_s: np.ndarray, rms: np.ndarray) -> tuple[float, float, float, float, float]:
+    """(white std, fast std, fast tau, slow std, slow tau [s]) of D(L) = 2 w^2 + 2 s1^2 (1 - exp(-L / tau1))
+    + 2 s2^2 (1 - exp(-L / tau2)), tau1 < tau2, fitted to the squared rms increments (grid over both taus,
+    non-negative least squares for the variances, relative residuals). The slow part is what a bias state can
+    follow; the fast part reverts within about a second and is noise of the sample."""
+    from scipy.optimize import nnls
+
+    D = rms**2
+    best = (np.inf, 0.0, 0.0, 0.0, 0.0, 0.0)
+    for t1 in np.geomspace(0.05, 3.0, 60):
+        for t2 in np.geomspace(2.0, 200.0, 80):
+            if t2 <= t1:
+                continue
+            A = np.column_stack([2 * np.ones_like(lags_s), 2 * (1 - np.exp(-lags_s / t1)),
+                                 2 * (1 - np.exp(-lags_s / t2))]) / D[:, None]
+            coef, _ = nnls(A, np.ones_like(D))
+            res = float(np.sum((A @ coef - 1.0) ** 2))
+            if res < best[0]:
+                w2, s1, s2 = np.sqrt(coef)
+                best = (res, float(w2), float(s1), float(t1), float(s2), float(t2))
+    return best[1:]
+
+
 def report(name: str, g: np.ndarray, o: np.ndarray) -> None:
     fit = np.where(g[:, FIT] >= 0, g[:, FIT], np.nan)
     ok = np.isfinite(fit)
@@ -158,6 +181,9 @@ def report(name: str, g: np.ndarray, o: np.ndarray) -> None:
     w, sy, tau = fit_gauss_markov(Ls, np.asarray(sr))
     print(f"OMC rotation as white + Gauss-Markov: white {w * 1e3:.2f} mrad, systematic {sy * 1e3:.2f} mrad, "
           f"tau {tau:.2f} s")
+    w, s1, t1, s2, t2 = fit_two_gauss_markov(Ls, np.asarray(sr))
+    print(f"OMC rotation as white + two Gauss-Markov: white {w * 1e3:.2f} mrad, fast {s1 * 1e3:.2f} mrad tau "
+          f"{t1:.2f} s, slow {s2 * 1e3:.2f} mrad tau {t2:.1f} s (200 s: the grid's end, a random walk)")
     eo, ro, d = o[:, EX:EZ + 1], o[:, RX:RZ + 1], o[:, DIST]
     for lo, hi in ((0.9, 1.3), (1.3, 1.6), (1.6, 1.8), (1.8, 2.5)):
         s = (d >= lo) & (d < hi)

@@ -309,3 +309,45 @@ def test_an_injected_omc_hop_is_reported_with_its_time_and_size(tmp_path):
     h = r["omc_hops"][0]
     assert h["t_s"] == pytest.approx(t_hop, abs=0.05)
     assert h["jump_mm"] == pytest.approx(np.linalg.norm(np.subtract(after, before)) * 1e3, abs=0.2)
+
+
+def test_local_seen_mask_spans_and_stamp_tolerance():
+    from fullperc_eval.evaluation.metrics import LOCAL_SPAN_GAP_NS, LOCAL_STAMP_TOL_NS, local_seen_mask
+
+    ms = 1_000_000
+    local = np.array([100, 116, 132, 400], dtype=np.int64) * ms     # a span 100-132 ms, one lone sample at 400
+    t = np.array([90, 99, 100, 108, 132, 136, 138, 250, 396, 404, 406], dtype=np.int64) * ms
+    want = [False, True, True, True, True, True, False, False, True, True, False]
+    assert LOCAL_STAMP_TOL_NS == 5 * ms and LOCAL_SPAN_GAP_NS == 100 * ms
+    assert local_seen_mask(t, local).tolist() == want
+    assert local_seen_mask(t, local[::-1]).tolist() == want                  # order of the local stamps
+    assert not local_seen_mask(t, np.zeros(0, dtype=np.int64)).any()
+    # a gap longer than the span gap splits the span: 132 -> 400 ms is not one span
+    assert not local_seen_mask(np.array([250 * ms]), local).any()
+    assert local_seen_mask(np.array([250 * ms]), local, gap_ns=300 * ms).all()
+
+
+def test_orientation_split_by_the_local_sources_sightings(synth):
+    """An orientation error injected into one method only where the Vega sees the tool shows in its ``seen``
+    figure alone; the raw local chain has only a ``seen`` figure."""
+    from scipy.spatial.transform import Rotation
+
+    from fullperc_eval.evaluation.metrics import evaluate_replay, local_seen_mask
+    from fullperc_eval.evaluation.replay import replay
+    from fullperc_fusion.layout import default_layout_path, load_layout
+
+    cfg, _ = replay_config()
+    rep = replay(synth[0], cfg, progress=False)
+    o = rep.outputs["kf"]
+    seen = local_seen_mask(o["t_ns"], rep.single_sources["local"]["t_ns"])
+    assert 0 < seen.sum() < len(seen)
+    angle = 2.3
+    d = Rotation.from_rotvec(np.radians(angle) * np.array([0.0, 0.6, 0.8]))
+    q = o["q"].copy()
+    q[seen] = (d * Rotation.from_quat(q[seen])).as_quat()
+    o["q"] = q
+    r = evaluate_replay(rep, load_calibration(synth[0]), load_layout(default_layout_path())).result
+    split = r["orientation_by_local_deg"]
+    assert split["kf"]["seen"] == pytest.approx(angle, abs=1e-9) and split["kf"]["unseen"] < 1e-9
+    assert split["cbkf"]["seen"] < 1e-9 and split["cbkf"]["unseen"] < 1e-9
+    assert split["local"]["seen"] < 1e-9 and split["local"]["unseen"] is None

@@ -68,6 +68,7 @@ _POSE = np.array([21 * r + c for r in (0, 1, 2, 9, 10, 11) for c in (0, 1, 2, 9,
 _F_PV = ([0, 1, 2], [3, 4, 5])
 _F_TW = ([9, 10, 11], [12, 13, 14])
 _F_GG = ([18, 19, 20], [18, 19, 20])
+_F_BB = ([15, 16, 17], [15, 16, 17])
 _F_TH = np.array([21 * r + c for r in (9, 10, 11) for c in (9, 10, 11)])   # F[theta, theta] in F.ravel()
 _CACHE_MAX = 64     # entries per cache; cleared when full (a stream with jittering dt still reuses most keys)
 
@@ -252,25 +253,27 @@ class FullpercFilter(StepCompat):
 
     # ---- predict --------------------------------------------------------------------------------
     def _transition(self, dt: float, w: tuple) -> tuple:
-        """(Exp(w dt), F, phi) of one prediction: F's dt and phi entries from a template cached by dt, Exp(w dt)
-        written into a copy (w changes with every orientation update); the template itself when w = 0."""
+        """(Exp(w dt), F, phi, phi_beta) of one prediction: F's dt, phi and phi_beta entries from a template cached by
+        dt, Exp(w dt) written into a copy (w changes with every orientation update); the template itself when w = 0."""
         hit = self._fcache.get(dt)
         if hit is None:
             if len(self._fcache) >= _CACHE_MAX:
                 self._fcache.clear()
             phi = math.exp(-dt / self.params.sys_time)
+            phb = self.params.rot_decay(dt)[0]
             F0 = np.eye(N)
             F0[_F_PV] = dt
             F0[_F_TW] = dt
             F0[_F_GG] = phi
-            hit = self._fcache[dt] = (F0, phi)
-        F0, phi = hit
+            F0[_F_BB] = phb
+            hit = self._fcache[dt] = (F0, phi, phb)
+        F0, phi, phb = hit
         if w[0] == 0.0 and w[1] == 0.0 and w[2] == 0.0:
-            return _R_IDENT, F0, phi
+            return _R_IDENT, F0, phi, phb
         Rw = _exp(w[0] * dt, w[1] * dt, w[2] * dt)
         F = F0.copy()
         F.put(_F_TH, Rw)
-        return Rw, F, phi
+        return Rw, F, phi, phb
 
     def _noise(self, dt: float, sys_var: float) -> np.ndarray:
         """Q of one prediction (module docstring of the reference), cached by (dt, sys_var)."""
@@ -281,6 +284,7 @@ class FullpercFilter(StepCompat):
                 self._qcache.clear()
             pr = self.params
             phi = math.exp(-dt / pr.sys_time)
+            qbe = pr.rot_decay(dt)[1]
             Q = np.zeros((N, N))
             for (i, j), q in (((0, 3), pr.accel_noise), ((9, 12), pr.ang_accel_noise)):
                 for k in range(3):
@@ -289,7 +293,7 @@ class FullpercFilter(StepCompat):
                     Q[j + k, j + k] = q * dt
             for k in range(3):
                 Q[6 + k, 6 + k] = pr.bias_walk * dt
-                Q[15 + k, 15 + k] = pr.rot_bias_walk * dt
+                Q[15 + k, 15 + k] = qbe
                 Q[18 + k, 18 + k] = sys_var * (1.0 - phi * phi)
             self._qcache[key] = Q
         return Q
@@ -303,10 +307,12 @@ class FullpercFilter(StepCompat):
         if dt == 0.0:
             return
         x = self._x
-        Rw, F, phi = self._transition(dt, (x[12], x[13], x[14]))
+        Rw, F, phi, phb = self._transition(dt, (x[12], x[13], x[14]))
         x = x[:]
         x[0], x[1], x[2] = x[0] + x[3] * dt, x[1] + x[4] * dt, x[2] + x[5] * dt
         x[18], x[19], x[20] = phi * x[18], phi * x[19], phi * x[20]
+        if phb != 1.0:
+            x[15], x[16], x[17] = phb * x[15], phb * x[16], phb * x[17]
         self._x = x
         self._R = _mul(Rw, self._R)
         Q = self._qcache.get((dt, self._sys_var))

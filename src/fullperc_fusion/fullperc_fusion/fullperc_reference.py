@@ -24,10 +24,13 @@ a Gauss-Markov process forgets it at the rate the sensor's error does, and the m
 ~1.5 mm paper) stays in b.
 
 * predict over dt (constant velocity, constant angular velocity):
-  p += v dt, R = Exp(w dt) R, g *= phi, phi = exp(-dt / sys_time);
-  F = I with F_pv = dt I, F_thth = Exp(w dt), F_thw = dt I, F_gg = phi I;
+  p += v dt, R = Exp(w dt) R, g *= phi, phi = exp(-dt / sys_time), beta *= phi_b, phi_b = exp(-dt / rot_sys_time)
+  (1 when rot_sys_time is 0);
+  F = I with F_pv = dt I, F_thth = Exp(w dt), F_thw = dt I, F_gg = phi I, F_bebe = phi_b I;
   Q = q_a [[dt^3/3, dt^2/2], [dt^2/2, dt]] on (p, v), q_b dt on b, q_alpha the same form on (theta, w),
-  q_beta dt on beta, s^2 (1 - phi^2) on g (white acceleration / angular acceleration, random-walk biases, a
+  q_beta dt + s_b^2 (1 - phi_b^2) on beta (a random walk plus a Gauss-Markov part of stationary variance
+  s_b^2 = rot_sys_std^2: the OMC's slow rotation error decorrelates along the path; ``FullpercParams``),
+  s^2 (1 - phi^2) on g (white acceleration / angular acceleration, random-walk biases, a
   first-order Gauss-Markov g of stationary variance s^2: the ``sys_var`` of the newest global sample,
   :func:`measurement_models.omc_systematic_var`, margin- and fit-error-adaptive; ``sys_std^2`` without one).
 * a global sample (lag s = filter time - sample stamp, as the paper filters: exact under constant velocity):
@@ -47,7 +50,7 @@ a Gauss-Markov process forgets it at the rate the sensor's error does, and the m
 * error-state update (Joseph form), injection p += dp ..., R = Exp(dtheta) R, and the reset of the error state:
   P = G P G^T with G_thth = I - [dtheta/2]x (the first-order reset Jacobian of the multiplicative update).
 * gaps longer than ``max_gap_s`` re-initialise p, v, R, w from the next sample; b and beta (and their variances)
-  are kept.
+  are kept (propagated over the gap: b's walk, beta's decay and walk, g's decay).
 
 CBKF's biased estimator M is left out: on the position block it is a shrinkage towards the origin of ``base``
 with m = 1 - O(1e-7) (see :mod:`filters`), i.e. micrometres, and on the other blocks it breaks the filter.
@@ -88,6 +91,13 @@ class FullpercParams(FilterParams):
     sys_time         correlation time of the OMC's systematic position error [s] (3 s: Gauss-Markov fit of the raw
                      OMC error's structure function, 3.1 s spec / 2.8 s paper, measurement_models).
     sys_std          its per-axis std [m] for a global sample without ``sys_var`` (0.2 mm: raw OMC, spec bags).
+    rot_sys_time     correlation time of beta's Gauss-Markov part [s]; 0: beta is the random walk alone.
+    rot_sys_std      stationary per-axis std of that part [rad]. 3.8 s and 11.4 mrad: the slow part of the raw
+                     OMC rotation error's structure function fitted as white + two Gauss-Markov processes
+                     (``paper`` bags: fast 5.1 mrad / 0.21 s, slow 11.4 mrad / 3.8 s; the fast part reverts within
+                     frames and stays noise of the sample, :func:`measurement_models.omc_covariance`). On the
+                     ``spec`` bags the slow part is a random walk (8 mrad at tau >= 200 s, i.e. 2 s^2 / tau ~
+                     6.5e-7 rad^2/s: ``rot_bias_walk``).
     """
 
     ang_accel_noise: float = 0.5
@@ -99,10 +109,13 @@ class FullpercParams(FilterParams):
     init_rot_bias_std: float = 0.02
     sys_time: float = 3.0
     sys_std: float = 0.2e-3
+    rot_sys_time: float = 3.8
+    rot_sys_std: float = 11.4e-3
 
     def validate(self) -> FullpercParams:
         super().validate()
-        for name in ("ang_accel_noise", "rot_bias_walk", "init_rot_std", "init_angvel_std", "init_rot_bias_std"):
+        for name in ("ang_accel_noise", "rot_bias_walk", "init_rot_std", "init_angvel_std", "init_rot_bias_std",
+                     "rot_sys_time", "rot_sys_std"):
             v = float(getattr(self, name))
             if not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"filter parameter {name} must be finite and >= 0, got {v!r}")
@@ -111,6 +124,14 @@ class FullpercParams(FilterParams):
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"filter parameter {name} must be finite and > 0, got {v!r}")
         return self
+
+    def rot_decay(self, dt: float) -> tuple[float, float]:
+        """(phi_beta, q_beta) of beta over dt: phi_beta = exp(-dt / rot_sys_time) (1 when that is 0) and the
+        process variance per axis q_beta = rot_bias_walk dt + rot_sys_std^2 (1 - phi_beta^2)."""
+        if self.rot_sys_time <= 0.0:
+            return 1.0, self.rot_bias_walk * dt
+        phi = math.exp(-dt / self.rot_sys_time)
+        return phi, self.rot_bias_walk * dt + self.rot_sys_std**2 * (1.0 - phi * phi)
 
     @classmethod
     def from_params(cls, params: FilterParams | None) -> FullpercParams:
@@ -279,15 +300,19 @@ class FullpercReference(StepCompat):
         s.p = s.p + s.v * dt
         s.R = Rw @ s.R
         s.g = phi * s.g
-        # P = F P F^T with F = I except F_pv = dt I, F_thth = Rw, F_thw = dt I, F_gg = phi I: as row and column
-        # operations on the blocks F touches (equal to the product, ~3x cheaper at 21x21 in numpy)
+        phb, qbe = pr.rot_decay(dt)
+        s.beta = phb * s.beta
+        # P = F P F^T with F = I except F_pv = dt I, F_thth = Rw, F_thw = dt I, F_gg = phi I, F_bebe = phi_beta I:
+        # as row and column operations on the blocks F touches (equal to the product, ~3x cheaper at 21x21 in numpy)
         P = s.P.copy()
         P[P_, :] += dt * P[V_, :]
         P[TH, :] = Rw @ P[TH, :] + dt * P[W_, :]
         P[G_, :] *= phi
+        P[BE, :] *= phb
         P[:, P_] += dt * P[:, V_]
         P[:, TH] = P[:, TH] @ Rw.T + dt * P[:, W_]
         P[:, G_] *= phi
+        P[:, BE] *= phb
         qa, qr = pr.accel_noise, pr.ang_accel_noise
         for (i, j), q in (((0, 3), qa), ((9, 12), qr)):
             for k in range(3):
@@ -297,7 +322,7 @@ class FullpercReference(StepCompat):
                 P[j + k, j + k] += q * dt
         for k in range(3):
             P[6 + k, 6 + k] += pr.bias_walk * dt
-            P[15 + k, 15 + k] += pr.rot_bias_walk * dt
+            P[15 + k, 15 + k] += qbe
             P[18 + k, 18 + k] += s.sys_var * (1.0 - phi * phi)
         s.P = 0.5 * (P + P.T)
         s.t_ns = t
@@ -309,10 +334,12 @@ class FullpercReference(StepCompat):
         keep = s.t_ns is not None
         dt = (t - s.t_ns) * 1e-9 if keep else 0.0
         Pbb = s.P[B_, B_] + pr.bias_walk * dt * _I3 if keep else pr.init_bias_std**2 * _I3
-        Pbe = s.P[BE, BE] + pr.rot_bias_walk * dt * _I3 if keep else pr.init_rot_bias_std**2 * _I3
+        phb, qbe = pr.rot_decay(dt)
+        Pbe = phb * phb * s.P[BE, BE] + qbe * _I3 if keep else pr.init_rot_bias_std**2 * _I3
         phi = math.exp(-dt / pr.sys_time)
         Pgg = phi * phi * s.P[G_, G_] + s.sys_var * (1 - phi * phi) * _I3 if keep else s.sys_var * _I3
         s.g = phi * s.g if keep else np.zeros(3)
+        s.beta = phb * s.beta
         if not keep:
             s.b, s.beta = np.zeros(3), np.zeros(3)
         s.p = ml.p.copy() if ml is not None else mg.p - s.b - s.g

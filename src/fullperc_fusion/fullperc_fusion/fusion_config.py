@@ -165,6 +165,10 @@ PARAMS: tuple[Param, ...] = (
           "fullperc: correlation time of the OMC's systematic position error (Gauss-Markov bias part)"),
     Param("fullperc.sys_std", _F.sys_std, "float", _pos, "must be finite and > 0", "m",
           "fullperc: its per-axis std for an OMC sample without a model (no quality)"),
+    Param("fullperc.rot_sys_time", _F.rot_sys_time, "float", _nonneg, "must be finite and >= 0", "s",
+          "fullperc: correlation time of the OMC orientation bias's Gauss-Markov part; 0 = random walk alone"),
+    Param("fullperc.rot_sys_std", _F.rot_sys_std, "float", _nonneg, "must be finite and >= 0", "rad",
+          "fullperc: stationary per-axis std of that part"),
     Param("fullperc.layout_file", "", "str", None, "", "",
           "fullperc: OR layout for the OMC model's view margin; '' = the installed or_layout.yaml, 'none' = none"),
     Param("slop", _T.slop_ns * 1e-9, "float", _nonneg, "must be finite and >= 0", "s",
@@ -322,7 +326,8 @@ def filter_params(vals: dict[str, Any]) -> FullpercParams:
         rot_local_std=vals["fullperc.rot_local_std"], init_rot_std=vals["fullperc.init_rot_std"],
         init_angvel_std=vals["fullperc.init_angvel_std"],
         init_rot_bias_std=vals["fullperc.init_rot_bias_std"], sys_time=vals["fullperc.sys_time"],
-        sys_std=vals["fullperc.sys_std"]).validate()
+        sys_std=vals["fullperc.sys_std"], rot_sys_time=vals["fullperc.rot_sys_time"],
+        rot_sys_std=vals["fullperc.rot_sys_std"]).validate()
 
 
 def model_layout(vals: dict[str, Any], filters: tuple[str, ...]):

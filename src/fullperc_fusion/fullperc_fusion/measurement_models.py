@@ -24,6 +24,12 @@ Diana forward kinematics; the OMC's view margin from :func:`margin.margin_at` on
   D(L) = 2 w^2 + 2 s^2 (1 - exp(-L / tau)): position tau = 3.1 s (spec) / 2.8 s (paper), s = 0.21 / 2.29 mm;
   rotation tau = 0.8 / 1.1 s, s = 1.9 / 23 mrad. Beyond the white jitter the error is systematic and
   decorrelates within seconds of motion (distortion along the path, camera-set changes);
+* these figures are those of the sample bags of an earlier twin (before the profiles' last recalibration); the same
+  command on today's bags gives: spec total fit gain 0.52, margin term 0.52 mm, rotation 5.8 rad/m and 4.35 mrad;
+  white floor 0.016 mm, fit gain 0.08, margin term 0.116 mm; position tau 3.0 s (spec) / 12.5 s (paper), s =
+  0.25 / 2.35 mm; rotation as white + two Gauss-Markov (paper) 1.2 mrad + 5.1 mrad / 0.21 s + 11.4 mrad / 3.8 s
+  (the slow part is ``FullpercParams.rot_sys_std`` / ``rot_sys_time``). The constants below are not refitted yet
+  (README "The fullperc filter");
 * Vega tool (chain included) per axis 0.13 mm mid-volume, 0.17-0.19 mm at the ends of the 0.95-2.4 m volume;
   orientation ~2.2 mrad per axis.
 """

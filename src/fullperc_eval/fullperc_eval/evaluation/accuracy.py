@@ -90,6 +90,7 @@ def run_seed(profile: str, seed: int, cache: str, fusion_config: str | None, key
                      "mae_by_region_mm": r["mae_by_region_mm"], "b_to_p": r["b_to_p"],
                      "orientation_mae_deg": r.get("orientation_mae_deg"),
                      "orientation_by_region_deg": r.get("orientation_by_region_deg"),
+                     "orientation_by_local_deg": r.get("orientation_by_local_deg"),
                      "nees": {m: {k: {x: v[k][x] for x in ("n", "share_95", "mean")} for k in ("position", "pose")}
                               for m, v in (r.get("nees") or {}).items()}})
     return {"profile": profile, "seed": seed, "rows": rows, "generated": len(missing),
@@ -139,6 +140,11 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
         extra["orientation_by_region_deg"] = {
             reg: {m: _ms([((r.get("orientation_by_region_deg") or {}).get(reg) or {}).get(m) for r in rows])
                   for m in oms} for reg in ("BVV", "GVV", "PVV")}
+        if any(r.get("orientation_by_local_deg") for r in rows):
+            extra["orientation_by_local_deg"] = {
+                t: {m: {part: _ms([(((r.get("orientation_by_local_deg") or {}).get(m)) or {}).get(part)
+                                   for r in rows if r["task"] == t]) for part in ("seen", "unseen")}
+                    for m in (*oms, "local")} for t in TASK_ORDER}
     if any(r.get("nees") for r in rows):
         extra["nees"] = pooled_nees(rows)
     return {"n_task_seeds": len(rows), "seeds": sorted({r["seed"] for r in rows}), "table1_mae_mm": t1,

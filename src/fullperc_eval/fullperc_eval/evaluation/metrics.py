@@ -87,6 +87,29 @@ def _by_region(err: dict[str, np.ndarray], labels: dict[str, np.ndarray]) -> dic
                                                                                        (3, "PVV"))}
 
 
+LOCAL_SPAN_GAP_NS = 100_000_000   # local samples closer than this are one span in which the local source sees the tool
+LOCAL_STAMP_TOL_NS = 5_000_000    # an output this close to a local sample had it (a pair's stamp is its later sample's)
+
+
+def local_seen_mask(t_ns: np.ndarray, local_t_ns: np.ndarray, gap_ns: int = LOCAL_SPAN_GAP_NS,
+                    tol_ns: int = LOCAL_STAMP_TOL_NS) -> np.ndarray:
+    """True for each stamp at which the local source sees the tool: within ``tol_ns`` of a local sample, or
+    between two consecutive local samples at most ``gap_ns`` apart. Why: the raw local chain's figures exist only
+    there, so a method is compared with it on these outputs and with the OMC alone on the others (issue 18's
+    orientation goal on the same samples, :mod:`.accuracy_goals`)."""
+    t = np.asarray(t_ns, dtype=np.int64)
+    lt = np.sort(np.asarray(local_t_ns, dtype=np.int64))
+    if lt.size == 0 or t.size == 0:
+        return np.zeros(t.shape, dtype=bool)
+    j = np.searchsorted(lt, t, side="right")          # lt[j-1] <= t < lt[j]
+    prev = lt[np.clip(j - 1, 0, lt.size - 1)]
+    nxt = lt[np.clip(j, 0, lt.size - 1)]
+    has_prev, has_next = j > 0, j < lt.size
+    near = (has_prev & (t - prev <= tol_ns)) | (has_next & (nxt - t <= tol_ns))
+    inside = has_prev & has_next & (nxt - prev <= gap_ns)
+    return near | inside
+
+
 def _pose_figures(outputs: dict[str, dict[str, np.ndarray]], idx: dict[str, np.ndarray], ok: dict[str, np.ndarray],
                   T_true: np.ndarray) -> tuple[dict[str, np.ndarray], dict[str, dict[str, np.ndarray]]]:
     """Orientation error [deg] (NaN without truth or orientation) and NEES per method (position; pose where the
@@ -214,6 +237,7 @@ def evaluate_replay(rep: Replay, calibration: Calibration, layout, kinematics=No
     o_lab = dict(out_labels)
     single: dict[str, Any] = {}
     loc = (getattr(rep, "single_sources", None) or {}).get("local")
+    by_local: dict[str, dict[str, float | None]] | None = None
     if loc is not None and loc["t_ns"].size:
         T_loc, ok_loc = gt.T_base_tool(loc["t_ns"])
         e_loc = np.full(len(ok_loc), np.nan)
@@ -221,6 +245,11 @@ def evaluate_replay(rep: Replay, calibration: Calibration, layout, kinematics=No
         orient["local"] = np.full(len(ok_loc), np.nan)
         orient["local"][ok_loc] = orientation_error_deg(T_loc[ok_loc, :3, :3], loc["q"][ok_loc])
         o_lab["local"] = labels[np.clip(np.searchsorted(grid_t, loc["t_ns"], side="right") - 1, 0, len(grid_t) - 1)]
+        by_local = {}
+        for f in methods:
+            seen = local_seen_mask(rep.outputs[f]["t_ns"], loc["t_ns"])
+            by_local[f] = {"seen": _mean(orient[f][seen]), "unseen": _mean(orient[f][~seen])}
+        by_local["local"] = {"seen": _mean(orient["local"]), "unseen": None}
         single["local"] = {"n": int(ok_loc.sum()), "mae_mm": _mean(e_loc),
                            "orientation_mae_deg": _mean(orient["local"]),
                            "what": "the Vega measurement mapped into base by the frame chain, as the filters get it"}
@@ -254,6 +283,7 @@ def evaluate_replay(rep: Replay, calibration: Calibration, layout, kinematics=No
         "orientation_p95_deg": {f: (float(np.percentile(v[np.isfinite(v)], 95)) if np.isfinite(v).any() else None)
                                 for f, v in orient.items()},
         "orientation_by_region_deg": _by_region(orient, o_lab),
+        "orientation_by_local_deg": by_local,
         "single_sources": single,
         "nees": {f: {"position": summary(nees_v[f]["position"], 3), "pose": summary(nees_v[f]["pose"], 6)}
                  for f in methods},
