@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -149,48 +150,75 @@ def fit_two_gauss_markov(lags_s: np.ndarray, rms: np.ndarray) -> tuple[float, fl
     return best[1:]
 
 
-def report(name: str, g: np.ndarray, o: np.ndarray) -> None:
+def fitted(g: np.ndarray, o: np.ndarray) -> dict[str, Any]:
+    """Every statistic of one profile's rows (:func:`bag_rows` of its bags, concatenated): regressions as
+    (floor, fit gain, margin term) -- per-axis std [m or rad] -- structure functions, Gauss-Markov fits, the
+    median fit error, the Vega's per-axis rms by distance and its orientation rms. ``test/test_model_constants.py``
+    holds the constants of ``measurement_models`` and ``FullpercParams`` to these on the committed bags."""
+    out: dict[str, Any] = {}
     fit = np.where(g[:, FIT] >= 0, g[:, FIT], np.nan)
     ok = np.isfinite(fit)
     g, fit = g[ok], fit[ok]
     e, r = g[:, EX:EZ + 1], g[:, RX:RZ + 1]
-    print(f"== {name}: {len(g)} OMC samples, {len(o)} OTS samples")
-    a, k, c = regress((e**2).mean(1), fit, g[:, MARGIN])
-    print(f"OMC position, total per axis:   floor {a * 1e3:.3f} mm, fit gain {k:.2f}, margin term {c * 1e3:.3f} mm")
-    a, k, c = regress((r**2).mean(1), fit, g[:, MARGIN])
-    print(f"OMC rotation, total per axis:   floor {a * 1e3:.2f} mrad, fit gain {k:.1f} rad/m, margin term "
-          f"{c * 1e3:.2f} mrad")
+    out["n_omc"], out["n_ots"] = len(g), len(o)
+    out["fit_median"] = float(np.median(fit))
+    out["pos_total"] = regress((e**2).mean(1), fit, g[:, MARGIN])
+    out["rot_total"] = regress((r**2).mean(1), fit, g[:, MARGIN])
     pair = np.diff(g[:, T]) < 0.02
     dw = (np.diff(e, axis=0)[pair] ** 2).mean(1) / 2
     fm = 0.5 * (fit[1:] + fit[:-1])[pair]
     mm = np.minimum(g[1:, MARGIN], g[:-1, MARGIN])[pair]
-    a, k, c = regress(dw, fm, mm)
-    print(f"OMC position, white per axis:   floor {a * 1e3:.3f} mm, fit gain {k:.2f}, margin term {c * 1e3:.3f} mm")
+    out["pos_white"] = regress(dw, fm, mm)
     d = np.diff(e, axis=0)[pair]
-    mad = 1.4826 * np.median(np.abs(d - np.median(d, 0)), 0) / np.sqrt(2)
-    print(f"OMC position, robust white per axis (MAD): {np.round(mad * 1e3, 3)} mm")
+    out["pos_white_mad"] = 1.4826 * np.median(np.abs(d - np.median(d, 0)), 0) / np.sqrt(2)
     lags = (1, 6, 12, 30, 60, 120, 240, 360, 600, 1200)
-    sp = structure(e, g[:, T], lags)
-    sr = structure(r, g[:, T], lags)
+    out["lags_s"] = np.asarray(lags) / 120.0
+    out["structure_pos"] = np.asarray(structure(e, g[:, T], lags))
+    out["structure_rot"] = np.asarray(structure(r, g[:, T], lags))
+    out["pos_gm"] = fit_gauss_markov(out["lags_s"], out["structure_pos"])
+    out["rot_gm"] = fit_gauss_markov(out["lags_s"], out["structure_rot"])
+    out["rot_gm2"] = fit_two_gauss_markov(out["lags_s"], out["structure_rot"])
+    eo, ro, dist = o[:, EX:EZ + 1], o[:, RX:RZ + 1], o[:, DIST]
+    out["ots_by_distance"] = [(lo, hi, float(np.sqrt((eo[s] ** 2).mean())), int(s.sum()))
+                              for lo, hi in ((0.9, 1.3), (1.3, 1.6), (1.6, 1.8), (1.8, 2.5))
+                              if (s := (dist >= lo) & (dist < hi)).any()]
+    out["ots_rot_rms"] = float(np.sqrt((ro**2).mean()))
+    return out
+
+
+def report(name: str, g: np.ndarray, o: np.ndarray) -> None:
+    f = fitted(g, o)
+    print(f"== {name}: {f['n_omc']} OMC samples, {f['n_ots']} OTS samples; median fit error "
+          f"{f['fit_median'] * 1e3:.3f} mm")
+    a, k, c = f["pos_total"]
+    print(f"OMC position, total per axis:   floor {a * 1e3:.3f} mm, fit gain {k:.2f}, margin term {c * 1e3:.3f} mm")
+    a, k, c = f["rot_total"]
+    print(f"OMC rotation, total per axis:   floor {a * 1e3:.2f} mrad, fit gain {k:.1f} rad/m, margin term "
+          f"{c * 1e3:.2f} mrad")
+    a, k, c = f["pos_white"]
+    print(f"OMC position, white per axis:   floor {a * 1e3:.3f} mm, fit gain {k:.2f}, margin term {c * 1e3:.3f} mm")
+    print(f"OMC position, robust white per axis (MAD): {np.round(f['pos_white_mad'] * 1e3, 3)} mm")
     print("OMC structure function (lag s: pos mm / rot mrad per axis): "
-          + ", ".join(f"{L / 120:.2f}: {p * 1e3:.3f} / {q * 1e3:.2f}" for L, p, q in zip(lags, sp, sr, strict=True)))
-    Ls = np.asarray(lags) / 120.0
-    w, sy, tau = fit_gauss_markov(Ls, np.asarray(sp))
+          + ", ".join(f"{L:.2f}: {p * 1e3:.3f} / {q * 1e3:.2f}"
+                      for L, p, q in zip(f["lags_s"], f["structure_pos"], f["structure_rot"], strict=True)))
+    w, sy, tau = f["pos_gm"]
     print(f"OMC position as white + Gauss-Markov: white {w * 1e3:.3f} mm, systematic {sy * 1e3:.3f} mm, "
           f"tau {tau:.2f} s")
-    w, sy, tau = fit_gauss_markov(Ls, np.asarray(sr))
+    w, sy, tau = f["rot_gm"]
     print(f"OMC rotation as white + Gauss-Markov: white {w * 1e3:.2f} mrad, systematic {sy * 1e3:.2f} mrad, "
           f"tau {tau:.2f} s")
-    w, s1, t1, s2, t2 = fit_two_gauss_markov(Ls, np.asarray(sr))
+    w, s1, t1, s2, t2 = f["rot_gm2"]
     print(f"OMC rotation as white + two Gauss-Markov: white {w * 1e3:.2f} mrad, fast {s1 * 1e3:.2f} mrad tau "
           f"{t1:.2f} s, slow {s2 * 1e3:.2f} mrad tau {t2:.1f} s (200 s: the grid's end, a random walk)")
-    eo, ro, d = o[:, EX:EZ + 1], o[:, RX:RZ + 1], o[:, DIST]
-    for lo, hi in ((0.9, 1.3), (1.3, 1.6), (1.6, 1.8), (1.8, 2.5)):
-        s = (d >= lo) & (d < hi)
-        if s.any():
-            print(f"OTS tool at {lo}-{hi} m: per-axis rms {np.sqrt((eo[s] ** 2).mean()) * 1e3:.3f} mm "
-                  f"(n={int(s.sum())})")
-    print(f"OTS tool orientation: per-axis rms {np.sqrt((ro ** 2).mean()) * 1e3:.2f} mrad")
+    for lo, hi, rms, n in f["ots_by_distance"]:
+        print(f"OTS tool at {lo}-{hi} m: per-axis rms {rms * 1e3:.3f} mm (n={n})")
+    print(f"OTS tool orientation: per-axis rms {f['ots_rot_rms'] * 1e3:.2f} mrad")
+
+
+def profile_rows(directory: Path, layout) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`bag_rows` of every bag directory below ``directory``, concatenated."""
+    parts = [bag_rows(b, layout) for b in sorted(p for p in Path(directory).iterdir() if p.is_dir())]
+    return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
 
 
 def main(argv: list[str]) -> int:
@@ -199,9 +227,7 @@ def main(argv: list[str]) -> int:
         return 2
     layout = load_layout(default_layout_path())
     for d in argv:
-        bags = sorted(p for p in Path(d).iterdir() if p.is_dir())
-        parts = [bag_rows(b, layout) for b in bags]
-        report(d, np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]))
+        report(d, *profile_rows(Path(d), layout))
     return 0
 
 

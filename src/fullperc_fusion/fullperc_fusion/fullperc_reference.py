@@ -89,8 +89,8 @@ class FullpercParams(FilterParams):
     rot_local_std    Vega orientation noise per axis [rad] without a covariance (2.2 mrad: raw Vega, spec bags).
     init_rot_std, init_angvel_std, init_rot_bias_std  prior stds of theta [rad], w [rad/s], beta [rad].
     sys_time         correlation time of the OMC's systematic position error [s] (3 s: Gauss-Markov fit of the raw
-                     OMC error's structure function, 3.1 s spec / 2.8 s paper, measurement_models).
-    sys_std          its per-axis std [m] for a global sample without ``sys_var`` (0.2 mm: raw OMC, spec bags).
+                     OMC error's structure function, spec bags, measurement_models).
+    sys_std          its per-axis std [m] for a global sample without ``sys_var`` (0.25 mm: raw OMC, spec bags).
     rot_sys_time     correlation time of beta's Gauss-Markov part [s]; 0: beta is the random walk alone.
     rot_sys_std      stationary per-axis std of that part [rad]. 3.8 s and 11.4 mrad: the slow part of the raw
                      OMC rotation error's structure function fitted as white + two Gauss-Markov processes
@@ -108,7 +108,7 @@ class FullpercParams(FilterParams):
     init_angvel_std: float = 0.5
     init_rot_bias_std: float = 0.02
     sys_time: float = 3.0
-    sys_std: float = 0.2e-3
+    sys_std: float = 0.25e-3
     rot_sys_time: float = 3.8
     rot_sys_std: float = 11.4e-3
 

@@ -13,23 +13,22 @@ Diana forward kinematics; the OMC's view margin from :func:`margin.margin_at` on
 (``python scripts/raw_sensor_stats.py bags/spec bags/paper``). Per-axis variance regressed on
 [1, fit_error^2, 300/margin]:
 
-* OMC total error (white + systematic): sqrt(a) = 0.12 mm, k_fit = 0.96 (the ``paper`` profile bags, whose
-  cameras are worse calibrated, give k_fit = 0.79: the fit-error term carries over between calibrations, the
-  margin term grows with the miscalibration); margin term 0.38 mm at 300 deg; rotation: k_rot_fit = 17.2 rad/m in
-  both profiles, margin term 1.3 mrad at 300 deg;
-* OMC white part (frame-to-frame: consecutive differences / sqrt 2, same regression): floor 0.02 mm, margin term
-  0.076 mm at 300 deg, fit gain 0.25; robust (MAD) white jitter 0.036 mm per axis in both profiles;
-* time structure of the OMC error (rms per-axis increment over a lag L): spec 0.071 / 0.175 / 0.301 mm at
-  L = 8 ms / 1 s / 10 s, paper 0.16 / 1.84 / 3.19 mm; fitted as white + first-order Gauss-Markov,
-  D(L) = 2 w^2 + 2 s^2 (1 - exp(-L / tau)): position tau = 3.1 s (spec) / 2.8 s (paper), s = 0.21 / 2.29 mm;
-  rotation tau = 0.8 / 1.1 s, s = 1.9 / 23 mrad. Beyond the white jitter the error is systematic and
-  decorrelates within seconds of motion (distortion along the path, camera-set changes);
-* these figures are those of the sample bags of an earlier twin (before the profiles' last recalibration); the same
-  command on today's bags gives: spec total fit gain 0.52, margin term 0.52 mm, rotation 5.8 rad/m and 4.35 mrad;
-  white floor 0.016 mm, fit gain 0.08, margin term 0.116 mm; position tau 3.0 s (spec) / 12.5 s (paper), s =
-  0.25 / 2.35 mm; rotation as white + two Gauss-Markov (paper) 1.2 mrad + 5.1 mrad / 0.21 s + 11.4 mrad / 3.8 s
-  (the slow part is ``FullpercParams.rot_sys_std`` / ``rot_sys_time``). The constants below are not refitted yet
-  (README "The fullperc filter");
+* OMC total error (white + systematic): sqrt(a) = 0.12 mm, k_fit = 0.52 (the ``paper`` profile bags, whose
+  cameras are worse calibrated, give 0.70), margin term 0.52 mm at 300 deg (paper 5.1 mm: the margin term grows
+  with the miscalibration); rotation: k_rot_fit = 5.8 rad/m (paper 1.9), margin term 4.35 mrad at 300 deg;
+  median fit error 0.051 mm (paper 0.27 mm);
+* OMC white part (frame-to-frame: consecutive differences / sqrt 2, same regression): floor 0.016 mm, margin term
+  0.116 mm at 300 deg, fit gain 0.08; robust (MAD) white jitter 0.034-0.040 mm per axis in both profiles;
+* time structure of the OMC error (rms per-axis increment over a lag L): spec 0.073 / 0.215 / 0.378 mm at
+  L = 8 ms / 1 s / 10 s, paper 0.100 / 0.99 / 2.50 mm; fitted as white + first-order Gauss-Markov,
+  D(L) = 2 w^2 + 2 s^2 (1 - exp(-L / tau)): position tau = 3.0 s (spec) / 12.5 s (paper), s = 0.25 / 2.35 mm.
+  The rotation error as white + two Gauss-Markov processes: paper 1.2 mrad white, 5.1 mrad / 0.21 s fast (reverts
+  within frames: noise of the sample, here), 11.4 mrad / 3.8 s slow (``FullpercParams.rot_sys_std`` /
+  ``rot_sys_time``); spec 1.2 mrad, 1.6 mrad / 0.37 s, and a slow part that is a random walk. Beyond the white
+  jitter the error is systematic and decorrelates within seconds of motion (distortion along the path,
+  camera-set changes);
+* ``test/test_model_constants.py`` recomputes these on the committed bags and fails when a constant below (or one
+  of ``FullpercParams``) is no longer what they give;
 * Vega tool (chain included) per axis 0.13 mm mid-volume, 0.17-0.19 mm at the ends of the 0.95-2.4 m volume;
   orientation ~2.2 mrad per axis.
 """
@@ -58,22 +57,22 @@ class OmcModelParams:
     margin_std       [m]      per-axis systematic std of the view-margin term at ``margin_ref``
     margin_ref       [deg]    reference margin (the paper's GVV threshold)
     margin_min       [deg]    margins below this count as this (a point one camera pair barely sees)
-    marker_lever     [m]      rotation std = position std / lever: 1 / 17.2 rad/m, the rotation-on-fit-error
-                              gain of both profiles (a ~60 mm marker body)
+    marker_lever     [m]      rotation std = position std / lever: k_fit / k_rot_fit = 0.52 / 5.81 rad/m = 90 mm,
+                              so the fit-error term of the rotation is the regression's (a ~9 cm tool)
     rot_margin_std   [rad]    per-axis systematic rotation std of the margin term at ``margin_ref``
     default_fit      [m]      fit error assumed when the device reports none (-1): the spec bags' median
     """
 
-    white_std: float = 0.02e-3
-    white_fit_gain: float = 0.25
-    white_margin_std: float = 0.076e-3
-    fit_gain: float = 0.96
-    margin_std: float = 0.38e-3
+    white_std: float = 0.0156e-3
+    white_fit_gain: float = 0.0794
+    white_margin_std: float = 0.116e-3
+    fit_gain: float = 0.520
+    margin_std: float = 0.518e-3
     margin_ref: float = MARGIN_REF_DEG
     margin_min: float = 30.0
-    marker_lever: float = 1.0 / 17.2
-    rot_margin_std: float = 1.3e-3
-    default_fit: float = 0.09e-3
+    marker_lever: float = 0.520 / 5.81
+    rot_margin_std: float = 4.35e-3
+    default_fit: float = 0.0515e-3
 
 
 @dataclass(frozen=True)
@@ -126,7 +125,7 @@ def omc_covariance(fit_error: float | None, margin_deg: float | None,
     about a second along the path, module docstring); a filter given it as white R would average it away, which
     it cannot be. ``fullperc`` models it as a bias state (Gauss-Markov, variance :func:`omc_systematic_var`).
     Why the rotation gets both: its systematic part decorrelates within ~1 s (Gauss-Markov fit, module
-    docstring) and jumps (one marker's camera set changes: a step of ~0.3 mm over a 60 mm lever is 5 mrad) and
+    docstring) and jumps (one marker's camera set changes: a step of ~0.3 mm over a 90 mm lever is 3 mrad) and
     reverts within frames (the filter's single-frame innovations of 4-8 mrad at a modelled white level of
     0.7 mrad, spec bags); a bias state cannot follow that, so it counts as noise of the sample.
     """

@@ -1,0 +1,60 @@
+"""The noise-model constants are the raw-sensor statistics of the committed bags (issue 18: "calibrated on
+raw-sensor statistics"; README "The fullperc filter").
+
+``scripts/raw_sensor_stats.py`` computes them from every tracked OMC and Vega sample of ``bags/spec`` (and, for the
+orientation bias's slow part, ``bags/paper``) against the Diana forward kinematics -- no filter runs. This test
+recomputes them and fails when a constant of ``measurement_models`` or ``FullpercParams`` is no longer what the bags
+give (to 2 %: the constants are written with three digits), e.g. after the twin or the bags changed and nobody
+refitted the models.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "scripts"))
+
+import raw_sensor_stats  # noqa: E402
+
+from fullperc_fusion.fullperc_reference import FullpercParams  # noqa: E402
+from fullperc_fusion.layout import default_layout_path, load_layout  # noqa: E402
+from fullperc_fusion.measurement_models import LocalModelParams, OmcModelParams  # noqa: E402
+
+REL = 0.02
+
+
+@pytest.fixture(scope="module")
+def stats():
+    layout = load_layout(default_layout_path())
+    return {p: raw_sensor_stats.fitted(*raw_sensor_stats.profile_rows(ROOT / "bags" / p, layout))
+            for p in ("spec", "paper")}
+
+
+def test_omc_model_constants_are_the_spec_bags_statistics(stats):
+    f, pr = stats["spec"], OmcModelParams()
+    floor_w, k_w, m_w = f["pos_white"]
+    _, k_fit, m = f["pos_total"]
+    _, k_rot, m_rot = f["rot_total"]
+    want = {"white_std": floor_w, "white_fit_gain": k_w, "white_margin_std": m_w, "fit_gain": k_fit,
+            "margin_std": m, "marker_lever": k_fit / k_rot, "rot_margin_std": m_rot, "default_fit": f["fit_median"]}
+    for name, v in want.items():
+        assert getattr(pr, name) == pytest.approx(v, rel=REL), name
+
+
+def test_systematic_error_parameters_are_the_structure_function_fits(stats):
+    pr = FullpercParams()
+    _, s, tau = stats["spec"]["pos_gm"]
+    assert pr.sys_std == pytest.approx(s, rel=REL) and pr.sys_time == pytest.approx(tau, rel=REL)
+    _, _, _, s_slow, tau_slow = stats["paper"]["rot_gm2"]
+    assert pr.rot_sys_std == pytest.approx(s_slow, rel=REL) and pr.rot_sys_time == pytest.approx(tau_slow, rel=REL)
+    # spec's slow rotation part is a random walk (tau at the fit grid's end): rot_bias_walk is its order of magnitude
+    _, _, _, s_spec, tau_spec = stats["spec"]["rot_gm2"]
+    assert tau_spec >= 100.0 and 0.3 <= pr.rot_bias_walk / (2 * s_spec**2 / tau_spec) <= 3.0
+
+
+def test_vega_orientation_constant_is_the_raw_vega_statistic(stats):
+    assert LocalModelParams().rot_std_ref == pytest.approx(stats["spec"]["ots_rot_rms"], rel=0.05)
