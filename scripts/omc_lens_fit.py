@@ -36,6 +36,8 @@ import yaml
 from raw_sensor_stats import EX, EZ, PX, PZ, T, bag_rows  # this directory: the same rows, from the node's chain
 
 from fullperc_eval.bag.calibration import load_calibration
+from fullperc_eval.sim.omc_lens import LensResidual
+from fullperc_eval.sim.omc_model import triangulate
 from fullperc_fusion.layout import default_layout_path, load_layout
 from fullperc_fusion.margin import camera_visibility
 
@@ -46,19 +48,6 @@ RESID_STD = 1.0e-3                      # [m] what the two terms leave per axis:
 PRIOR_STD = np.array([0.01, 0.05])      # s, k1: what a wand calibration that passed its checks can leave
 
 
-def _triangulate(C: np.ndarray, dirs: np.ndarray, use: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Least-squares intersection of rays (origins C (K, 3), unit dirs (N, K, 3)); NaN with fewer than 2 rays."""
-    P = np.eye(3) - dirs[..., :, None] * dirs[..., None, :]
-    ww = np.where(use, w, 0.0)
-    A = np.einsum("nk,nkij->nij", ww, P)
-    b = np.einsum("nk,nkij,kj->ni", ww, P, C)
-    ok = use.sum(axis=1) >= 2
-    A = np.where(ok[:, None, None], A, np.eye(3))
-    X = np.linalg.solve(A, b[..., None])[..., 0]
-    X[~ok] = np.nan
-    return X
-
-
 def lens_point(layout, P: np.ndarray, s: float, k1: float, see: np.ndarray) -> np.ndarray:
     """Where the layout's cameras that ``see`` the points P (N, 3) [omc] put them when each image point is moved by
     a lens residual (s, k1) and back-projected through the undistorted model."""
@@ -66,10 +55,10 @@ def lens_point(layout, P: np.ndarray, s: float, k1: float, see: np.ndarray) -> n
     d = P[:, None, :] - C[None]
     pc = np.einsum("nkj,kji->nki", d, R)
     x, y = pc[..., 0] / pc[..., 2], pc[..., 1] / pc[..., 2]
-    f = (1.0 + s) * (1.0 + k1 * (x * x + y * y))
-    dw = np.einsum("kij,nkj->nki", R, np.stack([x * f, y * f, np.ones_like(x)], axis=-1))
+    xr, yr = LensResidual(focal_scale=s, k1=k1).distort(x, y)
+    dw = np.einsum("kij,nkj->nki", R, np.stack([xr, yr, np.ones_like(x)], axis=-1))
     dw /= np.linalg.norm(dw, axis=-1, keepdims=True)
-    return _triangulate(C, dw, see, 1.0 / np.einsum("nki,nki->nk", d, d))
+    return triangulate(C, dw, see, weights=1.0 / np.einsum("nki,nki->nk", d, d))[0]
 
 
 def lens_regressors(layout, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -85,8 +74,9 @@ def true_lens(bag: Path) -> tuple[float, float] | None:
     for name in ("paper", "spec"):
         if f"profile {name}" in src:
             cfg = Path(__file__).resolve().parents[1] / "src/fullperc_eval/config" / f"profile_{name}.yaml"
-            lr = ((yaml.safe_load(cfg.read_text()).get("overrides") or {}).get("omc") or {}).get("lens_residual") or {}
-            return float(lr.get("focal_scale", 0.0)), float(lr.get("k1", 0.0))
+            lr = LensResidual.from_config(
+                ((yaml.safe_load(cfg.read_text()).get("overrides") or {}).get("omc") or {}).get("lens_residual"))
+            return (lr.focal_scale, lr.k1) if lr is not None else (0.0, 0.0)
     return None
 
 

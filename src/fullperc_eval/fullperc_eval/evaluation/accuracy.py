@@ -144,7 +144,7 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
             extra["orientation_by_local_deg"] = {
                 t: {m: {part: _ms([(((r.get("orientation_by_local_deg") or {}).get(m)) or {}).get(part)
                                    for r in rows if r["task"] == t]) for part in ("seen", "unseen")}
-                    for m in (*oms, "local")} for t in TASK_ORDER}
+                    for m in oms} for t in TASK_ORDER}
     if any(r.get("nees") for r in rows):
         extra["nees"] = pooled_nees(rows)
     return {"n_task_seeds": len(rows), "seeds": sorted({r["seed"] for r in rows}), "table1_mae_mm": t1,
