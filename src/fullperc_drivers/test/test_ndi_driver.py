@@ -96,6 +96,16 @@ def test_frame_clock_lower_envelope_and_reset():
     assert clk.resets == 1
 
 
+def test_frame_clock_keeps_nanoseconds_on_epoch_host_times():
+    """Host times are ns since the epoch (~1.7e18), where a float64 resolves 256 ns: with a constant reply delay
+    the stamp must be the capture time plus that delay to the nanosecond, at every frame."""
+    clk = FrameClock(60.0)
+    t0 = 1_764_530_000_123_456_789
+    for f in range(500):
+        capture = t0 + round(f * 1e9 / 60.0)
+        assert abs(clk.stamp(1000 + f, capture + 1_700_003) - (capture + 1_700_003)) <= 1, f
+
+
 def _bx_device(poses):
     """A minimal device for the bring-up sequence: returns handle 01.. and BX with ``poses``."""
     state = {"next": 1, "frame": 100}

@@ -113,9 +113,12 @@ def test_stamp_is_the_frame_capture_time():
         cap = np.array([emu.device.frame_time_ns(f.frame_number) for f in frames[20:]])
         err = np.array([f.stamp_ns for f in frames[20:]]) - cap
         delay = np.array([f.recv_ns for f in frames[20:]]) - cap
-        # the lower envelope never stamps before capture, and removes the reply-delay jitter
-        assert np.all(err >= 0)
-        assert np.ptp(err) <= np.ptp(delay) and err.mean() <= delay.mean()
+        # the lower envelope never stamps before capture, and removes the reply-delay jitter: err is the running
+        # minimum of the delay, so its spread is at most the delay's -- equal when the window's first frame has both
+        # the largest delay and the smallest so far; then the two integer roundings (the clock's floor, the
+        # emulator's round of the frame time) decide, hence 2 ns
+        assert np.all(err >= 0) and np.all(err <= delay + 2)
+        assert np.ptp(err) <= np.ptp(delay) + 2 and err.mean() <= delay.mean()
     finally:
         emu.stop()
 

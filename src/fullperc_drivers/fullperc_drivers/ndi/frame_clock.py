@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections import deque
 
 
@@ -13,6 +14,10 @@ class FrameClock:
     lower envelope of r - f P over a sliding window estimates c0 + min latency; subtracting the
     configured device latency gives the capture time. A frame number that goes backwards or jumps
     by more than ``max_jump_s`` resets the estimate (device re-initialised or reconnected).
+
+    The offsets are kept relative to the first receive time after a reset (an integer): host times
+    are ~1.7e18 ns since the epoch, where a float64 resolves only 256 ns, so r - f P taken as a float
+    would move every stamp by up to ~128 ns.
     """
 
     def __init__(self, frame_rate_hz: float, window: int = 240, device_latency_s: float = 0.0,
@@ -25,6 +30,7 @@ class FrameClock:
         self._offsets: deque[float] = deque(maxlen=window)
         self._last_frame: int | None = None
         self._base_frame = 0
+        self._base_recv = 0
         self.resets = 0
 
     def reset(self) -> None:
@@ -38,9 +44,9 @@ class FrameClock:
                 self.reset()
                 self.resets += 1
         if self._last_frame is None:
-            self._base_frame = frame
+            self._base_frame, self._base_recv = frame, recv_ns
         self._last_frame = frame
         k = frame - self._base_frame
-        self._offsets.append(recv_ns - k * self.period_ns)
+        self._offsets.append((recv_ns - self._base_recv) - k * self.period_ns)
         c0 = min(self._offsets)
-        return int(c0 + k * self.period_ns) - self.latency_ns
+        return self._base_recv + math.floor(c0 + k * self.period_ns) - self.latency_ns
