@@ -59,11 +59,14 @@ eval: build
 
 # Six tasks x SEEDS per profile (PROFILE=paper|spec|both), Table 1 as mean +- sd; FUSION=<fusion yaml> evaluates
 # with another fusion configuration (e.g. static_links: calibrate).
+# NOISE=builtin|calibrated|<noise-model file>: fullperc's noise model (calibrated: fitted per profile with
+# fit_noise_model on calibration seeds 100-102, other twin installations than the evaluated ones).
 SEEDS ?= 0-9
 FUSION ?=
+NOISE ?= builtin
 accuracy: build
 	@$(ENV) python -m fullperc_eval.evaluation.accuracy --seeds $(SEEDS) --profile $(PROFILE) \
-	    $(if $(FUSION),--fusion-config $(FUSION)) --json bags/accuracy.json
+	    $(if $(FUSION),--fusion-config $(FUSION)) --noise-model $(NOISE) --json bags/accuracy.json
 
 # Raw-sensor statistics of a twin profile next to its targets (PROFILE=paper|spec|both, SEEDS default 0-1 here).
 twin-report: build

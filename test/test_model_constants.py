@@ -1,28 +1,26 @@
 """The noise-model constants are the raw-sensor statistics of the committed bags (issue 18: "calibrated on
 raw-sensor statistics"; README "The fullperc filter").
 
-``scripts/raw_sensor_stats.py`` computes them from every tracked OMC and Vega sample of ``bags/spec`` (and, for the
-orientation bias's slow part, ``bags/paper``) against the Diana forward kinematics -- no filter runs. This test
-recomputes them and fails when a constant of ``measurement_models`` or ``FullpercParams`` is no longer what the bags
-give (to 2 %: the constants are written with three digits), e.g. after the twin or the bags changed and nobody
-refitted the models.
+``fit_noise_model`` (``fullperc_eval.evaluation.sensor_stats``) computes them from every tracked OMC and Vega
+sample of ``bags/spec`` (and, for the orientation bias's slow part, ``bags/paper``) against the Diana forward
+kinematics -- no filter runs. This test recomputes them and fails when a constant of ``measurement_models`` or
+``FullpercParams`` is no longer what the bags give (to 2 %: the constants are written with three digits), e.g.
+after the twin or the bags changed and nobody refitted the models.
 """
 
 from __future__ import annotations
 
-import sys
+import dataclasses
 from pathlib import Path
 
 import pytest
 
+from fullperc_eval.evaluation import sensor_stats
+from fullperc_fusion.fullperc_reference import FullpercParams
+from fullperc_fusion.layout import default_layout_path, load_layout
+from fullperc_fusion.measurement_models import LocalModelParams, OmcModelParams
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "scripts"))
-
-import raw_sensor_stats  # noqa: E402
-
-from fullperc_fusion.fullperc_reference import FullpercParams  # noqa: E402
-from fullperc_fusion.layout import default_layout_path, load_layout  # noqa: E402
-from fullperc_fusion.measurement_models import LocalModelParams, OmcModelParams  # noqa: E402
 
 REL = 0.02
 
@@ -30,19 +28,19 @@ REL = 0.02
 @pytest.fixture(scope="module")
 def stats():
     layout = load_layout(default_layout_path())
-    return {p: raw_sensor_stats.fitted(*raw_sensor_stats.profile_rows(ROOT / "bags" / p, layout))
+    return {p: sensor_stats.fitted(*sensor_stats.profile_rows(ROOT / "bags" / p, layout))
             for p in ("spec", "paper")}
 
 
 def test_omc_model_constants_are_the_spec_bags_statistics(stats):
-    f, pr = stats["spec"], OmcModelParams()
-    floor_w, k_w, m_w = f["pos_white"]
-    _, k_fit, m = f["pos_total"]
-    _, k_rot, m_rot = f["rot_total"]
-    want = {"white_std": floor_w, "white_fit_gain": k_w, "white_margin_std": m_w, "fit_gain": k_fit,
-            "margin_std": m, "marker_lever": k_fit / k_rot, "rot_margin_std": m_rot, "default_fit": f["fit_median"]}
-    for name, v in want.items():
+    """Every constant of the built-in OMC model is what fit_noise_model writes for the spec bags."""
+    omc, bias = sensor_stats.noise_model_from_stats(stats["spec"])
+    pr = OmcModelParams()
+    assert set(omc) == {f.name for f in dataclasses.fields(pr)} - {"margin_ref", "margin_min"}
+    for name, v in omc.items():
         assert getattr(pr, name) == pytest.approx(v, rel=REL), name
+    assert FullpercParams().sys_time == pytest.approx(bias["sys_time"], rel=REL)
+    assert FullpercParams().sys_std == pytest.approx(bias["sys_std"], rel=REL)
 
 
 def test_systematic_error_parameters_are_the_structure_function_fits(stats):

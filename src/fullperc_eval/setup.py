@@ -30,6 +30,7 @@ setup(
             'record = fullperc_eval.bag.record:main',
             'play = fullperc_eval.bag.play:main',
             'evaluate = fullperc_eval.evaluation.cli:main',
+            'fit_noise_model = fullperc_eval.evaluation.sensor_stats:main',
             'supervisor = fullperc_eval.graph.cli:main',
             'echo = fullperc_eval.bag.topic_tools:echo_main',
             'pub = fullperc_eval.bag.topic_tools:pub_main',

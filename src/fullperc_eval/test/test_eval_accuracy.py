@@ -158,8 +158,10 @@ def test_main_keeps_every_former_key_and_adds_the_goals(tmp_path, monkeypatch, c
     monkeypatch.setattr(acc, "ProcessPoolExecutor", ThreadPoolExecutor)
     monkeypatch.setattr(acc, "twin_hash", lambda p: f"hash-{p}")
     out = tmp_path / "accuracy.json"
-    assert acc.main(["--seeds", "0-1", "--profile", "both", "--json", str(out), "--cache", str(tmp_path)]) == 0
+    assert acc.main(["--seeds", "0-1", "--profile", "both", "--json", str(out), "--cache", str(tmp_path),
+                     "--noise-model", "builtin"]) == 0
     d = json.loads(out.read_text())
+    assert d["noise_model"] == {"mode": "builtin", "paper": None, "spec": None}
     assert {"profiles", "seeds", "fusion_config", "twin_hash", "summary", "task_seeds"} <= set(d)
     for p in d["profiles"]:
         s = d["summary"][p]
@@ -170,3 +172,91 @@ def test_main_keeps_every_former_key_and_adds_the_goals(tmp_path, monkeypatch, c
     assert {g["goal"] for g in d["goals"]["spec"]} >= {"position_vs_omc"}
     text = capsys.readouterr().out
     assert '"name": "goal_position_vs_cbkf_fullperc"' in text and "Issue 18 goals for FULLPERC" in text
+
+
+def test_main_evaluates_each_profile_with_its_calibrated_noise_model(tmp_path, monkeypatch):
+    """``--noise-model calibrated``: each profile's seeds run with the fusion config that reads the
+    noise model fitted on that profile's calibration seeds, and accuracy.json records the model."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from fullperc_eval.evaluation import accuracy as acc
+
+    used, fitted_on = {}, {}
+
+    def fake_cal(profile, key, cache, fusion_config, seeds):
+        fitted_on[profile] = seeds
+        return {"fusion_config": f"cfg-{profile}.yaml", "noise_model_file": f"nm-{profile}.yaml",
+                "noise_model": {"omc": {"margin_std": 1e-3 if profile == "paper" else 5e-4}}}
+
+    def fake_run_seed(profile, seed, cache, fusion_config, key):
+        used[(profile, seed)] = fusion_config
+        rows = [dict(r, profile=profile) for r in _rows(True, seeds=(seed,))]
+        return {"profile": profile, "seed": seed, "rows": rows, "generated": 0, "sim_s": 0.0, "eval_s": 0.0}
+
+    monkeypatch.setattr(acc, "calibrated_fusion_config", fake_cal)
+    monkeypatch.setattr(acc, "run_seed", fake_run_seed)
+    monkeypatch.setattr(acc, "ProcessPoolExecutor", ThreadPoolExecutor)
+    monkeypatch.setattr(acc, "twin_hash", lambda p: f"hash-{p}")
+    out = tmp_path / "accuracy.json"
+    assert acc.main(["--seeds", "0-1", "--profile", "both", "--json", str(out), "--cache", str(tmp_path),
+                     "--noise-model", "calibrated"]) == 0
+    assert fitted_on == {"paper": [100, 101, 102], "spec": [100, 101, 102]}
+    assert used == {(p, s): f"cfg-{p}.yaml" for p in ("paper", "spec") for s in (0, 1)}
+    d = json.loads(out.read_text())
+    assert d["noise_model"]["mode"] == "calibrated" and d["noise_model"]["calibration_seeds"] == [100, 101, 102]
+    assert d["noise_model"]["paper"]["omc"]["margin_std"] == 1e-3
+
+
+def test_calibration_seeds_that_are_also_evaluated_are_refused(tmp_path, capsys):
+    from fullperc_eval.evaluation import accuracy as acc
+
+    assert acc.main(["--seeds", "0-9", "--profile", "spec", "--noise-model", "calibrated",
+                     "--calibration-seeds", "9-10", "--json", "",
+                     "--cache", str(tmp_path)]) == 2
+    assert "calibration seeds [9] are also evaluated" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())   # refused before any bag was generated
+
+
+def test_a_given_noise_model_file_is_used_for_every_profile(tmp_path):
+    from fullperc_eval.evaluation.accuracy import noise_model_configs
+    from fullperc_fusion.fusion_config import load_fusion_config
+    from fullperc_fusion.noise_model_file import noise_model_yaml
+
+    nm = tmp_path / "noise.yaml"
+    nm.write_text(noise_model_yaml({"margin_std": 2e-3}, {"sys_time": 7.0}, "test"))
+    out = noise_model_configs(str(nm), ("paper", "spec"), {"paper": "a", "spec": "b"}, str(tmp_path), None,
+                              [100], [0])
+    for p in ("paper", "spec"):
+        cfg, _ = load_fusion_config(out[p]["fusion_config"])
+        assert cfg.omc_model.margin_std == 2e-3 and cfg.params.sys_time == 7.0
+    assert noise_model_configs("builtin", ("spec",), {"spec": "b"}, str(tmp_path), None, [0], [0]) == {
+        "spec": {"fusion_config": None, "noise_model_file": "", "noise_model": None}}
+    with pytest.raises(ValueError, match="missing.yaml"):
+        noise_model_configs(str(tmp_path / "missing.yaml"), ("spec",), {"spec": "b"}, str(tmp_path), None, [0], [1])
+
+
+def test_calibrated_noise_model_of_the_committed_spec_bags_is_the_built_in_one(tmp_path):
+    """The real path, no simulation: the committed spec bags stand in for calibration seed 100 (links to them
+    in the cache). The config written reads the file, and the file's model is the built-in one (which is the
+    spec bags' statistics, test/test_model_constants.py): what fusion_node runs by default is what the
+    calibration gives for the installation it was fitted on."""
+    import dataclasses
+    from pathlib import Path
+
+    from fullperc_eval.evaluation.accuracy import calibrated_fusion_config
+    from fullperc_fusion.fusion_config import load_fusion_config
+    from fullperc_fusion.measurement_models import OmcModelParams
+
+    bags = Path(__file__).resolve().parents[3] / "bags" / "spec"
+    d = tmp_path / "spec-k" / "seed100"
+    d.mkdir(parents=True)
+    for t in TASK_ORDER:
+        (d / t).symlink_to(bags / t)
+    r = calibrated_fusion_config("spec", "k", str(tmp_path), None, [100])
+    cfg, vals = load_fusion_config(r["fusion_config"])
+    assert vals["fullperc.noise_model_file"] == r["noise_model_file"]
+    assert Path(r["noise_model_file"]).parent == tmp_path / "spec-k"
+    builtin = dataclasses.asdict(OmcModelParams())
+    for k, v in dataclasses.asdict(cfg.omc_model).items():
+        assert v == pytest.approx(builtin[k], rel=0.02), k
+    assert r["noise_model"]["omc"]["margin_std"] == cfg.omc_model.margin_std

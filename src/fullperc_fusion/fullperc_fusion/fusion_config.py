@@ -171,6 +171,9 @@ PARAMS: tuple[Param, ...] = (
           "fullperc: stationary per-axis std of that part"),
     Param("fullperc.layout_file", "", "str", None, "", "",
           "fullperc: OR layout for the OMC model's view margin; '' = the installed or_layout.yaml, 'none' = none"),
+    Param("fullperc.noise_model_file", "", "str", None, "", "",
+          "fullperc: noise model of this installation's OMC (written by fit_noise_model); '' = the built-in one. "
+          "Its omc_bias values replace fullperc.sys_time, sys_std, rot_sys_time, rot_sys_std, rot_bias_walk"),
     Param("slop", _T.slop_ns * 1e-9, "float", _nonneg, "must be finite and >= 0", "s",
           "pair OMC and OTS samples closer than this"),
     Param("reorder_delay", _T.delay_ns * 1e-9, "float", _nonneg, "must be finite and >= 0", "s",
@@ -346,6 +349,20 @@ def model_layout(vals: dict[str, Any], filters: tuple[str, ...]):
         raise ParameterError(f"parameter 'fullperc.layout_file' = {path!r}: {e}") from None
 
 
+def noise_model(vals: dict[str, Any]):
+    """The :class:`~.noise_model_file.NoiseModel` of ``fullperc.noise_model_file`` (the built-in one for '').
+    A file that cannot be used raises ParameterError naming the parameter."""
+    from .noise_model_file import NoiseModel, NoiseModelError, load_noise_model
+
+    path = vals["fullperc.noise_model_file"]
+    if not path.strip():
+        return NoiseModel()
+    try:
+        return load_noise_model(path)
+    except NoiseModelError as e:
+        raise ParameterError(f"parameter 'fullperc.noise_model_file' = {path!r}: {e}") from None
+
+
 def health_params(vals: dict[str, Any]) -> HealthParams:
     return HealthParams(hop_window_s=vals["alarm.hop_window"], hop_max=vals["alarm.hop_max"],
                         bias_max_m=vals["alarm.bias_max"], reject_timeout_s=vals["alarm.reject_timeout"],
@@ -398,8 +415,9 @@ def target_config(get: Get | dict[str, Any], target: str, filters: tuple[str, ..
                             calibration_settings=calibration_settings(vals), calibration=cal,
                             calibration_file=path)
         sources, chain = source_set(vals, target, base)
+        nm = noise_model(vals)
         return TargetConfig(name=target, chain=chain, sources=sources, filters=tuple(filters),
-                            params=filter_params(vals),
+                            params=nm.apply(filter_params(vals)), omc_model=nm.omc,
                             slop_ns=int(vals["slop"] * 1e9), delay_ns=int(vals["reorder_delay"] * 1e9),
                             max_future_ns=int(round(vals["max_future"] * 1e9)),
                             processing=vals["processing"], history_ns=int(round(vals["history"] * 1e9)),

@@ -10,13 +10,15 @@ small rotation vector about the parent's axes, R_true = Exp(dtheta) R_est.
 Raw-sensor statistics used below ("raw stats"): the 6 ``bags/spec`` twin bags (device-specification noise),
 every tracked /omc/tool and /ots/tool sample mapped into ``base`` by the node's frame chain, compared with the
 Diana forward kinematics; the OMC's view margin from :func:`margin.margin_at` on ``config/or_layout.yaml``
-(``python scripts/raw_sensor_stats.py bags/spec bags/paper``). Per-axis variance regressed on
-[1, fit_error^2, 300/margin]:
+(``fit_noise_model bags/spec bags/paper``, :mod:`fullperc_eval.evaluation.sensor_stats`, which also writes them as
+a noise-model file for another installation: :mod:`noise_model_file`). Per-axis variance regressed on
+[1, fit_error^2, 300/margin] (a term printed negative: the data show none):
 
-* OMC total error (white + systematic): sqrt(a) = 0.12 mm, k_fit = 0.52 (the ``paper`` profile bags, whose
-  cameras are worse calibrated, give 0.70), margin term 0.52 mm at 300 deg (paper 5.1 mm: the margin term grows
-  with the miscalibration); rotation: k_rot_fit = 5.8 rad/m (paper 1.9), margin term 4.35 mrad at 300 deg;
-  median fit error 0.051 mm (paper 0.27 mm);
+* OMC total error (white + systematic): sqrt(a) = 0.121 mm (0.120 mm beyond the white floor), k_fit = 0.52,
+  margin term 0.52 mm at 300 deg; rotation: floor 1.65 mrad, k_rot_fit = 5.8 rad/m, margin term 4.35 mrad at
+  300 deg; median fit error 0.051 mm. The ``paper`` profile's bags (worse calibrated cameras): floor 1.19 mm, no
+  fit-error term (-0.70), margin term 5.1 mm, rotation margin term 28.7 mrad, median fit error 0.27 mm -- the
+  margin term grows with the miscalibration, and it differs between installations (seeds);
 * OMC white part (frame-to-frame: consecutive differences / sqrt 2, same regression): floor 0.016 mm, margin term
   0.116 mm at 300 deg, fit gain 0.08; robust (MAD) white jitter 0.034-0.040 mm per axis in both profiles;
 * time structure of the OMC error (rms per-axis increment over a lag L): spec 0.073 / 0.215 / 0.378 mm at
@@ -53,12 +55,16 @@ class OmcModelParams:
     white_std        [m]      per-axis white floor
     white_fit_gain   [-]      per-axis white std per metre of the device's RMS marker fit error
     white_margin_std [m]      per-axis white std of the view-margin term at ``margin_ref`` degrees
+    sys_floor        [m]      per-axis systematic std everywhere (the total's floor beyond the white one:
+                              sqrt(0.121^2 - 0.016^2) mm; the miscalibration every point has)
     fit_gain         [-]      per-axis systematic std per metre of fit error
     margin_std       [m]      per-axis systematic std of the view-margin term at ``margin_ref``
     margin_ref       [deg]    reference margin (the paper's GVV threshold)
     margin_min       [deg]    margins below this count as this (a point one camera pair barely sees)
     marker_lever     [m]      rotation std = position std / lever: k_fit / k_rot_fit = 0.52 / 5.81 rad/m = 90 mm,
                               so the fit-error term of the rotation is the regression's (a ~9 cm tool)
+    rot_sys_floor    [rad]    per-axis systematic rotation std everywhere (the rotation total's floor beyond
+                              the white position floor over the lever: 1.64 mrad)
     rot_margin_std   [rad]    per-axis systematic rotation std of the margin term at ``margin_ref``
     default_fit      [m]      fit error assumed when the device reports none (-1): the spec bags' median
     """
@@ -66,11 +72,13 @@ class OmcModelParams:
     white_std: float = 0.0156e-3
     white_fit_gain: float = 0.0794
     white_margin_std: float = 0.116e-3
+    sys_floor: float = 0.120e-3
     fit_gain: float = 0.520
     margin_std: float = 0.518e-3
     margin_ref: float = MARGIN_REF_DEG
     margin_min: float = 30.0
     marker_lever: float = 0.520 / 5.81
+    rot_sys_floor: float = 1.64e-3
     rot_margin_std: float = 4.35e-3
     default_fit: float = 0.0515e-3
 
@@ -140,15 +148,15 @@ def omc_systematic_var(fit_error: float | None, margin_deg: float | None,
                        params: OmcModelParams = OmcModelParams()) -> tuple[float, float]:
     """Per-axis variance of the OMC's systematic error (position [m^2], rotation [rad^2]) at this sample.
 
-        s_p^2 = (k_fit e)^2 + m^2 f(M),   s_r^2 = (k_fit e / lever)^2 + m_r^2 f(M)
+        s_p^2 = s_0^2 + (k_fit e)^2 + m^2 f(M),   s_r^2 = r_0^2 + (k_fit e / lever)^2 + m_r^2 f(M)
 
     The stationary variance of the Gauss-Markov bias of ``fullperc`` (correlation time ``FullpercParams.sys_time``).
     Margin-adaptive: where few cameras see the body or their rays disagree, the OMC's systematic error is larger.
     """
     e = _fit(fit_error, params)
     f = margin_factor(margin_deg, params.margin_ref, params.margin_min)
-    vp = (params.fit_gain * e) ** 2 + params.margin_std**2 * f
-    vr = (params.fit_gain * e / params.marker_lever) ** 2 + params.rot_margin_std**2 * f
+    vp = params.sys_floor**2 + (params.fit_gain * e) ** 2 + params.margin_std**2 * f
+    vr = params.rot_sys_floor**2 + (params.fit_gain * e / params.marker_lever) ** 2 + params.rot_margin_std**2 * f
     return vp, vr
 
 

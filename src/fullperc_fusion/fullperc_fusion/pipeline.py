@@ -72,7 +72,7 @@ from .frame_chain import BadSample, ChainConfig, FrameChain, pose_to_T
 from .layout import Layout
 from .link_monitor import LinkMonitor, MonitorParams
 from .margin import margin_at
-from .measurement_models import local_covariance, omc_covariance, omc_systematic_var, rotate_cov
+from .measurement_models import OmcModelParams, local_covariance, omc_covariance, omc_systematic_var, rotate_cov
 from .sources import SourceSet, fixed_cov, model_cov_std, renamed_calibration
 from .synchronizer import GLOBAL, LOCAL, ApproxSync, SyncItem
 
@@ -97,6 +97,7 @@ class TargetConfig:
     orientation_std_global: float = 0.01   # [rad] when the OMC orientation is used
     monitor: MonitorParams = field(default_factory=MonitorParams)   # link monitoring (link_monitor)
     layout: Layout | None = None    # OR layout (omc frame) for the OMC model's view margin; None: margin unknown
+    omc_model: OmcModelParams = field(default_factory=OmcModelParams)   # constants of the OMC model (noise_model_file)
     sources: SourceSet = field(default_factory=SourceSet)   # sources.py: global + first local (``chain``) + further
 
     def __post_init__(self) -> None:
@@ -450,11 +451,12 @@ class TargetPipeline:
                 lay = self.config.layout
                 margin = margin_at(lay, T_dev[:3, 3])[0] if lay is not None else None
                 RA = Tg[:3, :3] @ T_dev[:3, :3].T
-                C = rotate_cov(omc_covariance(qual.get("fit_error"), margin), RA)
+                C = rotate_cov(omc_covariance(qual.get("fit_error"), margin, self.config.omc_model), RA)
             else:
                 margin = None
             out.append(Measurement(mg.t_ns, SOURCE_GLOBAL, mg.p, mg.q, C,
-                                   extras={**qual, "sys_var": omc_systematic_var(qual.get("fit_error"), margin)[0]}))
+                                   extras={**qual, "sys_var": omc_systematic_var(qual.get("fit_error"), margin,
+                                                                                 self.config.omc_model)[0]}))
         if ml is not None:
             T_dev, C_dev = item.local.payload[0], item.local.payload[1]
             spec = src.locals[item.source]

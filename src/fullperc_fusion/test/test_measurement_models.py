@@ -35,8 +35,10 @@ def test_omc_covariance_equation():
     C = omc_covariance(e, M, pr)
     vp = pr.white_std**2 + (pr.white_fit_gain * e) ** 2 + pr.white_margin_std**2 * 2.0
     sp, sr = omc_systematic_var(e, M, pr)
-    assert sp == pytest.approx((pr.fit_gain * e) ** 2 + pr.margin_std**2 * 2.0, rel=1e-12)
-    assert sr == pytest.approx((pr.fit_gain * e / pr.marker_lever) ** 2 + pr.rot_margin_std**2 * 2.0, rel=1e-12)
+    assert sp == pytest.approx(pr.sys_floor**2 + (pr.fit_gain * e) ** 2 + pr.margin_std**2 * 2.0, rel=1e-12)
+    assert sr == pytest.approx(pr.rot_sys_floor**2 + (pr.fit_gain * e / pr.marker_lever) ** 2
+                               + pr.rot_margin_std**2 * 2.0, rel=1e-12)
+    assert pr.sys_floor > 0 and pr.rot_sys_floor > 0   # the floors are in: a well-seen point is not error-free
     vr = vp / pr.marker_lever**2 + sr
     np.testing.assert_allclose(np.diag(C), [vp] * 3 + [vr] * 3, rtol=1e-12)
     assert np.count_nonzero(C - np.diag(np.diag(C))) == 0

@@ -1,7 +1,8 @@
 """``make accuracy``: the six tasks on many seeds and twin profiles, Table 1 as mean ± sd over seeds.
 
     python -m fullperc_eval.evaluation.accuracy --seeds 0-9 --profile paper|spec|both [--fusion-config FILE]
-        [--jobs 2] [--json bags/accuracy.json] [--cache DIR]
+        [--jobs 2] [--json bags/accuracy.json] [--cache DIR] [--noise-model calibrated|builtin|FILE]
+        [--calibration-seeds 100-102]
 
 Per (profile, seed): the six bags are generated with :func:`fullperc_eval.sim.dataset.generate` into
 ``<cache>/<profile>-<twin hash>/seed<k>/`` (reused when present: the hash covers the merged scene configuration and
@@ -18,6 +19,14 @@ line per seed on stderr. Then, per profile:
 * NEES per method, pooled over every output of every task-seed: share inside the chi2 95 % bound and mean
   (position, dof 3; full pose, dof 6, for methods that fuse the orientation);
 * the goal checks of issue 18 for :data:`GOAL_METHOD` (:func:`goal_checks`).
+
+The noise model of ``fullperc`` (``fullperc.noise_model_file``, :mod:`fullperc_fusion.noise_model_file`), per
+profile: ``builtin`` (default) keeps the built-in model (the ``spec`` bags' statistics: what fusion_node runs
+without ``fullperc.noise_model_file``); ``calibrated`` fits it with ``fit_noise_model`` (:mod:`.sensor_stats`:
+raw OMC against the arm's forward kinematics, no filter) on the bags of the calibration seeds -- never an
+evaluated seed (refused) -- as a user fits it on a calibration recording of their OR (each twin seed draws its own
+camera miscalibration: a calibration seed is another room of the same kind, not the one evaluated); a file path
+uses that file for every profile. The paper's four filters do not read it.
 
 Stdout: one JSON line per figure (``{"name", "value", "unit", "profile", ...}``, like ``bench/benchlib.py``): the
 paper's five methods' lines first, exactly as before, then the further methods', the orientation, NEES and goal
@@ -63,6 +72,76 @@ def twin_hash(profile: str) -> str:
     plans = default_plans_path(plans_file_of(_S))
     text = plans.read_text() if plans is not None else ""
     return hashlib.sha256(json.dumps([cfg, text], sort_keys=True, default=str).encode()).hexdigest()[:12]
+
+
+CALIBRATION_SEEDS = "100-102"
+
+
+def calibrated_fusion_config(profile: str, key: str, cache: str, fusion_config: str | None,
+                             seeds: list[int]) -> dict[str, Any]:
+    """Fit ``profile``'s noise model on the six bags of each calibration seed (generated when missing) and write it
+    with a fusion config that reads it (``fusion_config``'s parameters, else fusion_node's defaults, plus
+    ``fullperc.noise_model_file``) into ``<cache>/<profile>-<key>/``. Returns {"fusion_config", "noise_model_file",
+    "noise_model": the file's content}."""
+    import yaml
+
+    from fullperc_fusion.fusion_config import default_fusion_config_path, read_params_file
+    from fullperc_fusion.layout import default_layout_path, load_layout
+
+    from .sensor_stats import fitted, profile_rows, write_noise_model
+
+    root = Path(cache) / f"{profile}-{key}"
+    layout = load_layout(default_layout_path())
+    parts = []
+    for seed in seeds:
+        d = root / f"seed{seed}"
+        missing = [t for t in TASKS
+                   if not ((d / t / "metadata.yaml").is_file() and (d / t / "calibration.yaml").is_file())]
+        if missing:
+            generate(d, missing, seed, log=lambda _m: None, profile=profile)
+        parts.append(profile_rows(d, layout))
+    tag = "-".join(str(s) for s in seeds)
+    nm = root / f"noise_model_seeds{tag}.yaml"
+    f = fitted(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]))
+    write_noise_model(nm, f, f"raw-sensor statistics of twin profile {profile}, calibration seed(s) {tag}")
+    flat = read_params_file(fusion_config if fusion_config else default_fusion_config_path())
+    flat["fullperc.noise_model_file"] = str(nm)
+    cfg = root / f"fusion_noise_model_seeds{tag}.yaml"
+    cfg.write_text(yaml.safe_dump({"fusion_node": {"ros__parameters": flat}}, sort_keys=False))
+    return {"fusion_config": str(cfg), "noise_model_file": str(nm), "noise_model": yaml.safe_load(nm.read_text())}
+
+
+def noise_model_configs(mode: str, profiles: tuple[str, ...], keys: dict[str, str], cache: str,
+                        fusion_config: str | None, cal_seeds: list[int], eval_seeds: list[int],
+                        jobs: int = 2) -> dict[str, dict[str, Any]]:
+    """Per profile: the fusion config to evaluate with and the noise model it reads (``--noise-model``)."""
+    if mode == "builtin":
+        return {p: {"fusion_config": fusion_config, "noise_model_file": "", "noise_model": None} for p in profiles}
+    if mode != "calibrated":
+        import yaml
+
+        from fullperc_fusion.fusion_config import default_fusion_config_path, read_params_file
+        from fullperc_fusion.noise_model_file import load_noise_model
+
+        load_noise_model(mode)   # a bad file: a clear error before any work
+        flat = read_params_file(fusion_config if fusion_config else default_fusion_config_path())
+        flat["fullperc.noise_model_file"] = str(Path(mode).resolve())
+        out = {}
+        for p in profiles:
+            cfg = Path(cache) / f"{p}-{keys[p]}" / "fusion_noise_model_given.yaml"
+            cfg.parent.mkdir(parents=True, exist_ok=True)
+            cfg.write_text(yaml.safe_dump({"fusion_node": {"ros__parameters": flat}}, sort_keys=False))
+            out[p] = {"fusion_config": str(cfg), "noise_model_file": str(Path(mode).resolve()),
+                      "noise_model": yaml.safe_load(Path(mode).read_text())}
+        return out
+    overlap = sorted(set(cal_seeds) & set(eval_seeds))
+    if overlap:
+        raise ValueError(f"calibration seeds {overlap} are also evaluated: the noise model must be fitted on other "
+                         "installations than the ones it is judged on")
+    with ProcessPoolExecutor(max_workers=max(1, min(jobs, len(profiles)))) as ex:
+        futs = {p: ex.submit(calibrated_fusion_config, p, keys[p], cache, fusion_config, cal_seeds)
+                for p in profiles}
+        return {p: f.result() for p, f in futs.items()}
 
 
 def default_cache() -> Path:
@@ -265,16 +344,31 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
     ap.add_argument("--cache", default=None, help=f"bag cache (default {default_cache()})")
     ap.add_argument("--json", default="bags/accuracy.json", help="write all figures here ('' = no file)")
+    ap.add_argument("--noise-model", default="builtin",
+                    help="fullperc's noise model: builtin, calibrated (fitted per profile on --calibration-seeds) "
+                         "or a noise-model file (default builtin)")
+    ap.add_argument("--calibration-seeds", default=CALIBRATION_SEEDS,
+                    help=f"seeds whose bags the calibrated noise model is fitted on (default {CALIBRATION_SEEDS})")
     args = ap.parse_args(argv)
     seeds = parse_seeds(args.seeds)
     profiles = PROFILES if args.profile == "both" else (args.profile,)
     cache = str(Path(args.cache) if args.cache else default_cache())
     keys = {p: twin_hash(p) for p in profiles}
     t0 = time.monotonic()
+    try:
+        noise = noise_model_configs(args.noise_model, profiles, keys, cache, args.fusion_config,
+                                    parse_seeds(args.calibration_seeds), seeds, args.jobs)
+    except (ValueError, OSError) as e:
+        print(f"accuracy: --noise-model {args.noise_model}: {e}", file=sys.stderr)
+        return 2
+    if args.noise_model != "builtin":
+        print(f"noise model ({args.noise_model}): "
+              + "; ".join(f"{p} {noise[p]['noise_model_file']}" for p in profiles)
+              + f", {time.monotonic() - t0:.0f} s", file=sys.stderr, flush=True)
     results: list[dict[str, Any]] = []
     jobs = [(p, s) for p in profiles for s in seeds]
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as ex:
-        futs = {ex.submit(run_seed, p, s, cache, args.fusion_config, keys[p]): (p, s) for p, s in jobs}
+        futs = {ex.submit(run_seed, p, s, cache, noise[p]["fusion_config"], keys[p]): (p, s) for p, s in jobs}
         for f in as_completed(futs):
             r = f.result()
             results.append(r)
@@ -300,6 +394,9 @@ def main(argv: list[str] | None = None) -> int:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         with open(args.json, "w") as f:
             json.dump({"profiles": list(profiles), "seeds": seeds, "fusion_config": args.fusion_config,
+                       "noise_model": {"mode": args.noise_model, **({"calibration_seeds": parse_seeds(
+                           args.calibration_seeds)} if args.noise_model == "calibrated" else {}),
+                           **{p: noise[p]["noise_model"] for p in profiles}},
                        "twin_hash": keys, "summary": summary, "goals": goals,
                        "task_seeds": [x for r in results for x in r["rows"]]}, f, indent=1, default=float)
             f.write("\n")

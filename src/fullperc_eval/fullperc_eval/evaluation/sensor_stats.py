@@ -1,0 +1,301 @@
+"""Raw-sensor statistics behind the constants of ``fullperc_fusion.measurement_models`` (issue 18), and the
+noise-model file of an installation (``fit_noise_model``, :mod:`fullperc_fusion.noise_model_file`).
+
+Noise-model calibration, not filter tuning: every tracked /omc/<tool>/pose and /ots/<tool>/pose sample of the
+bags is mapped into ``base`` by the node's own frame chain and compared with the Diana forward kinematics (the
+bag's calibration.yaml); no filter runs. Printed per profile (one directory of task bags):
+
+* OMC per-axis error variance regressed on [1, fit_error^2, 300/margin] (total, and the white part from
+  consecutive differences / sqrt 2), the margin from ``margin.margin_at`` on the default layout;
+* the OMC rotation error's regression on the same terms;
+* the rms per-axis increment of the OMC's position and rotation error over lags 8 ms .. 10 s (the structure
+  function: white level, then the systematic part decorrelating);
+* the Vega tool's per-axis error by distance and its orientation error.
+
+Run::
+
+    fit_noise_model bags/spec bags/paper                   # the statistics of each directory
+    fit_noise_model my_calibration_bags --write noise.yaml # pooled over the directories given: the noise model
+                                                            # fusion_node reads (fullperc.noise_model_file)
+
+(``python scripts/raw_sensor_stats.py`` is the same from a source checkout.) A directory holds bag directories, each
+with its ``calibration.yaml`` (the arm's base in the OMC frame, ``fullperc_eval.bag.calibration``): the arm holds
+the tracked tool, its joint angles give the truth.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from fullperc_eval.bag.calibration import load_calibration
+from fullperc_eval.bag.reader import BagReader
+from fullperc_eval.evaluation.config import replay_config
+from fullperc_eval.evaluation.ground_truth import GroundTruth
+from fullperc_fusion.frame_chain import pose_to_T
+from fullperc_fusion.layout import default_layout_path, load_layout
+from fullperc_fusion.margin import margin_at
+from fullperc_fusion.measurement_models import OmcModelParams
+from fullperc_fusion.pipeline import TargetPipeline
+
+# columns of a sample row
+T, EX, EY, EZ, FIT, MARGIN, DIST, RX, RY, RZ, PX, PY, PZ = range(13)
+
+
+def _stamp(h) -> int:
+    return int(h.stamp.sec) * 1_000_000_000 + int(h.stamp.nanosec)
+
+
+def bag_rows(bag: Path, layout) -> tuple[np.ndarray, np.ndarray]:
+    """(OMC rows, OTS rows) of one bag: time [s], position error (3) [m], fit error [m], margin [deg] (OMC),
+    distance to the Vega [m] (OTS), rotation error vector (3) [rad], true position in base (3) [m]; errors in base,
+    measured minus true."""
+    cfg, _ = replay_config()
+    cfg.filters = ("omc",)
+    pipe = TargetPipeline(cfg)
+    c = cfg.chain
+    reader = BagReader(bag)
+    reader.open()
+    fit: dict[tuple[str, int], float] = {}
+    jt, jq, samples = [], [], []
+    try:
+        for m in reader.messages(list(reader.topics)):
+            msg = reader.deserialize(m.data, m.msgtype)
+            if m.topic == "/diana/joint_states":
+                jt.append(_stamp(msg.header))
+                jq.append(np.asarray(msg.position, dtype=float))
+            elif m.topic.endswith("/quality"):
+                fit[(m.topic.split("/")[1], _stamp(msg.header))] = float(msg.fit_error)
+            elif m.topic.endswith("/pose") and m.topic.split("/")[1] in ("omc", "ots"):
+                dev, body = m.topic.split("/")[1:3]
+                t = _stamp(msg.header)
+                pp, qq = msg.pose.position, msg.pose.orientation
+                Td = pose_to_T((np.array([pp.x, pp.y, pp.z]), np.array([qq.x, qq.y, qq.z, qq.w])))
+                if dev == "omc":
+                    pipe.push_omc(body, t, Td)
+                    if body == c.omc_target and pipe.chain.links.T_omc_base is not None:
+                        samples.append(("omc", t, Td, pipe.chain.global_T(Td)))
+                else:
+                    pipe.push_ots(body, t, Td)
+                    if body == c.ots_target and pipe.chain.links.local_ready:
+                        Tl, _ = pipe.chain.local_T(t, Td)
+                        if Tl is not None:
+                            samples.append(("ots", t, Td, Tl))
+                pipe.poll()
+    finally:
+        reader.close()
+    gt = GroundTruth(np.array(jt), np.array(jq), load_calibration(bag))
+    Ttrue, ok = gt.T_base_tool(np.array([s[1] for s in samples], dtype=np.int64))
+    rows: dict[str, list] = {"omc": [], "ots": []}
+    for (dev, t, Td, Tb), T0, k in zip(samples, Ttrue, ok, strict=True):
+        if not k:
+            continue
+        rv = Rotation.from_matrix(Tb[:3, :3] @ T0[:3, :3].T).as_rotvec()
+        margin = margin_at(layout, Td[:3, 3])[0] if dev == "omc" else np.nan
+        rows[dev].append((t * 1e-9, *(Tb[:3, 3] - T0[:3, 3]), fit.get((dev, t), -1.0), margin,
+                          float(np.linalg.norm(Td[:3, 3])), *rv, *T0[:3, 3]))
+    return np.array(rows["omc"]), np.array(rows["ots"])
+
+
+def _segments(t: np.ndarray) -> list[np.ndarray]:
+    cuts = np.flatnonzero((np.diff(t) < 0) | (np.diff(t) > 1.0)) + 1
+    return np.split(np.arange(len(t)), cuts)
+
+
+def regress(y: np.ndarray, fit: np.ndarray, margin: np.ndarray) -> np.ndarray:
+    """Least squares y ~ a + k fit^2 + c 300/max(margin, 30); returns each coefficient as a signed std,
+    sign(x) sqrt(|x|): a negative one (the data do not support that term) shows as a negative std."""
+    A = np.column_stack([np.ones(len(y)), fit**2, 300.0 / np.maximum(margin, 30.0)])
+    coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+    return np.sign(coef) * np.sqrt(np.abs(coef))
+
+
+def structure(e: np.ndarray, t: np.ndarray, lags: tuple[int, ...]) -> list[float]:
+    """rms per-axis increment of e over each lag (in samples), within each bag."""
+    out = []
+    for L in lags:
+        d = np.concatenate([e[s][L:] - e[s][:-L] for s in _segments(t) if len(s) > L])
+        out.append(float(np.sqrt((d**2).mean())))
+    return out
+
+
+def fit_gauss_markov(lags_s: np.ndarray, rms: np.ndarray) -> tuple[float, float, float]:
+    """(white std, systematic std, tau [s]) of D(L) = 2 w^2 + 2 s^2 (1 - exp(-L / tau)) fitted to the squared
+    rms increments (grid over tau, linear least squares for w^2 and s^2 at each tau)."""
+    D = rms**2
+    best = (np.inf, 0.0, 0.0, 0.0)
+    for tau in np.geomspace(0.05, 100.0, 400):
+        A = np.column_stack([2 * np.ones_like(lags_s), 2 * (1 - np.exp(-lags_s / tau))])
+        coef, *_ = np.linalg.lstsq(A, D, rcond=None)
+        if np.all(coef >= 0):
+            res = float(np.sum((A @ coef - D) ** 2 / D**2))
+            if res < best[0]:
+                best = (res, float(np.sqrt(coef[0])), float(np.sqrt(coef[1])), float(tau))
+    return best[1], best[2], best[3]
+
+
+def fit_two_gauss_markov(lags_s: np.ndarray, rms: np.ndarray) -> tuple[float, float, float, float, float]:
+    """(white std, fast std, fast tau, slow std, slow tau [s]) of D(L) = 2 w^2 + 2 s1^2 (1 - exp(-L / tau1))
+    + 2 s2^2 (1 - exp(-L / tau2)), tau1 < tau2, fitted to the squared rms increments (grid over both taus,
+    non-negative least squares for the variances, relative residuals). The slow part is what a bias state can
+    follow; the fast part reverts within about a second and is noise of the sample."""
+    from scipy.optimize import nnls
+
+    D = rms**2
+    best = (np.inf, 0.0, 0.0, 0.0, 0.0, 0.0)
+    for t1 in np.geomspace(0.05, 3.0, 60):
+        for t2 in np.geomspace(2.0, 200.0, 80):
+            if t2 <= t1:
+                continue
+            A = np.column_stack([2 * np.ones_like(lags_s), 2 * (1 - np.exp(-lags_s / t1)),
+                                 2 * (1 - np.exp(-lags_s / t2))]) / D[:, None]
+            coef, _ = nnls(A, np.ones_like(D))
+            res = float(np.sum((A @ coef - 1.0) ** 2))
+            if res < best[0]:
+                w2, s1, s2 = np.sqrt(coef)
+                best = (res, float(w2), float(s1), float(t1), float(s2), float(t2))
+    return best[1:]
+
+
+def fitted(g: np.ndarray, o: np.ndarray) -> dict[str, Any]:
+    """Every statistic of one profile's rows (:func:`bag_rows` of its bags, concatenated): regressions as
+    (floor, fit gain, margin term) -- per-axis std [m or rad] -- structure functions, Gauss-Markov fits, the
+    median fit error, the Vega's per-axis rms by distance and its orientation rms. ``test/test_model_constants.py``
+    holds the constants of ``measurement_models`` and ``FullpercParams`` to these on the committed bags."""
+    out: dict[str, Any] = {}
+    fit = np.where(g[:, FIT] >= 0, g[:, FIT], np.nan)
+    ok = np.isfinite(fit)
+    g, fit = g[ok], fit[ok]
+    e, r = g[:, EX:EZ + 1], g[:, RX:RZ + 1]
+    out["n_omc"], out["n_ots"] = len(g), len(o)
+    out["fit_median"] = float(np.median(fit))
+    out["pos_total"] = regress((e**2).mean(1), fit, g[:, MARGIN])
+    out["rot_total"] = regress((r**2).mean(1), fit, g[:, MARGIN])
+    pair = np.diff(g[:, T]) < 0.02
+    dw = (np.diff(e, axis=0)[pair] ** 2).mean(1) / 2
+    fm = 0.5 * (fit[1:] + fit[:-1])[pair]
+    mm = np.minimum(g[1:, MARGIN], g[:-1, MARGIN])[pair]
+    out["pos_white"] = regress(dw, fm, mm)
+    d = np.diff(e, axis=0)[pair]
+    out["pos_white_mad"] = 1.4826 * np.median(np.abs(d - np.median(d, 0)), 0) / np.sqrt(2)
+    lags = (1, 6, 12, 30, 60, 120, 240, 360, 600, 1200)
+    out["lags_s"] = np.asarray(lags) / 120.0
+    out["structure_pos"] = np.asarray(structure(e, g[:, T], lags))
+    out["structure_rot"] = np.asarray(structure(r, g[:, T], lags))
+    out["pos_gm"] = fit_gauss_markov(out["lags_s"], out["structure_pos"])
+    out["rot_gm"] = fit_gauss_markov(out["lags_s"], out["structure_rot"])
+    out["rot_gm2"] = fit_two_gauss_markov(out["lags_s"], out["structure_rot"])
+    eo, ro, dist = o[:, EX:EZ + 1], o[:, RX:RZ + 1], o[:, DIST]
+    out["ots_by_distance"] = [(lo, hi, float(np.sqrt((eo[s] ** 2).mean())), int(s.sum()))
+                              for lo, hi in ((0.9, 1.3), (1.3, 1.6), (1.6, 1.8), (1.8, 2.5))
+                              if (s := (dist >= lo) & (dist < hi)).any()]
+    out["ots_rot_rms"] = float(np.sqrt((ro**2).mean()))
+    return out
+
+
+def report(name: str, g: np.ndarray, o: np.ndarray) -> None:
+    f = fitted(g, o)
+    print(f"== {name}: {f['n_omc']} OMC samples, {f['n_ots']} OTS samples; median fit error "
+          f"{f['fit_median'] * 1e3:.3f} mm")
+    a, k, c = f["pos_total"]
+    print(f"OMC position, total per axis:   floor {a * 1e3:.3f} mm, fit gain {k:.2f}, margin term {c * 1e3:.3f} mm")
+    a, k, c = f["rot_total"]
+    print(f"OMC rotation, total per axis:   floor {a * 1e3:.2f} mrad, fit gain {k:.1f} rad/m, margin term "
+          f"{c * 1e3:.2f} mrad")
+    a, k, c = f["pos_white"]
+    print(f"OMC position, white per axis:   floor {a * 1e3:.3f} mm, fit gain {k:.2f}, margin term {c * 1e3:.3f} mm")
+    print(f"OMC position, robust white per axis (MAD): {np.round(f['pos_white_mad'] * 1e3, 3)} mm")
+    print("OMC structure function (lag s: pos mm / rot mrad per axis): "
+          + ", ".join(f"{L:.2f}: {p * 1e3:.3f} / {q * 1e3:.2f}"
+                      for L, p, q in zip(f["lags_s"], f["structure_pos"], f["structure_rot"], strict=True)))
+    w, sy, tau = f["pos_gm"]
+    print(f"OMC position as white + Gauss-Markov: white {w * 1e3:.3f} mm, systematic {sy * 1e3:.3f} mm, "
+          f"tau {tau:.2f} s")
+    w, sy, tau = f["rot_gm"]
+    print(f"OMC rotation as white + Gauss-Markov: white {w * 1e3:.2f} mrad, systematic {sy * 1e3:.2f} mrad, "
+          f"tau {tau:.2f} s")
+    w, s1, t1, s2, t2 = f["rot_gm2"]
+    print(f"OMC rotation as white + two Gauss-Markov: white {w * 1e3:.2f} mrad, fast {s1 * 1e3:.2f} mrad tau "
+          f"{t1:.2f} s, slow {s2 * 1e3:.2f} mrad tau {t2:.1f} s (200 s: the grid's end, a random walk)")
+    for lo, hi, rms, n in f["ots_by_distance"]:
+        print(f"OTS tool at {lo}-{hi} m: per-axis rms {rms * 1e3:.3f} mm (n={n})")
+    print(f"OTS tool orientation: per-axis rms {f['ots_rot_rms'] * 1e3:.2f} mrad")
+
+
+def profile_rows(directory: Path, layout) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`bag_rows` of every bag directory below ``directory``, concatenated."""
+    parts = [bag_rows(b, layout) for b in sorted(p for p in Path(directory).iterdir() if p.is_dir())]
+    return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+
+
+# the two-Gauss-Markov fit's slow time constant at or beyond this is the grid's end: a random walk
+RANDOM_WALK_TAU_S = 100.0
+
+
+def noise_model_from_stats(f: dict[str, Any]) -> tuple[dict[str, float], dict[str, float]]:
+    """(``omc``, ``omc_bias``) sections of a noise-model file from :func:`fitted` statistics:
+
+    * ``omc``: the white part's regression (floor, fit gain, margin term); the total's fit gain and margin term,
+      and its floor beyond the white one (``sys_floor = sqrt(a_total^2 - a_white^2)``); the rotation's margin term
+      and its floor beyond the white position floor over the lever (``rot_sys_floor``); ``marker_lever =
+      k_fit / k_rot_fit`` (the built-in one when a gain is not positive) and the median fit error. A negative
+      regression term counts as 0;
+    * ``omc_bias``: the position structure function's Gauss-Markov fit (``sys_time``, ``sys_std``) and the
+      slow part of the rotation's two-Gauss-Markov fit: a Gauss-Markov process (``rot_sys_time``,
+      ``rot_sys_std``), or, when its time constant is at the grid's end (>= :data:`RANDOM_WALK_TAU_S`), a random
+      walk with the same short-lag increments: ``rot_bias_walk = 2 s^2 / tau`` and ``rot_sys_time = 0``.
+    """
+    floor_w, k_w, m_w = np.maximum(f["pos_white"], 0.0)   # a negative term (signed std): the data show none
+    floor_t, k_fit, m = np.maximum(f["pos_total"], 0.0)
+    floor_r, k_rot, m_rot = np.maximum(f["rot_total"], 0.0)
+    lever = k_fit / k_rot if k_fit > 0 and k_rot > 0 else OmcModelParams().marker_lever
+    omc = {"white_std": floor_w, "white_fit_gain": k_w, "white_margin_std": m_w,
+           "sys_floor": np.sqrt(max(floor_t**2 - floor_w**2, 0.0)), "fit_gain": k_fit, "margin_std": m,
+           "marker_lever": lever, "rot_sys_floor": np.sqrt(max(floor_r**2 - (floor_w / lever) ** 2, 0.0)),
+           "rot_margin_std": m_rot, "default_fit": f["fit_median"]}
+    _, s, tau = f["pos_gm"]
+    bias = {"sys_time": tau, "sys_std": s}
+    _, _, _, s2, t2 = f["rot_gm2"]
+    if t2 >= RANDOM_WALK_TAU_S:
+        bias.update(rot_sys_time=0.0, rot_sys_std=0.0, rot_bias_walk=2.0 * s2**2 / t2)
+    else:
+        bias.update(rot_sys_time=t2, rot_sys_std=s2)
+    return {k: float(v) for k, v in omc.items()}, {k: float(v) for k, v in bias.items()}
+
+
+def write_noise_model(path: str | Path, f: dict[str, Any], source: str) -> str:
+    """Write the noise-model file of statistics ``f`` (:func:`noise_model_from_stats`) to ``path``; returns it."""
+    from fullperc_fusion.noise_model_file import noise_model_yaml
+
+    omc, bias = noise_model_from_stats(f)
+    text = noise_model_yaml(omc, bias, f"{source}: {f['n_omc']} OMC samples against the arm's forward kinematics")
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    Path(path).write_text(text)
+    return text
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="fit_noise_model", description=__doc__.split("\n")[0])
+    ap.add_argument("dirs", nargs="+", help="directories of bag directories (each bag with its calibration.yaml)")
+    ap.add_argument("--write", default="", help="write the noise model of all directories pooled to this file")
+    args = ap.parse_args(argv)
+    layout = load_layout(default_layout_path())
+    rows = [profile_rows(Path(d), layout) for d in args.dirs]
+    for d, (g, o) in zip(args.dirs, rows, strict=True):
+        report(d, g, o)
+    if args.write:
+        g, o = np.concatenate([r[0] for r in rows]), np.concatenate([r[1] for r in rows])
+        if len(args.dirs) > 1:
+            report(" + ".join(args.dirs), g, o)
+        write_noise_model(args.write, fitted(g, o), "raw-sensor statistics of " + ", ".join(args.dirs))
+        print(f"wrote {args.write}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,63 @@
+"""fit_noise_model (evaluation/sensor_stats.py): statistics -> noise-model file, each rule of the mapping pinned
+(the statistics themselves are held to the committed bags by test/test_model_constants.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fullperc_eval.evaluation.sensor_stats import RANDOM_WALK_TAU_S, noise_model_from_stats, regress, write_noise_model
+from fullperc_fusion.measurement_models import OmcModelParams
+from fullperc_fusion.noise_model_file import load_noise_model
+
+
+def stats(**over):
+    f = {"pos_white": np.array([0.02e-3, 0.08, 0.12e-3]), "pos_total": np.array([0.13e-3, 0.5, 0.5e-3]),
+         "rot_total": np.array([1.7e-3, 5.0, 4.0e-3]), "fit_median": 0.05e-3, "n_omc": 1000,
+         "pos_gm": (0.05e-3, 0.25e-3, 3.0), "rot_gm2": (1.2e-3, 1.5e-3, 0.4, 11e-3, 3.8)}
+    f.update(over)
+    return f
+
+
+def test_the_mapping_of_each_constant():
+    omc, bias = noise_model_from_stats(stats())
+    assert omc["white_std"] == 0.02e-3 and omc["white_fit_gain"] == 0.08 and omc["white_margin_std"] == 0.12e-3
+    assert omc["sys_floor"] == pytest.approx(np.sqrt(0.13e-3**2 - 0.02e-3**2))      # beyond the white floor
+    assert omc["fit_gain"] == 0.5 and omc["margin_std"] == 0.5e-3 and omc["default_fit"] == 0.05e-3
+    assert omc["marker_lever"] == pytest.approx(0.1)                                   # k_fit / k_rot
+    assert omc["rot_sys_floor"] == pytest.approx(np.sqrt(1.7e-3**2 - (0.02e-3 / 0.1) ** 2))
+    assert omc["rot_margin_std"] == 4.0e-3
+    assert bias == {"sys_time": 3.0, "sys_std": 0.25e-3, "rot_sys_time": 3.8, "rot_sys_std": 11e-3}
+
+
+def test_a_slow_rotation_part_at_the_grids_end_is_a_random_walk():
+    _, bias = noise_model_from_stats(stats(rot_gm2=(1.2e-3, 1.5e-3, 0.4, 8e-3, RANDOM_WALK_TAU_S * 2)))
+    assert bias["rot_sys_time"] == 0.0 and bias["rot_sys_std"] == 0.0
+    # same short-lag increments: 2 s^2 (1 - exp(-L/tau)) ~ 2 s^2 L / tau = q L
+    assert bias["rot_bias_walk"] == pytest.approx(2 * 8e-3**2 / (RANDOM_WALK_TAU_S * 2))
+
+
+def test_negative_regression_terms_count_as_none():
+    omc, _ = noise_model_from_stats(stats(pos_total=np.array([1.2e-3, -0.7, 5e-3]),
+                                          pos_white=np.array([-0.05e-3, 0.08, 0.2e-3]),
+                                          rot_total=np.array([-5e-3, 1.9, 28e-3])))
+    assert omc["fit_gain"] == 0.0 and omc["white_std"] == 0.0
+    assert omc["sys_floor"] == pytest.approx(1.2e-3) and omc["rot_sys_floor"] == 0.0
+    assert omc["marker_lever"] == OmcModelParams().marker_lever   # no fit gain: the built-in lever
+
+
+def test_regress_keeps_the_sign_of_a_coefficient():
+    rng = np.random.default_rng(0)
+    fit, margin = rng.uniform(0, 1e-3, 500), rng.uniform(100, 2000, 500)
+    y = 4e-8 - 0.25 * fit**2 + 1e-7 * 300 / margin
+    a, k, c = regress(y, fit, margin)
+    assert a == pytest.approx(2e-4) and k == pytest.approx(-0.5) and c == pytest.approx(np.sqrt(1e-7))
+
+
+def test_the_written_file_is_a_noise_model_fusion_node_reads(tmp_path):
+    p = tmp_path / "sub" / "noise.yaml"
+    write_noise_model(p, stats(), "unit test")
+    nm = load_noise_model(p)
+    omc, bias = noise_model_from_stats(stats())
+    assert all(getattr(nm.omc, k) == pytest.approx(v) for k, v in omc.items()) and nm.bias == pytest.approx(bias)
+    assert nm.source == "unit test: 1000 OMC samples against the arm's forward kinematics"
