@@ -143,20 +143,29 @@ def test_pooled_nees_weights_by_outputs_and_summary_prints_the_new_tables():
     assert s["table1_orientation_deg"]["G-B-P"]["fullperc"][0] == pytest.approx(0.2)
 
 
-def test_main_keeps_every_former_key_and_adds_the_goals(tmp_path, monkeypatch, capsys):
-    """The whole ``make accuracy`` path on hand-made per-seed results (no simulation): accuracy.json keeps the
-    keys others read and gains ``goals``; the goal lines are printed."""
+def _fake_seeds(monkeypatch, used: dict | None = None):
+    """accuracy with hand-made per-seed results instead of simulation (``used``: (profile, seed) -> the fusion
+    config each seed was evaluated with), threads instead of processes, a fixed twin hash."""
     from concurrent.futures import ThreadPoolExecutor
 
     from fullperc_eval.evaluation import accuracy as acc
 
     def fake_run_seed(profile, seed, cache, fusion_config, key):
+        if used is not None:
+            used[(profile, seed)] = fusion_config
         rows = [dict(r, profile=profile) for r in _rows(True, seeds=(seed,))]
         return {"profile": profile, "seed": seed, "rows": rows, "generated": 0, "sim_s": 0.0, "eval_s": 0.0}
 
     monkeypatch.setattr(acc, "run_seed", fake_run_seed)
     monkeypatch.setattr(acc, "ProcessPoolExecutor", ThreadPoolExecutor)
     monkeypatch.setattr(acc, "twin_hash", lambda p: f"hash-{p}")
+    return acc
+
+
+def test_main_keeps_every_former_key_and_adds_the_goals(tmp_path, monkeypatch, capsys):
+    """The whole ``make accuracy`` path on hand-made per-seed results (no simulation): accuracy.json keeps the
+    keys others read and gains ``goals``; the goal lines are printed."""
+    acc = _fake_seeds(monkeypatch)
     out = tmp_path / "accuracy.json"
     assert acc.main(["--seeds", "0-1", "--profile", "both", "--json", str(out), "--cache", str(tmp_path),
                      "--noise-model", "builtin"]) == 0
@@ -177,26 +186,15 @@ def test_main_keeps_every_former_key_and_adds_the_goals(tmp_path, monkeypatch, c
 def test_main_evaluates_each_profile_with_its_calibrated_noise_model(tmp_path, monkeypatch):
     """``--noise-model calibrated``: each profile's seeds run with the fusion config that reads the
     noise model fitted on that profile's calibration seeds, and accuracy.json records the model."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    from fullperc_eval.evaluation import accuracy as acc
-
     used, fitted_on = {}, {}
+    acc = _fake_seeds(monkeypatch, used)
 
     def fake_cal(profile, key, cache, fusion_config, seeds):
         fitted_on[profile] = seeds
         return {"fusion_config": f"cfg-{profile}.yaml", "noise_model_file": f"nm-{profile}.yaml",
                 "noise_model": {"omc": {"margin_std": 1e-3 if profile == "paper" else 5e-4}}}
 
-    def fake_run_seed(profile, seed, cache, fusion_config, key):
-        used[(profile, seed)] = fusion_config
-        rows = [dict(r, profile=profile) for r in _rows(True, seeds=(seed,))]
-        return {"profile": profile, "seed": seed, "rows": rows, "generated": 0, "sim_s": 0.0, "eval_s": 0.0}
-
     monkeypatch.setattr(acc, "calibrated_fusion_config", fake_cal)
-    monkeypatch.setattr(acc, "run_seed", fake_run_seed)
-    monkeypatch.setattr(acc, "ProcessPoolExecutor", ThreadPoolExecutor)
-    monkeypatch.setattr(acc, "twin_hash", lambda p: f"hash-{p}")
     out = tmp_path / "accuracy.json"
     assert acc.main(["--seeds", "0-1", "--profile", "both", "--json", str(out), "--cache", str(tmp_path),
                      "--noise-model", "calibrated"]) == 0
