@@ -80,12 +80,7 @@ CALIBRATION_SEEDS = "100-102"
 def calibrated_fusion_config(profile: str, key: str, cache: str, fusion_config: str | None,
                              seeds: list[int]) -> dict[str, Any]:
     """Fit ``profile``'s noise model on the six bags of each calibration seed (generated when missing) and write it
-    with a fusion config that reads it (``fusion_config``'s parameters, else fusion_node's defaults, plus
-    ``fullperc.noise_model_file``) into ``<cache>/<profile>-<key>/``. Returns {"fusion_config", "noise_model_file",
-    "noise_model": the file's content}."""
-    import yaml
-
-    from fullperc_fusion.fusion_config import default_fusion_config_path, read_params_file
+    with a fusion config that reads it (:func:`fusion_config_reading`) into ``<cache>/<profile>-<key>/``."""
     from fullperc_fusion.layout import default_layout_path, load_layout
 
     from .sensor_stats import fitted, profile_rows, write_noise_model
@@ -103,12 +98,25 @@ def calibrated_fusion_config(profile: str, key: str, cache: str, fusion_config: 
     tag = "-".join(str(s) for s in seeds)
     nm = root / f"noise_model_seeds{tag}.yaml"
     f = fitted(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]))
-    write_noise_model(nm, f, f"raw-sensor statistics of twin profile {profile}, calibration seed(s) {tag}")
+    text = write_noise_model(nm, f, f"raw-sensor statistics of twin profile {profile}, calibration seed(s) {tag}")
+    return fusion_config_reading(fusion_config, nm, text, root / f"fusion_noise_model_seeds{tag}.yaml")
+
+
+def fusion_config_reading(fusion_config: str | None, noise_model_file: Path, noise_model_text: str,
+                          out: Path) -> dict[str, Any]:
+    """Write to ``out`` a fusion config with ``fusion_config``'s parameters (else fusion_node's defaults) plus
+    ``fullperc.noise_model_file``; returns {"fusion_config", "noise_model_file", "noise_model": the file's
+    content, parsed from ``noise_model_text``}."""
+    import yaml
+
+    from fullperc_fusion.fusion_config import default_fusion_config_path, read_params_file
+
     flat = read_params_file(fusion_config if fusion_config else default_fusion_config_path())
-    flat["fullperc.noise_model_file"] = str(nm)
-    cfg = root / f"fusion_noise_model_seeds{tag}.yaml"
-    cfg.write_text(yaml.safe_dump({"fusion_node": {"ros__parameters": flat}}, sort_keys=False))
-    return {"fusion_config": str(cfg), "noise_model_file": str(nm), "noise_model": yaml.safe_load(nm.read_text())}
+    flat["fullperc.noise_model_file"] = str(noise_model_file)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(yaml.safe_dump({"fusion_node": {"ros__parameters": flat}}, sort_keys=False))
+    return {"fusion_config": str(out), "noise_model_file": str(noise_model_file),
+            "noise_model": yaml.safe_load(noise_model_text)}
 
 
 def noise_model_configs(mode: str, profiles: tuple[str, ...], keys: dict[str, str], cache: str,
@@ -118,22 +126,14 @@ def noise_model_configs(mode: str, profiles: tuple[str, ...], keys: dict[str, st
     if mode == "builtin":
         return {p: {"fusion_config": fusion_config, "noise_model_file": "", "noise_model": None} for p in profiles}
     if mode != "calibrated":
-        import yaml
-
-        from fullperc_fusion.fusion_config import default_fusion_config_path, read_params_file
         from fullperc_fusion.noise_model_file import load_noise_model
 
         load_noise_model(mode)   # a bad file: a clear error before any work
-        flat = read_params_file(fusion_config if fusion_config else default_fusion_config_path())
-        flat["fullperc.noise_model_file"] = str(Path(mode).resolve())
-        out = {}
-        for p in profiles:
-            cfg = Path(cache) / f"{p}-{keys[p]}" / "fusion_noise_model_given.yaml"
-            cfg.parent.mkdir(parents=True, exist_ok=True)
-            cfg.write_text(yaml.safe_dump({"fusion_node": {"ros__parameters": flat}}, sort_keys=False))
-            out[p] = {"fusion_config": str(cfg), "noise_model_file": str(Path(mode).resolve()),
-                      "noise_model": yaml.safe_load(Path(mode).read_text())}
-        return out
+        path = Path(mode).resolve()
+        text = path.read_text()
+        return {p: fusion_config_reading(fusion_config, path, text,
+                                         Path(cache) / f"{p}-{keys[p]}" / "fusion_noise_model_given.yaml")
+                for p in profiles}
     overlap = sorted(set(cal_seeds) & set(eval_seeds))
     if overlap:
         raise ValueError(f"calibration seeds {overlap} are also evaluated: the noise model must be fitted on other "
@@ -355,9 +355,10 @@ def main(argv: list[str] | None = None) -> int:
     cache = str(Path(args.cache) if args.cache else default_cache())
     keys = {p: twin_hash(p) for p in profiles}
     t0 = time.monotonic()
+    cal_seeds = parse_seeds(args.calibration_seeds)
     try:
-        noise = noise_model_configs(args.noise_model, profiles, keys, cache, args.fusion_config,
-                                    parse_seeds(args.calibration_seeds), seeds, args.jobs)
+        noise = noise_model_configs(args.noise_model, profiles, keys, cache, args.fusion_config, cal_seeds, seeds,
+                                    args.jobs)
     except (ValueError, OSError) as e:
         print(f"accuracy: --noise-model {args.noise_model}: {e}", file=sys.stderr)
         return 2
@@ -394,8 +395,8 @@ def main(argv: list[str] | None = None) -> int:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         with open(args.json, "w") as f:
             json.dump({"profiles": list(profiles), "seeds": seeds, "fusion_config": args.fusion_config,
-                       "noise_model": {"mode": args.noise_model, **({"calibration_seeds": parse_seeds(
-                           args.calibration_seeds)} if args.noise_model == "calibrated" else {}),
+                       "noise_model": {"mode": args.noise_model,
+                                       **({"calibration_seeds": cal_seeds} if args.noise_model == "calibrated" else {}),
                            **{p: noise[p]["noise_model"] for p in profiles}},
                        "twin_hash": keys, "summary": summary, "goals": goals,
                        "task_seeds": [x for r in results for x in r["rows"]]}, f, indent=1, default=float)

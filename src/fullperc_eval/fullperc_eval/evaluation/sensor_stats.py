@@ -198,8 +198,8 @@ def fitted(g: np.ndarray, o: np.ndarray) -> dict[str, Any]:
     return out
 
 
-def report(name: str, g: np.ndarray, o: np.ndarray) -> None:
-    f = fitted(g, o)
+def report(name: str, f: dict[str, Any]) -> None:
+    """Print the statistics ``f`` (:func:`fitted`) of ``name``."""
     print(f"== {name}: {f['n_omc']} OMC samples, {f['n_ots']} OTS samples; median fit error "
           f"{f['fit_median'] * 1e3:.3f} mm")
     a, k, c = f["pos_total"]
@@ -286,13 +286,15 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     layout = load_layout(default_layout_path())
     rows = [profile_rows(Path(d), layout) for d in args.dirs]
-    for d, (g, o) in zip(args.dirs, rows, strict=True):
-        report(d, g, o)
+    stats = [fitted(g, o) for g, o in rows]
+    for d, f in zip(args.dirs, stats, strict=True):
+        report(d, f)
     if args.write:
-        g, o = np.concatenate([r[0] for r in rows]), np.concatenate([r[1] for r in rows])
+        pooled = stats[0]
         if len(args.dirs) > 1:
-            report(" + ".join(args.dirs), g, o)
-        write_noise_model(args.write, fitted(g, o), "raw-sensor statistics of " + ", ".join(args.dirs))
+            pooled = fitted(np.concatenate([r[0] for r in rows]), np.concatenate([r[1] for r in rows]))
+            report(" + ".join(args.dirs), pooled)
+        write_noise_model(args.write, pooled, "raw-sensor statistics of " + ", ".join(args.dirs))
         print(f"wrote {args.write}")
     return 0
 
