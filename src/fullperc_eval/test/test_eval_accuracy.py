@@ -166,10 +166,13 @@ def test_main_keeps_every_former_key_and_adds_the_goals(tmp_path, monkeypatch, c
     """The whole ``make accuracy`` path on hand-made per-seed results (no simulation): accuracy.json keeps the
     keys others read and gains ``goals``; the goal lines are printed."""
     acc = _fake_seeds(monkeypatch)
+    monkeypatch.setattr(acc, "as_completed", lambda fs: list(fs)[::-1])   # seeds finishing in the other order
     out = tmp_path / "accuracy.json"
     assert acc.main(["--seeds", "0-1", "--profile", "both", "--json", str(out), "--cache", str(tmp_path),
                      "--noise-model", "builtin"]) == 0
     d = json.loads(out.read_text())
+    order = [(r["profile"], r["seed"]) for r in d["task_seeds"]]
+    assert order == sorted(order, key=lambda x: (("paper", "spec").index(x[0]), x[1]))   # file order fixed
     assert d["noise_model"] == {"mode": "builtin", "paper": None, "spec": None}
     assert {"profiles", "seeds", "fusion_config", "twin_hash", "summary", "task_seeds"} <= set(d)
     for p in d["profiles"]:
@@ -258,3 +261,41 @@ def test_calibrated_noise_model_of_the_committed_spec_bags_is_the_built_in_one(t
     for k, v in dataclasses.asdict(cfg.omc_model).items():
         assert v == pytest.approx(builtin[k], rel=0.02), k
     assert r["noise_model"]["omc"]["margin_std"] == cfg.omc_model.margin_std
+
+
+def test_mae_split_at_the_first_local_sample_and_the_ceiling_it_gives():
+    """metrics.first_local_split on hand-made errors (contributions add up to the MAE; invalid outputs left out;
+    no local sample -> None); the summary's means and best-before, and position_vs_cbkf's ceiling from it."""
+    from fullperc_eval.evaluation.metrics import first_local_split
+
+    t = np.arange(10, dtype=np.int64) * 100
+    outs = {"omc": {"t_ns": t}, "cbkf": {"t_ns": t}}
+    errs = {"omc": np.arange(10.0), "cbkf": np.full(10, 2.0)}
+    ok = {"omc": np.ones(10, bool), "cbkf": np.r_[np.zeros(1, bool), np.ones(9, bool)]}
+    sp = first_local_split(outs, errs, ok, np.array([450, 300, 900]), 0)
+    assert sp["t_s"] == pytest.approx(300e-9)
+    assert sp["share"] == {"omc": 0.3, "cbkf": pytest.approx(2 / 9)}
+    c = sp["contribution_mm"]["omc"]
+    assert c["before"] == pytest.approx((0 + 1 + 2) / 10) and c["after"] == pytest.approx(sum(range(3, 10)) / 10)
+    assert c["before"] + c["after"] == pytest.approx(errs["omc"].mean())
+    assert sp["mae_mm"]["cbkf"] == {"before": 2.0, "after": 2.0}
+    assert first_local_split(outs, errs, ok, None, 0) is None
+    assert first_local_split(outs, errs, ok, np.zeros(0, np.int64), 0) is None
+
+    rows = _rows(True)
+    for k, r in enumerate(rows):
+        r["before_first_local"] = {"share": {m: 0.3 for m in r["mae_mm"]},
+                                   "contribution_mm": {m: {"before": 0.5 + 0.1 * (m == "omc") + 0.01 * k,
+                                                           "after": v - 0.5} for m, v in r["mae_mm"].items()}}
+    s = summarize(rows)
+    best = np.mean([0.5 + 0.01 * k for k in range(len(rows))])
+    assert s["before_first_local"]["best_before_mm"][0] == pytest.approx(best)
+    assert s["before_first_local"]["contribution_mm"]["omc"]["before"][0] == pytest.approx(best + 0.1)
+    g = {x["goal"]: x for x in goal_checks("paper", s)}["position_vs_cbkf"]
+    c = np.mean([_seed_mean(rows, tk, "cbkf") for tk in TASK_ORDER])
+    assert g["ceiling"] == pytest.approx(1 - best / c) and "first Vega sample" in g["detail"]
+    lines = {x["name"]: x for x in json_lines("paper", s, [g])}
+    assert lines["mae_before_first_local_best"]["value"] == pytest.approx(best, abs=1e-4)
+    assert lines["goal_position_vs_cbkf_fullperc"]["ceiling"] == pytest.approx(1 - best / c, abs=1e-4)
+    assert "split at the first Vega sample" in format_summary("paper", s)
+    assert "before_first_local" not in summarize(_rows(True))      # rows without the split: no table

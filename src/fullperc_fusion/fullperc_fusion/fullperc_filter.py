@@ -418,9 +418,10 @@ class FullpercFilter(StepCompat):
             self.hop_counts["rotation"] += hop_r
             if hop_p and pr.hop_to_bias:
                 P = P.copy()
-                P[6, 6] += y[0] * y[0]
-                P[7, 7] += y[1] * y[1]
-                P[8, 8] += y[2] * y[2]
+                k = 18 if pr.hop_into == "g" else 6      # g or b (the reference's hop rule)
+                P[k, k] += y[0] * y[0]
+                P[k + 1, k + 1] += y[1] * y[1]
+                P[k + 2, k + 2] += y[2] * y[2]
                 U = P @ H.T
                 Z = _solve(H @ U + Rm, yv, U)
         Gt = Z[:, 1:]                      # K^T = S^-1 U^T

@@ -41,12 +41,16 @@ a Gauss-Markov process forgets it at the rate the sensor's error does, and the m
 * R of the update: the measurement's full 6x6 ``cov`` (the models' or a device's; position-rotation correlation
   of the lever arm included); without ``cov`` the fixed noise ``global_std`` / ``local_std`` and
   ``rot_global_std`` / ``rot_local_std``. A sample without ``q`` updates the position only.
-* hops, as CBKF (:mod:`filters`): NIS of the global position rows above ``hop_gate`` -> the variance of b is
-  raised by y_p^2 per axis before the gain (a camera-set change persists while that set sees the body, so it goes
-  into the lasting part, as in CBKF). A rotation hop (NIS of the global rotation rows above the gate) is flagged
+* hops: NIS of the global position rows above ``hop_gate`` -> the variance of b (``hop_into: b``, the default:
+  CBKF's rule, :mod:`filters`) or of g (``hop_into: g``) is raised by y_p^2 per axis before the gain, so a step of
+  the global source goes into its bias, not into the pose. In b a camera-set change is kept for as long as that
+  set sees the body, but so is anything else that crossed the gate: the gate cannot tell such a step from a
+  sample the motion model did not expect (a noisy velocity between local samples, a hand accelerating). In g it
+  is forgotten over ``sys_time``, as the sensor's own systematic error is. Which is better depends on the OMC: on
+  the twin, g wins where its steps are small and short (``spec``) and b where they are large and last (``paper``);
+  README "Where a hop goes". A rotation hop (NIS of the global rotation rows above the gate) is flagged
   but not put into beta: the OMC's rotation jumps revert within frames and are part of its R
   (:func:`measurement_models.omc_covariance`), so a jump kept in beta would stay wrong after the OMC recovers.
-  A lasting step of the global position goes into its bias, not into the pose.
 * error-state update (Joseph form), injection p += dp ..., R = Exp(dtheta) R, and the reset of the error state:
   P = G P G^T with G_thth = I - [dtheta/2]x (the first-order reset Jacobian of the multiplicative update).
 * gaps longer than ``max_gap_s`` re-initialise p, v, R, w from the next sample; b and beta (and their variances)
@@ -68,9 +72,10 @@ import numpy as np
 from .filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement, Step, StepCompat, predict_interval, split_update
 from .filters import FilterParams
 
-__all__ = ["FullpercParams", "FullpercReference", "so3_exp", "so3_log", "quat_to_R", "R_to_quat"]
+__all__ = ["HOP_INTO", "FullpercParams", "FullpercReference", "so3_exp", "so3_log", "quat_to_R", "R_to_quat"]
 
 N = 21
+HOP_INTO = ("b", "g")   # FullpercParams.hop_into: the bias part a position hop goes into
 _I3 = np.eye(3)
 _IN = np.eye(N)
 P_, V_, B_, TH, W_, BE, G_ = (slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15), slice(15, 18),
@@ -92,6 +97,7 @@ class FullpercParams(FilterParams):
                      OMC error's structure function, spec bags, measurement_models).
     sys_std          its per-axis std [m] for a global sample without ``sys_var`` (0.25 mm: raw OMC, spec bags).
     rot_sys_time     correlation time of beta's Gauss-Markov part [s]; 0: beta is the random walk alone.
+    hop_into         "b" (default) or "g": the bias part a position hop goes into (module docstring).
     rot_sys_std      stationary per-axis std of that part [rad]. 3.8 s and 11.4 mrad: the slow part of the raw
                      OMC rotation error's structure function fitted as white + two Gauss-Markov processes
                      (``paper`` bags: fast 5.1 mrad / 0.21 s, slow 11.4 mrad / 3.8 s; the fast part reverts within
@@ -111,9 +117,12 @@ class FullpercParams(FilterParams):
     sys_std: float = 0.25e-3
     rot_sys_time: float = 3.8
     rot_sys_std: float = 11.4e-3
+    hop_into: str = "b"
 
     def validate(self) -> FullpercParams:
         super().validate()
+        if self.hop_into not in HOP_INTO:
+            raise ValueError(f"filter parameter hop_into must be one of {HOP_INTO}, got {self.hop_into!r}")
         for name in ("ang_accel_noise", "rot_bias_walk", "init_rot_std", "init_angvel_std", "init_rot_bias_std",
                      "rot_sys_time", "rot_sys_std"):
             v = float(getattr(self, name))
@@ -431,7 +440,8 @@ class FullpercReference(StepCompat):
             self.hop_counts["rotation"] += hop_r
             if hop_p and pr.hop_to_bias:
                 P = P.copy()
-                P[B_, B_] += np.diag(y[0:3] ** 2)
+                k = G_ if pr.hop_into == "g" else B_
+                P[k, k] += np.diag(y[0:3] ** 2)
                 S = H @ P @ H.T + Rm
         G = np.linalg.solve(S, H @ P).T
         dx = G @ y

@@ -33,6 +33,7 @@ from .calibration_io import load_calibration
 from .filter_registry import FILTERS
 from .frame_chain import LOCAL_CHAINS, STATIC_LINK_MODES, BadSample, ChainConfig, pose_to_T
 from .fullperc_filter import FullpercParams
+from .fullperc_reference import HOP_INTO
 from .fusion_health import HealthParams
 from .link_monitor import MonitorParams
 from .pipeline import FILTER_NAMES, TargetConfig
@@ -169,6 +170,9 @@ PARAMS: tuple[Param, ...] = (
           "fullperc: correlation time of the OMC orientation bias's Gauss-Markov part; 0 = random walk alone"),
     Param("fullperc.rot_sys_std", _F.rot_sys_std, "float", _nonneg, "must be finite and >= 0", "rad",
           "fullperc: stationary per-axis std of that part"),
+    Param("fullperc.hop_into", _F.hop_into, "str", lambda v: v in HOP_INTO, f"one of {HOP_INTO}", "",
+          "the global bias part a position hop goes into: b (the lasting compensation, CBKF's rule) | g "
+          "(Gauss-Markov, forgotten over fullperc.sys_time)"),
     Param("fullperc.layout_file", "", "str", None, "", "",
           "fullperc: OR layout for the OMC model's view margin; '' = the installed or_layout.yaml, 'none' = none"),
     Param("fullperc.noise_model_file", "", "str", None, "", "",
@@ -330,7 +334,7 @@ def filter_params(vals: dict[str, Any]) -> FullpercParams:
         init_angvel_std=vals["fullperc.init_angvel_std"],
         init_rot_bias_std=vals["fullperc.init_rot_bias_std"], sys_time=vals["fullperc.sys_time"],
         sys_std=vals["fullperc.sys_std"], rot_sys_time=vals["fullperc.rot_sys_time"],
-        rot_sys_std=vals["fullperc.rot_sys_std"]).validate()
+        rot_sys_std=vals["fullperc.rot_sys_std"], hop_into=vals["fullperc.hop_into"]).validate()
 
 
 def model_layout(vals: dict[str, Any], filters: tuple[str, ...]):

@@ -141,7 +141,8 @@ def test_fast_form_equals_the_reference(seed):
                    ang_accel_noise=5.0, rot_bias_walk=1e-4, sys_time=0.5, sys_std=1e-3),
     FullpercParams(rot_sys_time=0.0),
     FullpercParams(rot_sys_time=0.4, rot_sys_std=0.05),
-], ids=["no-hop-to-bias", "other-noise", "beta-random-walk", "beta-fast-gauss-markov"])
+    FullpercParams(hop_into="g"),
+], ids=["no-hop-to-bias", "other-noise", "beta-random-walk", "beta-fast-gauss-markov", "hop-into-g"])
 def test_fast_form_equals_the_reference_for_other_settings(params):
     _run(_items(23, 1500), params)
 

@@ -198,26 +198,50 @@ def test_nees_is_consistent_on_data_from_its_own_model():
     assert 0.92 <= share <= 0.98, share
 
 
-def test_hop_of_the_global_source_goes_into_the_bias():
-    """Both sources for 2 s, then the OMC alone; a 3 mm step of the OMC (a camera-set change) is flagged and goes
-    into b: the fused position moves by far less than the step."""
-    f = FullpercFilter()
-    p = np.array([0.1, 0.2, 0.3])
+STEP_P = np.array([0.1, 0.2, 0.3])
+
+
+def _omc_step_run(f: FullpercFilter, n: int):
+    """Both sources for 2 s (250 samples at 125 Hz), then the OMC alone, which steps by 3 mm in x at sample 300
+    (a camera-set change); yields (k, Step) after each update."""
     q = R_to_quat(np.eye(3))
-    hops, out = [], []
-    for k in range(400):
+    for k in range(n):
         t = k * 8 * MS
-        zg = p + (np.array([3e-3, 0, 0]) if k >= 300 else 0)
+        zg = STEP_P + (np.array([3e-3, 0, 0]) if k >= 300 else 0)
         ms = [_m(t, SOURCE_GLOBAL, zg, q)]
         if k < 250:
-            ms.append(_m(t, SOURCE_LOCAL, p, q))
+            ms.append(_m(t, SOURCE_LOCAL, STEP_P, q))
         f.predict(t)
-        st = f.update(*ms)
-        hops.append(st.hop)
-        out.append(st.p)
+        yield k, f.update(*ms)
+
+
+def test_hop_of_the_global_source_goes_into_the_bias():
+    """The OMC step of :func:`_omc_step_run` is flagged and goes into b: the fused position moves by far less than
+    the step."""
+    f = FullpercFilter()
+    out = [st for _, st in _omc_step_run(f, 400)]
+    hops = [st.hop for st in out]
     assert hops[300] and not any(hops[250:300]) and sum(hops) <= 3
-    assert np.linalg.norm(out[-1] - p) < 0.5e-3
+    assert np.linalg.norm(out[-1].p - STEP_P) < 0.5e-3
     assert f.bias[0] > 2.5e-3
+
+
+@pytest.mark.parametrize("into", ["b", "g"])
+def test_hop_into_chooses_the_bias_part_that_keeps_the_step(into):
+    """The step of :func:`_omc_step_run` with ``hop_into`` b or g. Right after the hop both keep the pose
+    (< 0.5 mm) and put the step into the part asked for (the other one stays < 0.5 mm). Then g is forgotten over
+    sys_time (3 s): 7 s later the pose has moved > 1.5 mm towards the OMC; with b it is still within 0.5 mm."""
+    f = FullpercFilter(FullpercParams(hop_into=into))
+    out = []
+    for k, st in _omc_step_run(f, 1200):
+        out.append(st)
+        if k == 301:
+            s = f.state
+            kept, other = (s.b, s.g) if into == "b" else (s.g, s.b)
+            assert kept[0] > 2.5e-3 and np.linalg.norm(other) < 0.5e-3
+    assert out[300].hop and np.linalg.norm(out[301].p - STEP_P) < 0.5e-3
+    drift = np.linalg.norm(out[-1].p - STEP_P)
+    assert (drift < 0.5e-3) if into == "b" else (drift > 1.5e-3)
 
 
 def test_rotation_hop_is_flagged_and_not_kept_in_the_orientation_bias():

@@ -236,3 +236,10 @@ def test_fullperc_block_is_mapped_and_its_layout_loaded_only_when_used(tmp_path)
         fc.load_fusion_config(bad, filters=None)
     with pytest.raises(fc.FusionConfigError, match="fullperc.sys_time"):
         fc.load_fusion_config(_write(tmp_path, {"fullperc": {"sys_time": 0.0}}), filters=None)
+    cfg, _ = fc.load_fusion_config(_write(tmp_path, {"filter": "fullperc"}), filters=None)
+    assert cfg.params.hop_into == "b"     # CBKF's rule unless asked
+    cfg, _ = fc.load_fusion_config(_write(tmp_path, {"filter": "fullperc", "fullperc": {"hop_into": "g"}}),
+                                   filters=None)
+    assert cfg.params.hop_into == "g"
+    with pytest.raises(fc.FusionConfigError, match="fullperc.hop_into"):
+        fc.load_fusion_config(_write(tmp_path, {"fullperc": {"hop_into": "p"}}), filters=None)

@@ -170,6 +170,7 @@ def run_seed(profile: str, seed: int, cache: str, fusion_config: str | None, key
                      "orientation_mae_deg": r.get("orientation_mae_deg"),
                      "orientation_by_region_deg": r.get("orientation_by_region_deg"),
                      "orientation_by_local_deg": r.get("orientation_by_local_deg"),
+                     "before_first_local": r.get("before_first_local"),
                      "nees": {m: {k: {x: v[k][x] for x in ("n", "share_95", "mean")} for k in ("position", "pose")}
                               for m, v in (r.get("nees") or {}).items()}})
     return {"profile": profile, "seed": seed, "rows": rows, "generated": len(missing),
@@ -202,6 +203,24 @@ def pooled_nees(rows: list[dict[str, Any]]) -> dict[str, dict[str, dict[str, flo
     return out
 
 
+def first_local_summary(rows: list[dict[str, Any]], methods: list[str]) -> dict[str, Any] | None:
+    """Mean over task-seeds of each method's MAE contribution before / after the first local sample
+    (:func:`.metrics.first_local_split`), and ``best_before_mm``: per task-seed the smallest contribution before it
+    of any method, averaged. A filter no better than the best method before the first local sample and with no
+    error at all after it would have a mean MAE of ``best_before_mm``: the floor of the ``position_vs_cbkf`` goal
+    under that assumption (it is not a theorem: a filter could beat every method on the OMC alone)."""
+    have = [r for r in rows if r.get("before_first_local")]
+    if not have:
+        return None
+    ms = [m for m in methods if all(m in r["before_first_local"]["contribution_mm"] for r in have)]
+    return {"n": len(have),
+            "contribution_mm": {m: {k: _ms([r["before_first_local"]["contribution_mm"][m][k] for r in have])
+                                    for k in ("before", "after")} for m in ms},
+            "share_before": _ms([r["before_first_local"]["share"][ms[0]] for r in have]) if ms else None,
+            "best_before_mm": _ms([min(r["before_first_local"]["contribution_mm"][m]["before"] for m in ms)
+                                   for r in have]) if ms else None}
+
+
 def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
     """Table 1 mean ± sd, ordering shares, CBKF/OMC distribution and Table 2 of one profile's task-seeds; the
     orientation table, the pooled NEES and the goal checks (:func:`goal_checks`) when the rows carry them."""
@@ -226,6 +245,9 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
                     for m in oms} for t in TASK_ORDER}
     if any(r.get("nees") for r in rows):
         extra["nees"] = pooled_nees(rows)
+    split = first_local_summary(rows, ms)
+    if split:
+        extra["before_first_local"] = split
     return {"n_task_seeds": len(rows), "seeds": sorted({r["seed"] for r in rows}), "table1_mae_mm": t1,
             "share_full_order": float(np.mean([holds(r["mae_mm"], ORDER_FULL) for r in rows])),
             "share_cbkf_kf_omc": float(np.mean([holds(r["mae_mm"], ORDER_MAIN) for r in rows])),
@@ -277,6 +299,14 @@ def json_lines(profile: str, s: dict[str, Any], goals: list[dict[str, Any]] | No
                 out.append({"name": f"nees_{kind}_share95_{m}", "value": _r4(v["share_95"]), "unit": "fraction",
                             "n": v["n"]})
                 out.append({"name": f"nees_{kind}_mean_{m}", "value": _r4(v["mean"]), "unit": "nees", "n": v["n"]})
+    split = s.get("before_first_local")
+    if split:
+        for m, parts in split["contribution_mm"].items():
+            for k, (mu, sd) in parts.items():
+                out.append({"name": f"mae_{k}_first_local_{m}", "value": _r4(mu), "sd": _r4(sd), "unit": "mm"})
+        if split["best_before_mm"]:
+            mu, sd = split["best_before_mm"]
+            out.append({"name": "mae_before_first_local_best", "value": _r4(mu), "sd": _r4(sd), "unit": "mm"})
     out += goal_lines(goals or [])
     for rec in out:
         rec.update(profile=profile, seeds=len(s["seeds"]))
@@ -331,6 +361,16 @@ def format_summary(profile: str, s: dict[str, Any], goals: list[dict[str, Any]] 
     nees = format_nees(s)
     if nees:
         lines += ["", *nees]
+    split = s.get("before_first_local")
+    if split and split["contribution_mm"]:
+        cm = split["contribution_mm"]
+        sh, best = split["share_before"], split["best_before_mm"]
+        lines += ["", f"MAE [mm] split at the first Vega sample ({100 * sh[0]:.0f} % of the outputs before it), "
+                      "mean over task-seeds; before + after = the whole-task MAE:",
+                  *_grid([""] + [m.upper() for m in cm],
+                         [[k] + [f"{cm[m][k][0]:.2f}" for m in cm] for k in ("before", "after")]),
+                  f"best method before it, per task-seed: {best[0]:.2f} ± {best[1]:.2f} mm (a filter perfect after "
+                  "the first Vega sample and no better than that before it would reach this MAE)"]
     if goals:
         lines += ["", *format_goals(goals)]
     return "\n".join(lines)
@@ -399,7 +439,9 @@ def main(argv: list[str] | None = None) -> int:
                                        **({"calibration_seeds": cal_seeds} if args.noise_model == "calibrated" else {}),
                            **{p: noise[p]["noise_model"] for p in profiles}},
                        "twin_hash": keys, "summary": summary, "goals": goals,
-                       "task_seeds": [x for r in results for x in r["rows"]]}, f, indent=1, default=float)
+                       "task_seeds": [x for p in profiles for r in sorted(results, key=lambda r: r["seed"])
+                                      if r["profile"] == p for x in r["rows"]]},   # same order in every run
+                      f, indent=1, default=float)
             f.write("\n")
         print(f"wrote {args.json}")
     print(f"accuracy: {len(jobs)} profile-seeds in {time.monotonic() - t0:.0f} s")

@@ -110,6 +110,31 @@ def local_seen_mask(t_ns: np.ndarray, local_t_ns: np.ndarray, gap_ns: int = LOCA
     return near | inside
 
 
+def first_local_split(outputs: dict[str, dict[str, np.ndarray]], errors: dict[str, np.ndarray],
+                      valid: dict[str, np.ndarray], local_t_ns: np.ndarray | None, t0_ns: int) -> dict[str, Any] | None:
+    """Each method's position MAE split at the first sample of the local source (issue 18, ``position_vs_cbkf``).
+
+    Before it no method has had anything but the OMC, so no compensation exists yet; the split shows how much of a
+    task's MAE is spent there. ``contribution_mm`` before + after = the task's MAE (sums of the errors on each side
+    over all valid outputs). None when the task has no local sample."""
+    if local_t_ns is None or not np.asarray(local_t_ns).size:
+        return None
+    t1 = int(np.min(local_t_ns))
+    out: dict[str, Any] = {"t_s": (t1 - t0_ns) * 1e-9, "share": {}, "contribution_mm": {}, "mae_mm": {}}
+    for f, o in outputs.items():
+        ok = valid[f]
+        n = int(ok.sum())
+        if not n:
+            continue
+        before = ok & (o["t_ns"] < t1)
+        after = ok & ~before
+        out["share"][f] = float(before.sum() / n)
+        out["contribution_mm"][f] = {"before": float(errors[f][before].sum() / n),
+                                     "after": float(errors[f][after].sum() / n)}
+        out["mae_mm"][f] = {"before": _mean(errors[f][before]), "after": _mean(errors[f][after])}
+    return out
+
+
 def _pose_figures(outputs: dict[str, dict[str, np.ndarray]], idx: dict[str, np.ndarray], ok: dict[str, np.ndarray],
                   T_true: np.ndarray) -> tuple[dict[str, np.ndarray], dict[str, dict[str, np.ndarray]]]:
     """Orientation error [deg] (NaN without truth or orientation) and NEES per method (position; pose where the
@@ -253,6 +278,8 @@ def evaluate_replay(rep: Replay, calibration: Calibration, layout, kinematics=No
         single["local"] = {"n": int(ok_loc.sum()), "mae_mm": _mean(e_loc),
                            "orientation_mae_deg": _mean(orient["local"]),
                            "what": "the Vega measurement mapped into base by the frame chain, as the filters get it"}
+    before_local = first_local_split(rep.outputs, errors, valid, loc["t_ns"] if loc is not None else None,
+                                     int(grid_t[0]))
     omc_err = None
     if "omc" in rep.outputs:
         o = rep.outputs["omc"]
@@ -285,6 +312,7 @@ def evaluate_replay(rep: Replay, calibration: Calibration, layout, kinematics=No
         "orientation_by_region_deg": _by_region(orient, o_lab),
         "orientation_by_local_deg": by_local,
         "single_sources": single,
+        "before_first_local": before_local,
         "nees": {f: {"position": summary(nees_v[f]["position"], 3), "pose": summary(nees_v[f]["pose"], 6)}
                  for f in methods},
         "omc_hops": hop_events(rep.outputs, omc_err, int(grid_t[0])),
