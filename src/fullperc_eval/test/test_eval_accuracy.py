@@ -140,6 +140,10 @@ def test_pooled_nees_weights_by_outputs_and_summary_prints_the_new_tables():
     text = format_summary("paper", s, goal_checks("paper", s))
     assert "Orientation MAE [deg]" in text and "LOCAL" in text and "FULLPERC" in text
     assert "NEES pooled" in text and "Issue 18 goals for FULLPERC" in text
+    seen = text.split("while the Vega sees the tool")[1].split("while it does not")[0]
+    assert "LOCAL" in seen and "0.170 ± 0.000" in seen            # the LOCAL cell of task 1 (seen only)
+    unseen = text.split("while it does not")[1].split("NEES pooled")[0]
+    assert "LOCAL" not in unseen and "0.900 ± 0.000" in unseen    # FULLPERC unseen in task 4 (0.7 + 0.2)
     assert s["table1_orientation_deg"]["G-B-P"]["fullperc"][0] == pytest.approx(0.2)
 
 

@@ -358,6 +358,11 @@ def format_summary(profile: str, s: dict[str, Any], goals: list[dict[str, Any]] 
     if s.get("table1_orientation_deg"):
         lines += ["", *_ms_table("Orientation MAE [deg] mean ± sd over seeds (LOCAL = raw Vega chain in base):",
                                  s["table1_orientation_deg"], 3)]
+    by_local = s.get("orientation_by_local_deg")
+    if by_local:   # the same-samples goal's figures: each task's outputs split by whether the Vega sees the tool
+        for part, what in (("seen", "while the Vega sees the tool"), ("unseen", "while it does not")):
+            table = {t: {m: v[part] for m, v in per.items() if np.isfinite(v[part][0])} for t, per in by_local.items()}
+            lines += ["", *_ms_table(f"Orientation MAE [deg] {what}, mean ± sd over seeds:", table, 3)]
     nees = format_nees(s)
     if nees:
         lines += ["", *nees]

@@ -1,0 +1,89 @@
+"""What crosses ``fullperc``'s hop gate in one bag, and what it does to the bias (issue 18, README "Where a hop goes").
+
+Replays the bag the way the evaluation does (:func:`fullperc_eval.evaluation.metrics.evaluate_bag`, the fusion
+config given or the default) with every ``fullperc`` update logged, and prints
+
+* each update inside ``--from``/``--to`` [s from the first output] that flagged a hop (or every update with
+  ``--all``): time, sources (1 OMC alone, 3 a pair), position / rotation hop, the global NIS, the OMC innovation
+  [mm], the change of b and of g [mm], the velocity before and after the update and the true one [mm/s] (the Diana's
+  forward kinematics, finite differences);
+* a summary: position and rotation hops per source layout, the velocity error's rms over the window [mm/s], the
+  raw OMC error against the truth over the window (mean ± sd per axis [mm]) and the task's MAE of every method.
+
+Run: python scripts/hop_trace.py BAG [--fusion-config F] [--from 16.8] [--to 21.0] [--all]
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+import fullperc_fusion.fullperc_filter as ff
+from fullperc_eval.evaluation.metrics import evaluate_bag
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("bag")
+    ap.add_argument("--fusion-config", default=None)
+    ap.add_argument("--from", dest="t_from", type=float, default=0.0)
+    ap.add_argument("--to", dest="t_to", type=float, default=1e9)
+    ap.add_argument("--all", action="store_true", help="print every update in the window, not only hops")
+    args = ap.parse_args(argv)
+
+    log = []
+    update = ff.FullpercFilter.update
+
+    def logged(self, *ms):   # the filter's own update; the state before and after is recorded around it
+        x0, hp, hr = list(self._x), self.hop_counts["position"], self.hop_counts["rotation"]
+        st = update(self, *ms)
+        log.append((st.t_ns, int(st.sources), self.hop_counts["position"] - hp, self.hop_counts["rotation"] - hr,
+                    st.nis_global, st.innovation.copy(), np.array(x0), np.array(self._x)))
+        return st
+
+    ff.FullpercFilter.update = logged
+    try:
+        ev = evaluate_bag(args.bag, fusion_config=args.fusion_config, progress=False)
+    finally:
+        ff.FullpercFilter.update = update
+    s = ev.series
+    tg, pg = s["grid_t_ns"], s["grid_p"]
+    vg = np.gradient(pg, tg * 1e-9, axis=0)
+    t0 = s["outputs"]["omc"]["t_ns"][0]
+    # a rewind replays updates: keep the last update of each stamp (what the outputs are)
+    last = {}
+    for rec in log:
+        last[rec[0]] = rec
+    counts = {}
+    dv = []
+    for t in sorted(last):
+        t_ns, src, hp, hr, nis, y, x0, x1 = last[t]
+        r = (t_ns - t0) * 1e-9
+        if not args.t_from <= r <= args.t_to:
+            continue
+        vt = np.array([np.interp(t_ns, tg, vg[:, k]) for k in range(3)])
+        dv.append(x1[3:6] - vt)
+        key = ("OMC alone" if src == 1 else "pair" if src == 3 else "Vega alone")
+        c = counts.setdefault(key, [0, 0, 0])
+        c[0] += 1
+        c[1] += hp
+        c[2] += hr
+        if hp or hr or args.all:
+            print(f"{r:8.3f} s src {src} hop p{hp} r{hr} NIS {nis:6.1f} y {np.round(y * 1e3, 2)} mm "
+                  f"db {np.round((x1[6:9] - x0[6:9]) * 1e3, 2)} dg {np.round((x1[18:21] - x0[18:21]) * 1e3, 2)} mm "
+                  f"v {np.round(x0[3:6] * 1e3, 1)} -> {np.round(x1[3:6] * 1e3, 1)} true {np.round(vt * 1e3, 1)} mm/s")
+    print("updates, position hops, rotation hops in the window:", counts)
+    if dv:
+        print(f"velocity error rms over the window: {np.sqrt(np.mean(np.square(dv), axis=0)) * 1e3} mm/s per axis")
+    o = s["outputs"]["omc"]
+    sel = (o["t_ns"] - t0 >= args.t_from * 1e9) & (o["t_ns"] - t0 <= args.t_to * 1e9) & s["valid"]["omc"]
+    truth = np.stack([np.interp(o["t_ns"][sel], tg, pg[:, k]) for k in range(3)], 1)
+    e = (o["p"][sel] - truth) * 1e3
+    if e.size:
+        print(f"raw OMC error in the window: mean {np.round(e.mean(0), 2)} sd {np.round(e.std(0), 2)} mm per axis")
+    print("task MAE [mm]:", {m: round(v, 3) for m, v in ev.result["mae_mm"].items()})
+
+
+if __name__ == "__main__":
+    main()
