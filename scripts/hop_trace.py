@@ -8,7 +8,10 @@ config given or the default) with every ``fullperc`` update logged, and prints
   [mm], the change of b and of g [mm], the velocity before and after the update and the true one [mm/s] (the Diana's
   forward kinematics, finite differences);
 * a summary: position and rotation hops per source layout, the velocity error's rms over the window [mm/s], the
-  raw OMC error against the truth over the window (mean ± sd per axis [mm]) and the task's MAE of every method.
+  raw OMC error against the truth over the window (mean ± sd per axis [mm]), its frame-to-frame scatter (the std of
+  consecutive differences / sqrt 2, per axis [mm]) next to the white std the OMC model gave those samples (median
+  of the per-axis mean of the covariance's position diagonal, before the noise scale [mm]) and the median noise
+  scale lambda, and the task's MAE of every method.
 
 Run: python scripts/hop_trace.py BAG [--fusion-config F] [--from 16.8] [--to 21.0] [--all]
 """
@@ -36,10 +39,12 @@ def main(argv: list[str] | None = None) -> None:
     update = ff.FullpercFilter.update
 
     def logged(self, *ms):   # the filter's own update; the state before and after is recorded around it
-        x0, hp, hr = list(self._x), self.hop_counts["position"], self.hop_counts["rotation"]
+        x0, hp, hr, lam = list(self._x), self.hop_counts["position"], self.hop_counts["rotation"], self._lam
         st = update(self, *ms)
+        cov = next((m.cov for m in ms if m.source == ff.SOURCE_GLOBAL and m.cov is not None), None)
+        white = float(np.sqrt(np.diag(cov)[0:3]).mean()) if cov is not None else np.nan
         log.append((st.t_ns, int(st.sources), self.hop_counts["position"] - hp, self.hop_counts["rotation"] - hr,
-                    st.nis_global, st.innovation.copy(), np.array(x0), np.array(self._x)))
+                    st.nis_global, st.innovation.copy(), np.array(x0), np.array(self._x), white, lam))
         return st
 
     ff.FullpercFilter.update = logged
@@ -56,14 +61,17 @@ def main(argv: list[str] | None = None) -> None:
     for rec in log:
         last[rec[0]] = rec
     counts = {}
-    dv = []
+    dv, white, lams = [], [], []
     for t in sorted(last):
-        t_ns, src, hp, hr, nis, y, x0, x1 = last[t]
+        t_ns, src, hp, hr, nis, y, x0, x1, w, lam = last[t]
         r = (t_ns - t0) * 1e-9
         if not args.t_from <= r <= args.t_to:
             continue
         vt = np.array([np.interp(t_ns, tg, vg[:, k]) for k in range(3)])
         dv.append(x1[3:6] - vt)
+        if src & 1:
+            white.append(w)
+            lams.append(lam)
         key = ("OMC alone" if src == 1 else "pair" if src == 3 else "Vega alone")
         c = counts.setdefault(key, [0, 0, 0])
         c[0] += 1
@@ -82,6 +90,11 @@ def main(argv: list[str] | None = None) -> None:
     e = (o["p"][sel] - truth) * 1e3
     if e.size:
         print(f"raw OMC error in the window: mean {np.round(e.mean(0), 2)} sd {np.round(e.std(0), 2)} mm per axis")
+    if len(e) > 2:
+        scatter = np.diff(e, axis=0).std(0) / np.sqrt(2)
+        print(f"OMC frame-to-frame scatter {np.round(scatter, 3)} mm per axis; the model's white std "
+              f"{np.nanmedian(white) * 1e3:.3f} mm, noise scale lambda median {np.median(lams):.2f} (std x "
+              f"{np.sqrt(np.median(lams)):.2f})")
     print("task MAE [mm]:", {m: round(v, 3) for m, v in ev.result["mae_mm"].items()})
 
 

@@ -56,6 +56,7 @@ from .fullperc_reference import (
     N,
     R_to_quat,
     _State,
+    noise_scale_step,
     quat_to_R,
     so3_exp,
     so3_log,
@@ -214,6 +215,7 @@ class FullpercFilter(StepCompat):
         self._R = tuple(s.R.ravel().tolist())
         self._P = s.P.copy()
         self._t, self._pend, self._has_R, self._sys_var = s.t_ns, s.pending_ns, s.has_R, s.sys_var
+        self._lam, self._tg = s.noise_scale, s.t_global_ns
 
     @property
     def state(self) -> _State:
@@ -221,17 +223,18 @@ class FullpercFilter(StepCompat):
         x = self._x
         return _State(np.array(x[0:3]), np.array(x[3:6]), np.array(x[6:9]), np.array(self._R).reshape(3, 3),
                       np.array(x[12:15]), np.array(x[15:18]), self._P.copy(), self._t, self._pend, self._has_R,
-                      np.array(x[18:21]), self._sys_var)
+                      np.array(x[18:21]), self._sys_var, self._lam, self._tg)
 
     def snapshot(self) -> object:
         """The whole filter state, for :meth:`restore`: references only (nothing stored is changed in place)."""
-        return ("fullperc", self._x, self._R, self._P, self._t, self._pend, self._has_R, self._sys_var)
+        return ("fullperc", self._x, self._R, self._P, self._t, self._pend, self._has_R, self._sys_var, self._lam,
+                self._tg)
 
     def restore(self, obj: object) -> None:
         """Back to a :meth:`snapshot` (it stays usable)."""
-        if not (isinstance(obj, tuple) and len(obj) == 8 and obj[0] == "fullperc"):
+        if not (isinstance(obj, tuple) and len(obj) == 10 and obj[0] == "fullperc"):
             raise TypeError(f"not a fullperc snapshot: {type(obj).__name__}")
-        _, self._x, self._R, self._P, self._t, self._pend, self._has_R, self._sys_var = obj
+        _, self._x, self._R, self._P, self._t, self._pend, self._has_R, self._sys_var, self._lam, self._tg = obj
 
     @property
     def time_ns(self) -> int | None:
@@ -397,6 +400,9 @@ class FullpercFilter(StepCompat):
             Rm = np.zeros((len(y), len(y)))
             Rm[:k0, :k0] = Rblocks[0]
             Rm[k0:, k0:] = Rblocks[1]
+        if mg is not None and self._lam != 1.0:   # lambda R_p of the global sample (the reference's rule)
+            Rm = Rm.copy()
+            Rm[0:3, 0:3] *= self._lam
         if mg is not None:
             sv = mg.extras.get("sys_var")
             self._sys_var = float(sv) if sv is not None and math.isfinite(sv) and sv > 0 else pr.sys_std**2
@@ -414,6 +420,7 @@ class FullpercFilter(StepCompat):
             hop_p = nis_g > pr.hop_gate
             hop_r = mg.q is not None and _nis3([r[3:6] for r in Sl[3:6]], y[3], y[4], y[5]) > pr.hop_gate
             hop = hop_p or hop_r
+            lam_next = self._noise_scale(mg.t_ns, nis_g)
             self.hop_counts["position"] += hop_p
             self.hop_counts["rotation"] += hop_r
             if hop_p and pr.hop_to_bias:
@@ -441,7 +448,12 @@ class FullpercFilter(StepCompat):
             self.reset()
             raise FloatingPointError("filter produced a non-finite state; it was reset")
         self._x, self._R, self._P, self._t = xn, Rn, P, t
+        if mg is not None:
+            self._lam, self._tg = lam_next, mg.t_ns
         return self._step(t, mg, ml, innovation=np.array(y[0:3]), nis=nis, nis_global=nis_g, hop=hop)
+
+    def _noise_scale(self, t_global_ns: int, nis_g: float) -> float:
+        return noise_scale_step(self._lam, self._tg, t_global_ns, nis_g, self.params)
 
     def _reinit(self, t: int, mg: Measurement | None, ml: Measurement | None) -> Step:
         """A pending (re-)initialisation: the reference's rule, run by the reference on this state."""

@@ -41,6 +41,16 @@ a Gauss-Markov process forgets it at the rate the sensor's error does, and the m
 * R of the update: the measurement's full 6x6 ``cov`` (the models' or a device's; position-rotation correlation
   of the lever arm included); without ``cov`` the fixed noise ``global_std`` / ``local_std`` and
   ``rot_global_std`` / ``rot_local_std``. A sample without ``q`` updates the position only.
+* the global source's white position noise, scaled by what its innovations show (``noise_adapt_time`` tau > 0):
+  its R_p is used as lambda R_p, lambda >= 1 an exponentially weighted mean of the global position NIS per degree
+  of freedom, each taken with the lambda in force,
+      lambda <- clip((1 - a) lambda + a lambda NIS_g / 3, 1, ``noise_adapt_max``),  a = 1 - exp(-dt_g / tau),
+  dt_g the time since the previous global sample (after the update; the NIS is the hop test's). Why: where few
+  cameras see the body, frames alternate between camera sets and the OMC's sample-to-sample scatter is up to
+  ~2.5 times what the model gives (``spec`` seed 7 P-G-B-P, 16.8-21 s: 0.16 mm in x against the model's 0.065 mm);
+  fused at face value those samples swing the velocity by tens of mm/s per update and cross the hop gate without
+  being hops (README "Where a hop goes"). Scaling R only up, over ~tau of samples, keeps the model where it holds
+  (lambda = 1) and trusts the OMC less where its innovations say it is noisier (covariance matching, Mehra 1972).
 * hops: NIS of the global position rows above ``hop_gate`` -> the variance of b (``hop_into: b``, the default:
   CBKF's rule, :mod:`filters`) or of g (``hop_into: g``) is raised by y_p^2 per axis before the gain, so a step of
   the global source goes into its bias, not into the pose. In b a camera-set change is kept for as long as that
@@ -98,6 +108,10 @@ class FullpercParams(FilterParams):
     sys_std          its per-axis std [m] for a global sample without ``sys_var`` (0.25 mm: raw OMC, spec bags).
     rot_sys_time     correlation time of beta's Gauss-Markov part [s]; 0: beta is the random walk alone.
     hop_into         "b" (default) or "g": the bias part a position hop goes into (module docstring).
+    noise_adapt_time tau of the global white-noise scale lambda [s] (module docstring; 0 = off). 0.4 s: the
+                     scale follows a change of the camera set within about half a second (~50 OMC frames at
+                     120 Hz), long enough that a single outlier moves it little.
+    noise_adapt_max  the largest lambda (25: the OMC's white std at most 5x the model's).
     rot_sys_std      stationary per-axis std of that part [rad]. 3.8 s and 11.4 mrad: the slow part of the raw
                      OMC rotation error's structure function fitted as white + two Gauss-Markov processes
                      (``paper`` bags: fast 5.1 mrad / 0.21 s, slow 11.4 mrad / 3.8 s; the fast part reverts within
@@ -118,13 +132,15 @@ class FullpercParams(FilterParams):
     rot_sys_time: float = 3.8
     rot_sys_std: float = 11.4e-3
     hop_into: str = "b"
+    noise_adapt_time: float = 0.4
+    noise_adapt_max: float = 25.0
 
     def validate(self) -> FullpercParams:
         super().validate()
         if self.hop_into not in HOP_INTO:
             raise ValueError(f"filter parameter hop_into must be one of {HOP_INTO}, got {self.hop_into!r}")
         for name in ("ang_accel_noise", "rot_bias_walk", "init_rot_std", "init_angvel_std", "init_rot_bias_std",
-                     "rot_sys_time", "rot_sys_std"):
+                     "rot_sys_time", "rot_sys_std", "noise_adapt_time"):
             v = float(getattr(self, name))
             if not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"filter parameter {name} must be finite and >= 0, got {v!r}")
@@ -132,6 +148,8 @@ class FullpercParams(FilterParams):
             v = float(getattr(self, name))
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"filter parameter {name} must be finite and > 0, got {v!r}")
+        if not (np.isfinite(float(self.noise_adapt_max)) and self.noise_adapt_max >= 1.0):
+            raise ValueError(f"filter parameter noise_adapt_max must be finite and >= 1, got {self.noise_adapt_max!r}")
         return self
 
     def rot_decay(self, dt: float) -> tuple[float, float]:
@@ -210,6 +228,16 @@ def R_to_quat(R: np.ndarray) -> np.ndarray:
     return -q if q[3] < 0 else q
 
 
+def noise_scale_step(lam: float, t_prev_ns: int | None, t_ns: int, nis_g: float, pr: FullpercParams) -> float:
+    """lambda after a global sample at ``t_ns`` with position NIS ``nis_g``, the previous one fused at ``t_prev_ns``
+    (None: none since the start or the last re-initialisation; module docstring)."""
+    if pr.noise_adapt_time <= 0.0:
+        return 1.0
+    dt = 0.0 if t_prev_ns is None else max(0.0, (t_ns - t_prev_ns) * 1e-9)
+    a = 1.0 - math.exp(-dt / pr.noise_adapt_time)
+    return min(pr.noise_adapt_max, max(1.0, (1.0 - a) * lam + a * lam * nis_g / 3.0))
+
+
 # ---------------------------------------------------------------------------------------------- filter
 @dataclass
 class _State:
@@ -227,12 +255,14 @@ class _State:
     has_R: bool
     g: np.ndarray                  # Gauss-Markov part of the global position bias
     sys_var: float                 # its stationary variance (newest global sample's model, else sys_std^2)
+    noise_scale: float = 1.0       # lambda, the global white position noise's scale (noise_adapt_time)
+    t_global_ns: int | None = None  # stamp of the newest global sample fused (for lambda's dt_g)
 
 
 def _copy(s: _State) -> _State:
     """A copy of every array of the state (the scalars are immutable): ~10x cheaper than copy.deepcopy."""
     return _State(s.p.copy(), s.v.copy(), s.b.copy(), s.R.copy(), s.w.copy(), s.beta.copy(), s.P.copy(), s.t_ns,
-                  s.pending_ns, s.has_R, s.g.copy(), s.sys_var)
+                  s.pending_ns, s.has_R, s.g.copy(), s.sys_var, s.noise_scale, s.t_global_ns)
 
 
 class FullpercReference(StepCompat):
@@ -360,6 +390,7 @@ class FullpercReference(StepCompat):
             s.R, s.has_R = so3_exp(-s.beta) @ quat_to_R(mg.q), True
         s.P = self._prior(Pbb, Pbe, Pgg)
         s.t_ns, s.pending_ns = t, None
+        s.t_global_ns = None   # lambda is kept; its next step starts from the next global sample fused
         return self._step(t, mg, ml, reset=True)
 
     def _rows(self, m: Measurement, t: int):
@@ -422,6 +453,8 @@ class FullpercReference(StepCompat):
             n = len(b[1])
             Rm[i:i + n, i:i + n] = b[2]
             i += n
+        if mg is not None and s.noise_scale != 1.0:   # lambda R_p of the global sample (module docstring)
+            Rm[0:3, 0:3] *= s.noise_scale
         P = s.P
         if mg is not None:
             sv = mg.extras.get("sys_var")
@@ -435,6 +468,7 @@ class FullpercReference(StepCompat):
             nis_g = float(y[0:3] @ np.linalg.solve(S[0:3, 0:3], y[0:3]))
             hop_p = nis_g > pr.hop_gate
             hop_r = ng == 6 and float(y[3:6] @ np.linalg.solve(S[3:6, 3:6], y[3:6])) > pr.hop_gate
+            lam_next = self._noise_scale(mg.t_ns, nis_g)
             hop = hop_p or hop_r
             self.hop_counts["position"] += hop_p
             self.hop_counts["rotation"] += hop_r
@@ -463,7 +497,12 @@ class FullpercReference(StepCompat):
             self.reset()
             raise FloatingPointError("filter produced a non-finite state; it was reset")
         s.t_ns = t
+        if mg is not None:
+            s.noise_scale, s.t_global_ns = lam_next, mg.t_ns
         return self._step(t, mg, ml, innovation=y[0:3].copy(), nis=nis, nis_global=nis_g, hop=hop)
+
+    def _noise_scale(self, t_global_ns: int, nis_g: float) -> float:
+        return noise_scale_step(self.s.noise_scale, self.s.t_global_ns, t_global_ns, nis_g, self.params)
 
     def _step(self, t: int, mg, ml, **kw) -> Step:
         s = self.s

@@ -173,6 +173,10 @@ PARAMS: tuple[Param, ...] = (
     Param("fullperc.hop_into", _F.hop_into, "str", lambda v: v in HOP_INTO, f"one of {HOP_INTO}", "",
           "the global bias part a position hop goes into: b (the lasting compensation, CBKF's rule) | g "
           "(Gauss-Markov, forgotten over fullperc.sys_time)"),
+    Param("fullperc.noise_adapt_time", _F.noise_adapt_time, "float", _nonneg, "must be finite and >= 0", "s",
+          "time constant of the OMC white-noise scale learnt from its innovations (0 = off: the model as it is)"),
+    Param("fullperc.noise_adapt_max", _F.noise_adapt_max, "float", lambda v: _fin(v) and v >= 1.0,
+          "must be finite and >= 1", "", "largest scale of the OMC's white position variance"),
     Param("fullperc.layout_file", "", "str", None, "", "",
           "fullperc: OR layout for the OMC model's view margin; '' = the installed or_layout.yaml, 'none' = none"),
     Param("fullperc.noise_model_file", "", "str", None, "", "",
@@ -334,7 +338,8 @@ def filter_params(vals: dict[str, Any]) -> FullpercParams:
         init_angvel_std=vals["fullperc.init_angvel_std"],
         init_rot_bias_std=vals["fullperc.init_rot_bias_std"], sys_time=vals["fullperc.sys_time"],
         sys_std=vals["fullperc.sys_std"], rot_sys_time=vals["fullperc.rot_sys_time"],
-        rot_sys_std=vals["fullperc.rot_sys_std"], hop_into=vals["fullperc.hop_into"]).validate()
+        rot_sys_std=vals["fullperc.rot_sys_std"], hop_into=vals["fullperc.hop_into"],
+        noise_adapt_time=vals["fullperc.noise_adapt_time"], noise_adapt_max=vals["fullperc.noise_adapt_max"]).validate()
 
 
 def model_layout(vals: dict[str, Any], filters: tuple[str, ...]):

@@ -108,7 +108,7 @@ def _agree(a, b) -> None:
 
 def _run(items, params=None):
     fast, ref = FullpercFilter(params), FullpercReference(params)
-    seen = {"hop": 0, "reset": 0, "pair": 0, "lag": 0, "q": 0, "full": 0, "rot_hop": 0}
+    seen = {"hop": 0, "reset": 0, "pair": 0, "lag": 0, "q": 0, "full": 0, "rot_hop": 0, "scaled": 0}
     for ms in items:
         t = max(m.t_ns for m in ms)
         fast.predict(t)
@@ -117,6 +117,8 @@ def _run(items, params=None):
         _agree(a, b)
         assert fast.time_ns == ref.time_ns and fast.hop_counts == ref.hop_counts
         assert np.max(np.abs(fast.rot_bias - ref.rot_bias)) <= TOL
+        assert abs(fast.state.noise_scale - ref.s.noise_scale) <= 100 * TOL * ref.s.noise_scale
+        seen["scaled"] += ref.s.noise_scale > 1.0
         seen["hop"] += b.hop
         seen["reset"] += b.reset
         seen["pair"] += len(ms) == 2
@@ -133,6 +135,7 @@ def test_fast_form_equals_the_reference(seed):
     # the stream exercised every branch
     assert seen["hop"] >= 30 and seen["rot_hop"] >= 10 and seen["reset"] >= 5 and seen["pair"] >= 600
     assert seen["lag"] >= 400 and seen["full"] >= 1000 and 0 < seen["q"] < 3000
+    assert 100 <= seen["scaled"] < 3000      # the global noise scale was above 1 for part of the stream
 
 
 @pytest.mark.parametrize("params", [
@@ -142,7 +145,10 @@ def test_fast_form_equals_the_reference(seed):
     FullpercParams(rot_sys_time=0.0),
     FullpercParams(rot_sys_time=0.4, rot_sys_std=0.05),
     FullpercParams(hop_into="g"),
-], ids=["no-hop-to-bias", "other-noise", "beta-random-walk", "beta-fast-gauss-markov", "hop-into-g"])
+    FullpercParams(noise_adapt_time=0.0),
+    FullpercParams(noise_adapt_time=0.05, noise_adapt_max=4.0),
+], ids=["no-hop-to-bias", "other-noise", "beta-random-walk", "beta-fast-gauss-markov", "hop-into-g", "no-noise-scale",
+        "fast-noise-scale"])
 def test_fast_form_equals_the_reference_for_other_settings(params):
     _run(_items(23, 1500), params)
 
