@@ -7,10 +7,26 @@ that says which file and why (unreadable, not YAML), as the caller's own error t
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 from typing import Any
 
 import yaml
+
+
+class RosParamsLoader(yaml.SafeLoader):
+    """PyYAML's safe loader reading numbers as ROS 2 parameter files are read (rcl_yaml_param_parser).
+
+    PyYAML follows YAML 1.1, where a float needs a dot: ``1e-3`` comes back as the string '1e-3'. rcl reads the same
+    plain scalar as the double 0.001, so ``fusion_node`` accepts ``accel: 1e-3`` from a params file while the
+    offline evaluator, reading the same file with PyYAML, would refuse it. This loader adds YAML 1.2's float form
+    (exponent without a dot) for plain scalars; quoted scalars stay strings, as in rcl."""
+
+
+RosParamsLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?[0-9]+(?:\.[0-9]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"))
 
 
 def load_yaml_file(path: str | os.PathLike, what: str, error: type[Exception]) -> Any:

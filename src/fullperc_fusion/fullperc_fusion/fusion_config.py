@@ -475,9 +475,11 @@ def read_params_file(path: str | Path) -> dict[str, Any]:
     """The flat ``ros__parameters`` of fusion_node in a params file (``fusion_node:`` or ``/**:``)."""
     import yaml
 
+    from fullperc_common.yaml_file import RosParamsLoader
+
     p = Path(path)
     try:
-        data = yaml.safe_load(p.read_text()) or {}
+        data = yaml.load(p.read_text(), Loader=RosParamsLoader) or {}   # a SafeLoader: numbers read as rcl reads them
     except (OSError, UnicodeDecodeError, yaml.YAMLError) as e:
         raise FusionConfigError(f"fusion config {p}: cannot read ({type(e).__name__}: {e})") from None
     node = None

@@ -249,3 +249,17 @@ def test_fullperc_block_is_mapped_and_its_layout_loaded_only_when_used(tmp_path)
     for bad in ({"noise_adapt_time": -0.1}, {"noise_adapt_max": 0.5}):
         with pytest.raises(fc.FusionConfigError, match=f"fullperc.{next(iter(bad))}"):
             fc.load_fusion_config(_write(tmp_path, {"fullperc": bad}), filters=None)
+
+
+def test_a_float_without_a_dot_is_read_as_rcl_reads_it(tmp_path):
+    """``accel: 1e-3`` is a double to fusion_node (rcl's YAML parser) but a string to PyYAML (YAML 1.1): the
+    evaluator reads params files as the node does, so the same file works offline. Quoted, it stays a string
+    (refused, as the node refuses it)."""
+    p = tmp_path / "f.yaml"
+    p.write_text("fusion_node:\n  ros__parameters:\n    noise:\n      accel: 1e-3\n    fullperc:\n"
+                 "      noise_adapt_time: 4E-1\n")
+    cfg, _ = fc.load_fusion_config(p, filters=None)
+    assert cfg.params.accel_noise == 1e-3 and cfg.params.noise_adapt_time == 0.4
+    p.write_text("fusion_node:\n  ros__parameters:\n    noise:\n      accel: '1e-3'\n")
+    with pytest.raises(fc.FusionConfigError, match="noise.accel"):
+        fc.load_fusion_config(p, filters=None)
