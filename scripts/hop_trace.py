@@ -11,7 +11,7 @@ config given or the default) with every ``fullperc`` update logged, and prints
   raw OMC error against the truth over the window (mean ± sd per axis [mm]), its frame-to-frame scatter (the std of
   consecutive differences / sqrt 2, per axis [mm]) next to the white std the OMC model gave those samples (median
   of the per-axis mean of the covariance's position diagonal, before the noise scale [mm]) and the median noise
-  scale lambda, and the task's MAE of every method.
+  scale lambda, and every method's MAE in the window and over the task.
 
 Run: python scripts/hop_trace.py BAG [--fusion-config F] [--from 16.8] [--to 21.0] [--all]
 """
@@ -95,6 +95,12 @@ def main(argv: list[str] | None = None) -> None:
         print(f"OMC frame-to-frame scatter {np.round(scatter, 3)} mm per axis; the model's white std "
               f"{np.nanmedian(white) * 1e3:.3f} mm, noise scale lambda median {np.median(lams):.2f} (std x "
               f"{np.sqrt(np.median(lams)):.2f})")
+    win = {}
+    for m, out in s["outputs"].items():
+        k = (out["t_ns"] - t0 >= args.t_from * 1e9) & (out["t_ns"] - t0 <= args.t_to * 1e9) & s["valid"][m]
+        if k.any():
+            win[m] = round(float(s["errors"][m][k].mean()), 3)
+    print("MAE in the window [mm]:", win)
     print("task MAE [mm]:", {m: round(v, 3) for m, v in ev.result["mae_mm"].items()})
 
 

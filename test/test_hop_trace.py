@@ -31,3 +31,4 @@ def test_hop_trace_prints_every_hop_and_restores_the_filter(capsys):
     assert all(10.0 <= float(r.split()[0]) <= 12.0 for r in rows)
     assert any(line.startswith("velocity error rms") for line in out)
     assert any(line.startswith("task MAE [mm]:") and "'fullperc'" in line for line in out)
+    assert any(line.startswith("MAE in the window [mm]:") and "'omc'" in line for line in out)
