@@ -34,7 +34,7 @@ def load_yaml_file(path: str | os.PathLike, what: str, error: type[Exception]) -
     p = Path(path)
     try:
         text = p.read_text()
-    except OSError as e:
+    except (OSError, UnicodeDecodeError) as e:   # not UTF-8 (a binary file given by mistake) is unreadable too
         raise error(f"{what} {p}: cannot read: {e}") from e
     try:
         return yaml.safe_load(text)

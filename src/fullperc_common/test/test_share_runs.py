@@ -48,3 +48,7 @@ def test_load_yaml_file_names_the_file_as_the_callers_error(tmp_path):
         load_yaml_file(bad, "thing file", MyError)
     with pytest.raises(MyError, match="thing file .*missing.yaml: cannot read"):
         load_yaml_file(tmp_path / "missing.yaml", "thing file", MyError)
+    binary = tmp_path / "binary.yaml"
+    binary.write_bytes(b"\xff\xfe\x00")     # not UTF-8: the caller's error too, not a UnicodeDecodeError
+    with pytest.raises(MyError, match="thing file .*binary.yaml: cannot read"):
+        load_yaml_file(binary, "thing file", MyError)

@@ -111,14 +111,9 @@ def parse_noise_model(data: Any, where: str = "noise model") -> NoiseModel:
 
 def load_noise_model(path: str | Path) -> NoiseModel:
     """Read and check a noise-model file; :class:`NoiseModelError` naming it when it cannot be used."""
-    import yaml
+    from fullperc_common.yaml_file import load_yaml_file
 
-    p = Path(path)
-    try:
-        data = yaml.safe_load(p.read_text())
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as e:
-        raise NoiseModelError(f"noise model {p}: cannot read ({type(e).__name__}: {e})") from None
-    return parse_noise_model(data, f"noise model {p}")
+    return parse_noise_model(load_yaml_file(path, "noise model", NoiseModelError), f"noise model {Path(path)}")
 
 
 def noise_model_yaml(omc: dict[str, float], bias: dict[str, float], source: str) -> str:

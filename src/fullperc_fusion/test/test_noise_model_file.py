@@ -88,7 +88,7 @@ def test_an_unreadable_file_is_refused_naming_it(tmp_path):
     with pytest.raises(NoiseModelError, match="missing.yaml: cannot read"):
         load_noise_model(tmp_path / "missing.yaml")
     (tmp_path / "bad.yaml").write_text("omc: [")
-    with pytest.raises(NoiseModelError, match="bad.yaml: cannot read"):
+    with pytest.raises(NoiseModelError, match="bad.yaml: not valid YAML"):
         load_noise_model(tmp_path / "bad.yaml")
     with pytest.raises(NoiseModelError):   # the writer checks too: it never writes a file the reader refuses
         noise_model_yaml({**OMC, "fit_gain": -1.0}, BIAS, "x")
