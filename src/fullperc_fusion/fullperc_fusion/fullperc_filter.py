@@ -420,7 +420,7 @@ class FullpercFilter(StepCompat):
             hop_p = nis_g > pr.hop_gate
             hop_r = mg.q is not None and _nis3([r[3:6] for r in Sl[3:6]], y[3], y[4], y[5]) > pr.hop_gate
             hop = hop_p or hop_r
-            lam_next = self._noise_scale(mg.t_ns, nis_g)
+            lam_next = noise_scale_step(self._lam, self._tg, mg.t_ns, nis_g, pr)
             self.hop_counts["position"] += hop_p
             self.hop_counts["rotation"] += hop_r
             if hop_p and pr.hop_to_bias:
@@ -451,9 +451,6 @@ class FullpercFilter(StepCompat):
         if mg is not None:
             self._lam, self._tg = lam_next, mg.t_ns
         return self._step(t, mg, ml, innovation=np.array(y[0:3]), nis=nis, nis_global=nis_g, hop=hop)
-
-    def _noise_scale(self, t_global_ns: int, nis_g: float) -> float:
-        return noise_scale_step(self._lam, self._tg, t_global_ns, nis_g, self.params)
 
     def _reinit(self, t: int, mg: Measurement | None, ml: Measurement | None) -> Step:
         """A pending (re-)initialisation: the reference's rule, run by the reference on this state."""

@@ -468,7 +468,7 @@ class FullpercReference(StepCompat):
             nis_g = float(y[0:3] @ np.linalg.solve(S[0:3, 0:3], y[0:3]))
             hop_p = nis_g > pr.hop_gate
             hop_r = ng == 6 and float(y[3:6] @ np.linalg.solve(S[3:6, 3:6], y[3:6])) > pr.hop_gate
-            lam_next = self._noise_scale(mg.t_ns, nis_g)
+            lam_next = noise_scale_step(s.noise_scale, s.t_global_ns, mg.t_ns, nis_g, pr)
             hop = hop_p or hop_r
             self.hop_counts["position"] += hop_p
             self.hop_counts["rotation"] += hop_r
@@ -500,9 +500,6 @@ class FullpercReference(StepCompat):
         if mg is not None:
             s.noise_scale, s.t_global_ns = lam_next, mg.t_ns
         return self._step(t, mg, ml, innovation=y[0:3].copy(), nis=nis, nis_global=nis_g, hop=hop)
-
-    def _noise_scale(self, t_global_ns: int, nis_g: float) -> float:
-        return noise_scale_step(self.s.noise_scale, self.s.t_global_ns, t_global_ns, nis_g, self.params)
 
     def _step(self, t: int, mg, ml, **kw) -> Step:
         s = self.s

@@ -83,21 +83,17 @@ def calibrated_fusion_config(profile: str, key: str, cache: str, fusion_config: 
     with a fusion config that reads it (:func:`fusion_config_reading`) into ``<cache>/<profile>-<key>/``."""
     from fullperc_fusion.layout import default_layout_path, load_layout
 
-    from .sensor_stats import fitted, profile_rows, write_noise_model
+    from .sensor_stats import fitted, pool_rows, profile_rows, write_noise_model
 
     root = Path(cache) / f"{profile}-{key}"
     layout = load_layout(default_layout_path())
     parts = []
     for seed in seeds:
-        d = root / f"seed{seed}"
-        missing = [t for t in TASKS
-                   if not ((d / t / "metadata.yaml").is_file() and (d / t / "calibration.yaml").is_file())]
-        if missing:
-            generate(d, missing, seed, log=lambda _m: None, profile=profile)
-        parts.append(profile_rows(d, layout))
+        ensure_bags(root / f"seed{seed}", seed, profile)
+        parts.append(profile_rows(root / f"seed{seed}", layout))
     tag = "-".join(str(s) for s in seeds)
     nm = root / f"noise_model_seeds{tag}.yaml"
-    f = fitted(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]))
+    f = fitted(*pool_rows(parts))
     text = write_noise_model(nm, f, f"raw-sensor statistics of twin profile {profile}, calibration seed(s) {tag}")
     return fusion_config_reading(fusion_config, nm, text, root / f"fusion_noise_model_seeds{tag}.yaml")
 
@@ -152,15 +148,21 @@ def holds(mae: dict[str, float], order=ORDER_FULL) -> bool:
     return all(mae[a] <= mae[b] + 1e-9 for a, b in zip(order, order[1:], strict=False))
 
 
+def ensure_bags(d: Path, seed: int, profile: str) -> list[str]:
+    """Generate into ``d`` the tasks of ``seed`` whose bag (metadata.yaml and calibration.yaml) is not there yet;
+    returns them (the cached ones are reused)."""
+    missing = [t for t in TASKS if not ((d / t / "metadata.yaml").is_file() and (d / t / "calibration.yaml").is_file())]
+    if missing:
+        generate(d, missing, seed, log=lambda _m: None, profile=profile)
+    return missing
+
+
 def run_seed(profile: str, seed: int, cache: str, fusion_config: str | None, key: str) -> dict[str, Any]:
     """Generate (or reuse) and evaluate the six bags of one seed; returns per-task figures."""
     from .metrics import evaluate_bag  # in the worker: keeps the parent light
     t0 = time.monotonic()
     d = Path(cache) / f"{profile}-{key}" / f"seed{seed}"
-    have = [t for t in TASKS if (d / t / "metadata.yaml").is_file() and (d / t / "calibration.yaml").is_file()]
-    missing = [t for t in TASKS if t not in have]
-    if missing:
-        generate(d, missing, seed, log=lambda _m: None, profile=profile)
+    missing = ensure_bags(d, seed, profile)
     t1 = time.monotonic()
     rows = []
     for t in TASK_ORDER:
@@ -427,9 +429,10 @@ def main(argv: list[str] | None = None) -> int:
                   + (f"{GOAL_METHOD.upper()}/CBKF mean {np.mean(extra):.2f}, " if extra else "")
                   + f"{time.monotonic() - t0:.0f} s so far", file=sys.stderr, flush=True)
     summary, text, goals = {}, [], {}
+    rows_of = {p: [x for r in sorted(results, key=lambda r: r["seed"]) if r["profile"] == p for x in r["rows"]]
+               for p in profiles}   # in seed order, whatever order the workers finished in
     for p in profiles:
-        rows = [x for r in sorted(results, key=lambda r: r["seed"]) if r["profile"] == p for x in r["rows"]]
-        summary[p] = summarize(rows)
+        summary[p] = summarize(rows_of[p])
         goals[p] = goal_checks(p, summary[p])
         for rec in json_lines(p, summary[p], goals[p]):
             print(json.dumps(rec))
@@ -444,9 +447,7 @@ def main(argv: list[str] | None = None) -> int:
                                        **({"calibration_seeds": cal_seeds} if args.noise_model == "calibrated" else {}),
                            **{p: noise[p]["noise_model"] for p in profiles}},
                        "twin_hash": keys, "summary": summary, "goals": goals,
-                       "task_seeds": [x for p in profiles for r in sorted(results, key=lambda r: r["seed"])
-                                      if r["profile"] == p for x in r["rows"]]},   # same order in every run
-                      f, indent=1, default=float)
+                       "task_seeds": [x for p in profiles for x in rows_of[p]]}, f, indent=1, default=float)
             f.write("\n")
         print(f"wrote {args.json}")
     print(f"accuracy: {len(jobs)} profile-seeds in {time.monotonic() - t0:.0f} s")

@@ -37,6 +37,7 @@ from fullperc_eval.bag.calibration import load_calibration
 from fullperc_eval.bag.reader import BagReader
 from fullperc_eval.evaluation.config import replay_config
 from fullperc_eval.evaluation.ground_truth import GroundTruth
+from fullperc_eval.evaluation.replay_data import _stamp_ns
 from fullperc_fusion.frame_chain import pose_to_T
 from fullperc_fusion.layout import default_layout_path, load_layout
 from fullperc_fusion.margin import margin_at
@@ -45,10 +46,6 @@ from fullperc_fusion.pipeline import TargetPipeline
 
 # columns of a sample row
 T, EX, EY, EZ, FIT, MARGIN, DIST, RX, RY, RZ, PX, PY, PZ = range(13)
-
-
-def _stamp(h) -> int:
-    return int(h.stamp.sec) * 1_000_000_000 + int(h.stamp.nanosec)
 
 
 def bag_rows(bag: Path, layout) -> tuple[np.ndarray, np.ndarray]:
@@ -67,13 +64,13 @@ def bag_rows(bag: Path, layout) -> tuple[np.ndarray, np.ndarray]:
         for m in reader.messages(list(reader.topics)):
             msg = reader.deserialize(m.data, m.msgtype)
             if m.topic == "/diana/joint_states":
-                jt.append(_stamp(msg.header))
+                jt.append(_stamp_ns(msg.header))
                 jq.append(np.asarray(msg.position, dtype=float))
             elif m.topic.endswith("/quality"):
-                fit[(m.topic.split("/")[1], _stamp(msg.header))] = float(msg.fit_error)
+                fit[(m.topic.split("/")[1], _stamp_ns(msg.header))] = float(msg.fit_error)
             elif m.topic.endswith("/pose") and m.topic.split("/")[1] in ("omc", "ots"):
                 dev, body = m.topic.split("/")[1:3]
-                t = _stamp(msg.header)
+                t = _stamp_ns(msg.header)
                 pp, qq = msg.pose.position, msg.pose.orientation
                 Td = pose_to_T((np.array([pp.x, pp.y, pp.z]), np.array([qq.x, qq.y, qq.z, qq.w])))
                 if dev == "omc":
@@ -227,10 +224,14 @@ def report(name: str, f: dict[str, Any]) -> None:
     print(f"OTS tool orientation: per-axis rms {f['ots_rot_rms'] * 1e3:.2f} mrad")
 
 
+def pool_rows(parts: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """(OMC rows, OTS rows) of several :func:`bag_rows` / :func:`profile_rows` results, concatenated."""
+    return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+
+
 def profile_rows(directory: Path, layout) -> tuple[np.ndarray, np.ndarray]:
     """:func:`bag_rows` of every bag directory below ``directory``, concatenated."""
-    parts = [bag_rows(b, layout) for b in sorted(p for p in Path(directory).iterdir() if p.is_dir())]
-    return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+    return pool_rows([bag_rows(b, layout) for b in sorted(p for p in Path(directory).iterdir() if p.is_dir())])
 
 
 # the two-Gauss-Markov fit's slow time constant at or beyond this is the grid's end: a random walk
@@ -292,7 +293,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.write:
         pooled = stats[0]
         if len(args.dirs) > 1:
-            pooled = fitted(np.concatenate([r[0] for r in rows]), np.concatenate([r[1] for r in rows]))
+            pooled = fitted(*pool_rows(rows))
             report(" + ".join(args.dirs), pooled)
         write_noise_model(args.write, pooled, "raw-sensor statistics of " + ", ".join(args.dirs))
         print(f"wrote {args.write}")
