@@ -248,14 +248,36 @@ def robust_se3_mean(poses, *, alpha: float = 1e-3, max_iter: int = 50, source: s
     n_in = int(mask.sum())
     if n_in < 2:
         raise CalibrationError(f"{what}: only {n_in} of {n} samples are mutually consistent")
-    Tm = mean_T(list(Ts[mask]))
+    return _estimate(mean_T(list(Ts[mask])), Ts, mask, source)
+
+
+def mean_estimate(poses, T_mean: np.ndarray | None = None, *, source: str = "", what: str = "poses") -> LinkEstimate:
+    """The plain mean pose of N sightings (every sample kept: ``average`` mode and calibrate mode's bridge,
+    :mod:`frame_chain`) with the covariance of the mean of :func:`robust_se3_mean` (module docstring, step 3).
+
+    ``T_mean``: the mean the caller already uses (default ``mean_T`` of all samples); the covariance is taken about
+    it. Why a covariance for the plain average: it is the link of every local sample until the calibrated one is
+    done, and the pose a filter reports is no better than the link it is expressed through (``pipeline``'s frame
+    covariance): 30 Vega sightings of the base tool leave a few tenths of a millimetre at the tool.
+    """
+    Ts = as_pose_stack(poses, what)
+    if len(Ts) < 2:
+        raise CalibrationError(f"{what}: {len(Ts)} sample(s); a mean with covariance needs at least 2")
+    return _estimate(mean_T(list(Ts)) if T_mean is None else np.asarray(T_mean, dtype=float), Ts,
+                     np.ones(len(Ts), dtype=bool), source)
+
+
+def _estimate(Tm: np.ndarray, Ts: np.ndarray, mask: np.ndarray, source: str) -> LinkEstimate:
+    """LinkEstimate of the mean Tm of the samples Ts[mask]: covariance of the mean (module docstring, step 3) and
+    the residual statistics."""
+    n_in = int(mask.sum())
     r = se3_residuals(Tm, Ts)[mask]
     cov = np.cov(r, rowvar=False, ddof=1) / n_in + np.diag(np.repeat(np.square(COV_FLOOR), 3))
     cov = 0.5 * (cov + cov.T)
     et = np.linalg.norm(r[:, :3], axis=1) * 1e3
     er = np.linalg.norm(r[:, 3:], axis=1) * 1e3
     p, q = T_to_pq(Tm)
-    return LinkEstimate(p, q, cov, n, n_in, float(np.sqrt(np.mean(et**2))), float(et.max()),
+    return LinkEstimate(p, q, cov, len(Ts), n_in, float(np.sqrt(np.mean(et**2))), float(et.max()),
                         float(np.sqrt(np.mean(er**2))), float(er.max()), source, mask)
 
 

@@ -61,6 +61,7 @@ from .calibration import (
     Collector,
     LinkEstimate,
     link_T_rig_ots,
+    mean_estimate,
 )
 from .poses import BadSample, pose_to_T
 
@@ -126,7 +127,8 @@ class StaticLinks:
     ``T_omc_base`` is needed by the global path; the local link (``T_base_ots`` and, for ``tracked``,
     ``T_rig_ots``) becomes ready independently, so global fusion starts even while the OTS cannot see the base
     marker yet. While a re-estimation is running the previous links stay in use. ``estimates`` holds the links
-    that carry a covariance (calibrate mode, a calibration file, :meth:`apply`); ``sources`` says per link how it
+    that carry a covariance (calibrate mode, a calibration file, :meth:`apply`, and the averages of
+    average mode and of calibrate mode's bridge); ``sources`` says per link how it
     was obtained.
     """
 
@@ -263,10 +265,15 @@ class StaticLinks:
         if self.mode == "average":
             setattr(self, f"_need_{part}", False)
 
-    def _set_average(self, name: str, source: str) -> None:
+    def _set_average(self, name: str, source: str, samples: list[np.ndarray] | None = None) -> None:
+        """Name the averaged link; ``samples``: the sightings it is the mean of, whose covariance of the mean
+        (:func:`calibration.mean_estimate`) then goes into ``estimates`` (the model covariances of a local sample
+        and ``pipeline``'s frame covariance use it)."""
         if self.mode == "calibrate":
             source += f", {_BRIDGE} over {self.cfg.calibration_duration_s:g} s is done"
         self._set_source(name, source)
+        if samples is not None and len(samples) >= 2:
+            self.estimates[name] = mean_estimate(samples, getattr(self, name), source=source)
 
     def _try_finish(self, n: int) -> bool:
         c = self._collect
@@ -274,7 +281,7 @@ class StaticLinks:
         changed = False
         if self._avg_global and len(c["omc_base"]) >= n:
             self.T_omc_base = mean_T(c["omc_base"])
-            self._set_average("T_omc_base", f"average of {n} samples")
+            self._set_average("T_omc_base", f"average of {n} samples", c["omc_base"])
             self._done_avg("global")
             changed = True
         if self._avg_local and not self._avg_global and self.T_omc_base is not None:
@@ -292,8 +299,9 @@ class StaticLinks:
                     changed = True
             elif len(c["ots_base"]) >= n:
                 # eq. (2) averaged: the OTS sees the base marker directly.
-                self.T_base_ots = mean_T([inv_T(T) for T in c["ots_base"]])
-                self._set_average("T_base_ots", f"average of {n} samples (eq. 2)")
+                inverted = [inv_T(T) for T in c["ots_base"]]
+                self.T_base_ots = mean_T(inverted)
+                self._set_average("T_base_ots", f"average of {n} samples (eq. 2)", inverted)
                 self._done_avg("local")
                 changed = True
             elif given_rig is not None and len(c["omc_rig"]) >= n:

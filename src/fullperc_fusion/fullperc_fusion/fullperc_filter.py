@@ -215,7 +215,8 @@ class FullpercFilter(StepCompat):
         self._R = tuple(s.R.ravel().tolist())
         self._P = s.P.copy()
         self._t, self._pend, self._has_R, self._sys_var = s.t_ns, s.pending_ns, s.has_R, s.sys_var
-        self._lam, self._tg = s.noise_scale, s.t_global_ns
+        self._lam, self._tg, self._frame = s.noise_scale, s.t_global_ns, s.frame
+        self._anchor = None if s.anchor is None else s.anchor.tolist()
 
     @property
     def state(self) -> _State:
@@ -223,18 +224,32 @@ class FullpercFilter(StepCompat):
         x = self._x
         return _State(np.array(x[0:3]), np.array(x[3:6]), np.array(x[6:9]), np.array(self._R).reshape(3, 3),
                       np.array(x[12:15]), np.array(x[15:18]), self._P.copy(), self._t, self._pend, self._has_R,
-                      np.array(x[18:21]), self._sys_var, self._lam, self._tg)
+                      np.array(x[18:21]), self._sys_var, self._lam, self._tg, self._frame,
+                      None if self._anchor is None else np.array(self._anchor))
+
+    def express_in(self, T_frame: np.ndarray, local: bool = True) -> np.ndarray | None:
+        """:meth:`FullpercReference.express_in`; a change (rare: once per link change) is delegated to the
+        reference, the same frame object costs one identity test (the pipeline calls this before every item)."""
+        if local and self._t is not None:
+            self._anchor = self._x[0:3]   # a new list: nothing stored is changed in place
+        if T_frame is self._frame or (self._frame is None and not local):
+            return None
+        self._ref.s = self.state
+        M = self._ref.express_in(T_frame, local)
+        self._load(self._ref.s)
+        return M
 
     def snapshot(self) -> object:
         """The whole filter state, for :meth:`restore`: references only (nothing stored is changed in place)."""
         return ("fullperc", self._x, self._R, self._P, self._t, self._pend, self._has_R, self._sys_var, self._lam,
-                self._tg)
+                self._tg, self._frame, self._anchor)
 
     def restore(self, obj: object) -> None:
         """Back to a :meth:`snapshot` (it stays usable)."""
-        if not (isinstance(obj, tuple) and len(obj) == 10 and obj[0] == "fullperc"):
+        if not (isinstance(obj, tuple) and len(obj) == 12 and obj[0] == "fullperc"):
             raise TypeError(f"not a fullperc snapshot: {type(obj).__name__}")
-        _, self._x, self._R, self._P, self._t, self._pend, self._has_R, self._sys_var, self._lam, self._tg = obj
+        (_, self._x, self._R, self._P, self._t, self._pend, self._has_R, self._sys_var, self._lam, self._tg,
+         self._frame, self._anchor) = obj
 
     @property
     def time_ns(self) -> int | None:

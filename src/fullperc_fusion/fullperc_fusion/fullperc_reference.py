@@ -257,12 +257,15 @@ class _State:
     sys_var: float                 # its stationary variance (newest global sample's model, else sys_std^2)
     noise_scale: float = 1.0       # lambda, the global white position noise's scale (noise_adapt_time)
     t_global_ns: int | None = None  # stamp of the newest global sample fused (for lambda's dt_g)
+    frame: np.ndarray | None = None  # the 4x4 the caller says the estimate is expressed in (express_in)
+    anchor: np.ndarray | None = None  # p when the newest local sample in that frame came (express_in)
 
 
 def _copy(s: _State) -> _State:
     """A copy of every array of the state (the scalars are immutable): ~10x cheaper than copy.deepcopy."""
     return _State(s.p.copy(), s.v.copy(), s.b.copy(), s.R.copy(), s.w.copy(), s.beta.copy(), s.P.copy(), s.t_ns,
-                  s.pending_ns, s.has_R, s.g.copy(), s.sys_var, s.noise_scale, s.t_global_ns)
+                  s.pending_ns, s.has_R, s.g.copy(), s.sys_var, s.noise_scale, s.t_global_ns, s.frame,
+                  s.anchor)
 
 
 class FullpercReference(StepCompat):
@@ -322,6 +325,55 @@ class FullpercReference(StepCompat):
     @property
     def rot_bias(self) -> np.ndarray:
         return self.s.beta.copy()
+
+    def express_in(self, T_frame: np.ndarray, local: bool = True) -> np.ndarray | None:
+        """The item about to be fused comes in the frame ``T_frame`` (4x4; the caller's name for it: the pipeline
+        passes the static link T_base_ots its local samples are mapped through); ``local``: the item carries a
+        sample of that frame. Returns the move M applied to the estimate (None: none).
+
+        The estimate is tied to a frame once a local sample in it is fused (before that, the global source and
+        the prior on b alone place it): a call with ``local`` records the frame and the anchor a = p, where the
+        global bias b was last learnt against that frame. When a later frame differs from the recorded one (a
+        calibrated link replaced the average that bridged until it was done, a re-calibration), the estimate is
+        moved with the frame and the new one recorded: M = T_new T_old^-1 maps a point of the old frame into the
+        new one, d = M a - a, and
+
+            p' = p + d,  v' = R_M v,  R' = R_M R,  w' = R_M w,
+            b' = b - d,  Exp(beta') = Exp(beta) R_M^T,     g, P unchanged,
+
+        which keeps what the global source is predicted to report (p + b + g and Exp(beta) R) as it was: the OMC
+        did not move, the frame the filter expresses it in did. Why: b was learnt against the local samples of
+        the old frame, at a; without the move every OMC-only output after the change stays in the old frame until
+        the local source sees the tool again -- never, in a run that leaves the Vega's view before the
+        calibration is done (the twin's B-G-P: the 30-sample bridge link is 0.2-0.5 mm off at the tool; README
+        "The link's covariance and the bridge link"). d is taken at a, not at p: the old frame's error that b
+        holds is the one at a (a link's rotation error makes it differ from place to place), so the output is
+        what it would have been had the new frame been used when b was learnt. P is kept: R_M is within a
+        milliradian of I, and the link's own uncertainty is the pipeline's frame covariance, not the filter's.
+        A reset forgets the frame.
+        """
+        s = self.s
+        if local and s.t_ns is not None:
+            s.anchor = s.p
+        if T_frame is s.frame:
+            return None
+        old = s.frame
+        if old is None:
+            if local:
+                s.frame = T_frame   # kept by reference: the caller replaces a frame, never edits it
+            return None
+        s.frame = T_frame
+        if np.array_equal(old, T_frame) or s.anchor is None:
+            return None
+        M = np.asarray(T_frame, dtype=float) @ np.linalg.inv(old)
+        RM, tM = M[:3, :3], M[:3, 3]
+        d = RM @ s.anchor + tM - s.anchor
+        s.p, s.b = s.p + d, s.b - d
+        s.v, s.w = RM @ s.v, RM @ s.w
+        s.R = RM @ s.R
+        s.beta = so3_log(so3_exp(s.beta) @ RM.T)
+        s.anchor = s.anchor + d
+        return M
 
     # ---- predict --------------------------------------------------------------------------------
     def predict(self, t_ns: int) -> None:

@@ -32,6 +32,7 @@ from fullperc_fusion.calibration import (
     link_T_base_ots,
     link_T_omc_base,
     link_T_rig_ots,
+    mean_estimate,
     pair_by_stamp,
     robust_se3_mean,
     se3_residuals,
@@ -483,3 +484,23 @@ def test_bodies_from_chain_config():
     b = CalibrationBodies.from_chain_config(ChainConfig(omc_base="B", ots_base="b", omc_rig="R"))
     assert (b.omc_base, b.ots_base, b.omc_rig) == ("B", "b", "R")
     assert CalibrationBodies() == CalibrationBodies.from_chain_config(ChainConfig())
+
+
+def test_mean_estimate_keeps_every_sample_and_gives_the_covariance_of_the_mean():
+    """The plain average (average mode, the bridge): no sample rejected, even an outlier; covariance of the mean
+    about the mean given (or mean_T of all); fewer than 2 samples refused."""
+    rng = np.random.default_rng(11)
+    T = make_T([1.0, 2.0, 0.5], Rotation.from_euler("xyz", [10, 20, 30], degrees=True).as_quat())
+    Ts = [se3_retract(T, rng.normal(size=6) * np.array([1e-4] * 3 + [2e-3] * 3)) for _ in range(40)]
+    Ts[7] = se3_retract(T, np.array([5e-3, 0, 0, 0, 0, 0]))            # an outlier the robust mean would drop
+    est = mean_estimate(Ts)
+    assert est.n_samples == est.n_inliers == 40
+    r = se3_residuals(mean_T(Ts), np.array(Ts))
+    expected = np.cov(r, rowvar=False, ddof=1) / 40 + np.diag(np.repeat(np.square(COV_FLOOR), 3))
+    np.testing.assert_allclose(est.cov, expected, rtol=1e-12, atol=0)
+    assert robust_se3_mean(Ts).n_inliers < 40
+    given = se3_retract(mean_T(Ts), np.full(6, 1e-4))
+    np.testing.assert_allclose(mean_estimate(Ts, given).T, given, atol=1e-12)   # the mean the caller uses
+    np.testing.assert_allclose(est.T, mean_T(Ts), atol=1e-12)
+    with pytest.raises(CalibrationError, match="at least 2"):
+        mean_estimate(Ts[:1])

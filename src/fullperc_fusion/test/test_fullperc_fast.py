@@ -10,7 +10,8 @@ doubled by the square (measured: <= 1.4e-11). Streams: global only / local only 
 older), with and without orientation (a position-only start included), fixed noise / diagonal / full 6x6
 covariances with position-rotation terms (the lever-arm form of measurement_models.local_covariance), ``sys_var``
 extras (valid and invalid), gaps beyond ``max_gap_s`` (re-initialisation), position hops and rotation jumps, fast
-turns (rotations past 120 deg: the other branch of the quaternion conversion), snapshot/restore.
+turns (rotations past 120 deg: the other branch of the quaternion conversion), snapshot/restore, the frame
+changing every 250 items (``express_in``, with and without a local sample in the item).
 """
 
 from __future__ import annotations
@@ -106,10 +107,29 @@ def _agree(a, b) -> None:
     assert abs(a.nis_global - b.nis_global) <= 100 * TOL * max(1.0, b.nis_global)
 
 
+def _frames(seed: int):
+    """A new frame every 250 items: a transform within ~2 mrad and ~1 mm of the identity (a link re-estimated)."""
+    rng = np.random.default_rng(seed)
+    frame = np.eye(4)
+    k = 0
+    while True:
+        if k % 250 == 0:
+            frame = np.eye(4)
+            frame[:3, :3] = so3_exp(rng.normal(0, 2e-3, 3))
+            frame[:3, 3] = rng.normal(0, 1e-3, 3)
+        yield frame
+        k += 1
+
+
 def _run(items, params=None):
     fast, ref = FullpercFilter(params), FullpercReference(params)
-    seen = {"hop": 0, "reset": 0, "pair": 0, "lag": 0, "q": 0, "full": 0, "rot_hop": 0, "scaled": 0}
+    seen = {"hop": 0, "reset": 0, "pair": 0, "lag": 0, "q": 0, "full": 0, "rot_hop": 0, "scaled": 0, "moved": 0}
+    frames = _frames(7)
     for ms in items:
+        frame, local = next(frames), any(m.source == SOURCE_LOCAL for m in ms)
+        Ma, Mb = fast.express_in(frame, local), ref.express_in(frame, local)
+        assert (Ma is None) == (Mb is None) and (Ma is None or np.array_equal(Ma, Mb))
+        seen["moved"] += Mb is not None
         t = max(m.t_ns for m in ms)
         fast.predict(t)
         ref.predict(t)
@@ -136,6 +156,7 @@ def test_fast_form_equals_the_reference(seed):
     assert seen["hop"] >= 30 and seen["rot_hop"] >= 10 and seen["reset"] >= 5 and seen["pair"] >= 600
     assert seen["lag"] >= 400 and seen["full"] >= 1000 and 0 < seen["q"] < 3000
     assert 100 <= seen["scaled"] < 3000      # the global noise scale was above 1 for part of the stream
+    assert seen["moved"] >= 8                # the estimate was moved with its frame (11 frame changes)
 
 
 @pytest.mark.parametrize("params", [

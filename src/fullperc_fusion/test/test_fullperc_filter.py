@@ -335,3 +335,41 @@ def test_global_noise_scale_follows_the_scatter_the_innovations_show():
     assert np.sqrt(np.mean(dv[480:720] ** 2)) < 0.7 * np.sqrt(np.mean(dv_off[480:720] ** 2))
     capped, _ = _scatter_run(FullpercParams(noise_adapt_max=4.0))
     assert capped.max() == 4.0
+
+
+def _st(f):
+    """A copy of the state (``_State``) of either form."""
+    return f.state if isinstance(f, FullpercFilter) else f.snapshot()
+
+
+@pytest.mark.parametrize("cls", [FullpercFilter, FullpercReference])
+def test_express_in_moves_the_estimate_with_its_frame_and_keeps_the_global_prediction(cls):
+    """A local sample ties the estimate to its frame; a new frame moves p, v, R, w by M = T_new T_old^-1 and the
+    global bias so that p + b + g and Exp(beta) R, what the OMC is predicted to report, stay as they were."""
+    old = np.eye(4)
+    new = np.eye(4)
+    new[:3, :3] = so3_exp(np.array([1e-3, -2e-3, 0.5e-3]))
+    new[:3, 3] = [0.4e-3, -0.2e-3, 0.3e-3]
+    f = cls()
+    q = R_to_quat(Rot.from_euler("z", 20, degrees=True).as_matrix())
+    qg = R_to_quat(so3_exp(np.array([3e-3, 0.0, 0.0])) @ quat_to_R(q))   # the OMC's orientation bias
+    assert f.express_in(old, local=False) is None and _st(f).frame is None   # not tied to a frame yet
+    for k in range(240):
+        t = k * round(DT * 1e9)
+        assert f.express_in(old, local=True) is None
+        f.predict(t)
+        f.update(_m(t, SOURCE_GLOBAL, [0.101, 0.198, 0.3], qg), _m(t, SOURCE_LOCAL, [0.1, 0.2, 0.3], q))
+    s0 = _st(f)
+    assert s0.frame is old
+    M = f.express_in(new, local=False)
+    s1 = _st(f)
+    np.testing.assert_allclose(M, new @ np.linalg.inv(old), atol=1e-15)
+    np.testing.assert_allclose(s1.p, M[:3, :3] @ s0.p + M[:3, 3], atol=1e-15)
+    np.testing.assert_allclose(s1.p + s1.b + s1.g, s0.p + s0.b + s0.g, atol=1e-15)
+    np.testing.assert_allclose(so3_exp(s1.beta) @ s1.R, so3_exp(s0.beta) @ s0.R, atol=1e-12)
+    np.testing.assert_allclose(s1.R, M[:3, :3] @ s0.R, atol=1e-15)
+    np.testing.assert_array_equal(s1.P, s0.P)
+    assert s1.frame is new and f.express_in(new, local=False) is None      # the same frame: nothing more
+    assert f.express_in(new.copy(), local=True) is None and np.array_equal(_st(f).p, s1.p)   # an equal one too
+    f.reset()
+    assert _st(f).frame is None and f.express_in(old, local=False) is None   # a reset forgets the frame

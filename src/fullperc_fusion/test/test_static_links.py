@@ -13,7 +13,7 @@ import pytest
 from scipy.spatial.transform import Rotation as Rot
 
 from fullperc_common.transforms import inv_T, make_T, mean_T
-from fullperc_fusion.calibration import Calibration, Collector, se3_residuals, se3_retract
+from fullperc_fusion.calibration import COV_FLOOR, Calibration, Collector, se3_residuals, se3_retract
 from fullperc_fusion.frame_chain import ChainConfig, FrameChain, links_needed
 
 S = 1_000_000_000
@@ -110,9 +110,15 @@ def test_calibrate_mode_serves_the_average_from_init_samples_on():
     assert ch.global_T(T_OMC_BASE) is not None and ch.local_T(T0, T_OTS_BASE)[0] is not None
     assert np.array_equal(L.T_omc_base, mean_T(base[:30]))
     assert np.array_equal(L.T_base_ots, mean_T([inv_T(T) for T in ots[:30]]))
-    for name in ("T_omc_base", "T_base_ots"):
+    for name, samples in (("T_omc_base", base[:30]), ("T_base_ots", [inv_T(T) for T in ots[:30]])):
         assert L.sources[name].startswith("average of 30 samples") and "until the robust mean over 2 s" in \
-            L.sources[name] and name not in L.estimates
+            L.sources[name]
+        # the bridge carries the covariance of its mean (what the frame covariance and the local model use)
+        est = L.estimates[name]
+        r = se3_residuals(getattr(L, name), np.array(samples))
+        expected = np.cov(r, rowvar=False, ddof=1) / 30 + np.diag(np.repeat(np.square(COV_FLOOR), 3))
+        assert est.n_samples == est.n_inliers == 30 and np.allclose(est.cov, expected, rtol=1e-12, atol=0)
+        assert np.allclose(est.T, getattr(L, name), atol=1e-12)
     assert "meanwhile the average of the first 30 samples" in L.describe()
 
 
@@ -124,7 +130,7 @@ def test_calibrate_mode_switches_every_link_to_the_calibrated_one_after_the_dura
     gen = ch.links.generation
     assert ch.links.global_ready and ch.links.local_ready and ch.links.collecting   # the bridge
     assert "calibrating the static links over 2 s" in ch.links.describe()
-    assert set(ch.links.estimates) == set()
+    assert {k: e.n_samples for k, e in ch.links.estimates.items()} == {"T_omc_base": 30, "T_base_ots": 30}
     feed(ch, [e for e in ev if e[2] >= T0 + round(1.9 * S)])
     L = ch.links
     assert L.global_ready and L.local_ready and not L.collecting and L.describe() == ""
@@ -144,7 +150,7 @@ def test_a_moving_body_is_refused_and_collected_again():
     feed(ch, ev)
     L = ch.links
     assert L.refusals == 1 and "OMC body 'base' moved during the collection" in L.last_refusal
-    assert L.collecting and "T_omc_base" not in L.estimates   # no calibrated link from a moving body ...
+    assert L.collecting and L.estimates["T_omc_base"].n_samples == 30   # no calibrated link from a moving body ...
     avg = mean_T([T for d, b, _, T in ev if (d, b) == ("omc", "base")][:30])
     assert L.global_ready and np.array_equal(L.T_omc_base, avg)   # ... the average (before the move) stays
     assert L.sources["T_omc_base"].startswith("average of 30 samples")
@@ -209,7 +215,8 @@ def test_a_calibration_file_gives_the_links_from_the_first_sample():
     ch.reinitialize()                                # ~/initialize: every link again, in the configured mode
     assert L.collecting and np.array_equal(L.T_omc_base, cal.T("T_omc_base"))
     feed(ch, events(1.0, np.random.default_rng(7), start=2.0))
-    assert not L.collecting and "average of 30" in L.sources["T_omc_base"] and "T_omc_base" not in L.estimates
+    assert not L.collecting and "average of 30" in L.sources["T_omc_base"]
+    assert L.estimates["T_omc_base"].n_samples == 30   # the average's covariance, no longer the file's
 
 
 def test_a_partial_file_leaves_the_rest_to_the_mode():
@@ -265,7 +272,8 @@ def test_the_average_mode_is_unchanged():
     ots = [inv_T(T) for d, b, _, T in ev if (d, b) == ("ots", "base")][:30]
     assert np.array_equal(ch.links.T_omc_base, mean_T(base))
     assert np.array_equal(ch.links.T_base_ots, mean_T(ots))
-    assert ch.links.mode == "average" and ch.links.estimates == {}
+    assert ch.links.mode == "average"
+    assert {k: e.n_samples for k, e in ch.links.estimates.items()} == {"T_omc_base": 30, "T_base_ots": 30}
 
 
 def test_a_calibration_file_with_calibrate_mode_keeps_its_links_on_reinitialize_until_calibrated():
