@@ -118,7 +118,8 @@ def _fit(fit_error: float | None, params: OmcModelParams) -> float:
 
 
 def omc_covariance(fit_error: float | None, margin_deg: float | None,
-                   params: OmcModelParams = OmcModelParams()) -> np.ndarray:
+                   params: OmcModelParams = OmcModelParams(),
+                   sys_var: tuple[float, float] | None = None) -> np.ndarray:
     """6x6 measurement covariance R of one OMC body pose (isotropic, so the same in any frame).
 
         position, the WHITE (frame-to-frame) part:   sigma_p^2 = w^2 + (k_w e)^2 + m_w^2 f(M)
@@ -136,11 +137,16 @@ def omc_covariance(fit_error: float | None, margin_deg: float | None,
     docstring) and jumps (one marker's camera set changes: a step of ~0.3 mm over a 90 mm lever is 3 mrad) and
     reverts within frames (the filter's single-frame innovations of 4-8 mrad at a modelled white level of
     0.7 mrad, spec bags); a bias state cannot follow that, so it counts as noise of the sample.
+
+    ``sys_var``: :func:`omc_systematic_var` of the same arguments when the caller has it already (the pipeline
+    needs it for the sample's bias model too); computed here otherwise.
     """
     e = _fit(fit_error, params)
     f = margin_factor(margin_deg, params.margin_ref, params.margin_min)
     vp = params.white_std**2 + (params.white_fit_gain * e) ** 2 + params.white_margin_std**2 * f
-    vr = vp / params.marker_lever**2 + omc_systematic_var(fit_error, margin_deg, params)[1]
+    if sys_var is None:
+        sys_var = omc_systematic_var(fit_error, margin_deg, params)
+    vr = vp / params.marker_lever**2 + sys_var[1]
     return np.diag([vp, vp, vp, vr, vr, vr])
 
 

@@ -477,7 +477,8 @@ class TargetPipeline:
         sample's quality (:meth:`push_omc_quality`; defaults without) and the view margin at the body in the layout;
         ``extras`` carry the quality and ``sys_var``, the variance of the OMC's systematic position error here.
         Local: the device covariance or the Vega's distance model, mapped into base, plus the calibrated static
-        link's covariance through the lever arm (``static`` chain with a calibrated T_base_ots; else no link term).
+        link's covariance through the lever arm (``static`` chain with a T_base_ots that has one: calibrated, or the
+        average that bridges until it is; else no link term).
         A source with ``noise_std`` or ``noise_model: std`` (sources.py) gets its diagonal instead of the model.
         """
         src, p = self.config.sources, self.config.params
@@ -490,16 +491,15 @@ class TargetPipeline:
             C = mg.cov
             if C is None and src.glob.noise_model == "std":
                 C = model_cov_std(src.glob, p.global_std, p.rot_global_std)
+            margin = None
             if C is None:
                 lay = self.config.layout
                 margin = margin_at(lay, T_dev[:3, 3])[0] if lay is not None else None
+            sys_var = omc_systematic_var(qual.get("fit_error"), margin, self.config.omc_model)
+            if C is None:
                 RA = Tg[:3, :3] @ T_dev[:3, :3].T
-                C = rotate_cov(omc_covariance(qual.get("fit_error"), margin, self.config.omc_model), RA)
-            else:
-                margin = None
-            out.append(Measurement(mg.t_ns, SOURCE_GLOBAL, mg.p, mg.q, C,
-                                   extras={**qual, "sys_var": omc_systematic_var(qual.get("fit_error"), margin,
-                                                                                 self.config.omc_model)[0]}))
+                C = rotate_cov(omc_covariance(qual.get("fit_error"), margin, self.config.omc_model, sys_var), RA)
+            out.append(Measurement(mg.t_ns, SOURCE_GLOBAL, mg.p, mg.q, C, extras={**qual, "sys_var": sys_var[0]}))
         if ml is not None:
             T_dev, C_dev = item.local.payload[0], item.local.payload[1]
             spec = src.locals[item.source]

@@ -43,6 +43,8 @@ def test_omc_covariance_equation():
     np.testing.assert_allclose(np.diag(C), [vp] * 3 + [vr] * 3, rtol=1e-12)
     assert np.count_nonzero(C - np.diag(np.diag(C))) == 0
     check_covariance(C)
+    np.testing.assert_array_equal(omc_covariance(e, M, pr, (sp, sr)), C)   # the caller's sys_var, same result
+    assert omc_covariance(e, M, pr, (sp, 4 * sr))[3, 3] == pytest.approx(vp / pr.marker_lever**2 + 4 * sr)
 
 
 def test_omc_covariance_grows_with_fit_error_and_with_a_smaller_margin():
