@@ -207,8 +207,9 @@ def link_covariance_at(link_cov: np.ndarray, lever_arm) -> np.ndarray:
     so the chained pose's error is J [dp; dphi] with J = [[I, -[l]x], [0, I]] and C = J C_link J^T. The link's
     rotation error times the lever arm is what dominates a Vega 1.5 m from the tool.
     """
-    J = np.eye(6)
-    J[0:3, 3:6] = -skew(lever_arm)
+    x, y, z = (float(v) for v in lever_arm)   # J written out: one array call instead of eye + skew + a write
+    J = np.array([[1.0, 0.0, 0.0, 0.0, z, -y], [0.0, 1.0, 0.0, -z, 0.0, x], [0.0, 0.0, 1.0, y, -x, 0.0],
+                  [0.0, 0.0, 0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 0.0, 0.0, 1.0]])
     out = J @ np.asarray(link_cov, dtype=float) @ J.T
     return 0.5 * (out + out.T)
 
