@@ -233,3 +233,53 @@ def test_pvwr_chunks_match_the_real_trace_format():
     assert len(R.pvwr_params(1, bytes(752), pad_to=1024)) == 16
     with pytest.raises(NdiProtocolError):
         R.pvwr_params(1, bytes(1100))
+
+
+def _bytewise(fr: FrameReader, data: bytes) -> list:
+    out = []
+    for b in data:
+        fr.feed(bytes([b]))
+        r = fr.pop()
+        if r is not None:
+            out.append(r)
+    return out
+
+
+@pytest.mark.parametrize("garbage", [b"\x00", b"\xff\x13\x9a", b"\xc4\x01\x02\x03\x04\x05\x06",
+                                     b"\x01\xc4\xa5\x00\x00\x00\x00z", bytes(range(0x80, 0x90))])
+def test_garbage_before_a_binary_reply_is_skipped_and_counted(garbage):
+    """A binary reply behind line noise is read (it used to wait for a CR that never came: a read timeout),
+    the noise counted; a fake header (C4 A5 with a wrong header CRC) in the noise is not taken for one."""
+    for feed in ("whole", "bytewise"):
+        fr = FrameReader()
+        if feed == "whole":
+            fr.feed(garbage + BX_VALID + b"OKAYA896\r")
+            out = [fr.pop(), fr.pop()]
+        else:
+            out = _bytewise(fr, garbage + BX_VALID + b"OKAYA896\r")
+        assert [r.binary for r in out] == [True, False] and out[0].data == parse_frame(BX_VALID).data
+        assert fr.garbage_bytes == len(garbage) and fr.pending == 0 and fr.pop() is None
+
+
+@pytest.mark.parametrize("garbage", [b"\x00", b"\xfe\x01", b"ab\x9c"])
+def test_garbage_before_an_ascii_reply_is_skipped_after_a_byte_no_reply_contains(garbage):
+    for feed in ("whole", "bytewise"):
+        fr = FrameReader()
+        data = garbage + b"OKAYA896\r" + BX_VALID
+        if feed == "whole":
+            fr.feed(data)
+            out = [fr.pop(), fr.pop()]
+        else:
+            out = _bytewise(fr, data)
+        assert out[0].data == b"OKAY" and out[1].binary and fr.garbage_bytes == len(garbage)
+
+
+def test_a_corrupted_ascii_reply_is_not_cut_to_a_shorter_one():
+    """Printable bytes before a reply, or a reply whose own bytes are wrong: no resynchronisation inside it (a
+    suffix of a corrupted TX reply must never pass as a reply), the CRC error as before."""
+    for data in (b"xOKAYA896\r", b"OKAZA896\r", b"ab" + b"OKAYA896\r"):
+        fr = FrameReader()
+        fr.feed(data)
+        with pytest.raises(NdiCrcError):
+            fr.pop()
+        assert fr.garbage_bytes == 0

@@ -51,6 +51,7 @@ class Counters:
     reconnects: int = 0  # successful bring-ups after a loss
     bad_poses: int = 0  # non-finite / non-unit transforms refused
     bytes_drained: int = 0
+    garbage_bytes: int = 0  # skipped before a reply that was then read (protocol.FrameReader)
 
     def as_dict(self) -> dict[str, int]:
         return dict(self.__dict__)
@@ -78,6 +79,9 @@ class NdiClient:
         while True:
             rep = self._frames.pop()  # may raise NdiCrcError / NdiProtocolError
             if rep is not None:
+                if self._frames.garbage_bytes:
+                    self.counters.garbage_bytes += self._frames.garbage_bytes
+                    self._frames.garbage_bytes = 0
                 return rep
             left = end - time.monotonic()
             if left <= 0:

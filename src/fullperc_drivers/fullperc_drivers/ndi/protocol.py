@@ -216,10 +216,23 @@ class FrameReader:
     mismatch raises :class:`NdiCrcError` after the bad frame has been consumed, so the caller
     can count it and go on; :meth:`clear` drops everything buffered (used after errors, like
     ndicapi's input flush).
+
+    Bytes before a reply (line noise, a partial frame from before a reconnect) are skipped and
+    counted in :attr:`garbage_bytes`, so the reply behind them is not lost:
+
+    * binary: a ``C4 A5`` whose 6-byte header CRC holds, before the first CR, starts the frame
+      (a reply starting elsewhere used to wait for a CR that a binary reply need not contain:
+      the read timed out, 0.5 s per garbled BX);
+    * ASCII: a frame up to CR whose CRC fails as a whole is tried from each later offset that
+      follows a byte no ASCII reply contains (so a reply whose own bytes were corrupted is never
+      cut to a shorter one); the first printable suffix with a matching CRC is the reply. A false
+      match needs a CRC-16 collision at one of the few candidate offsets inside the garbage (about
+      1e-5 per garbled reply); no match: NdiCrcError, as before.
     """
 
     def __init__(self) -> None:
         self._buf = bytearray()
+        self.garbage_bytes = 0   # skipped before replies (see above)
 
     def feed(self, data: bytes) -> None:
         self._buf += data
@@ -244,6 +257,13 @@ class FrameReader:
         if buf[0] == 0xC8 and len(buf) >= 2 and buf[1] == 0xA5:
             return self._pop_extended()
         idx = buf.find(CR)
+        k = self._binary_start(len(buf) if idx < 0 else idx)
+        if k == -1:
+            return None   # a header candidate not complete yet
+        if k is not None:
+            del buf[:k]
+            self.garbage_bytes += k
+            return self._pop_binary()
         if idx < 0:
             if len(buf) > MAX_REPLY:
                 self._buf.clear()
@@ -251,7 +271,39 @@ class FrameReader:
             return None
         frame = bytes(buf[:idx])
         del buf[:idx + 1]
-        return parse_ascii_frame(frame)
+        rep: Reply | None = None
+        try:
+            rep = parse_ascii_frame(frame)
+            if _printable(rep.data):
+                return rep
+        except NdiError as e:
+            err = e
+        # (CRC-16/ARC starts from 0, so zero bytes before a reply leave its CRC valid: resynchronise those too)
+        for j in range(1, len(frame) - 3):
+            if _printable(frame[j - 1:j]) or not _printable(frame[j:-4]):
+                continue   # a reply starts right after a byte no reply contains, and is printable
+            try:
+                tail = parse_ascii_frame(frame[j:])
+            except NdiError:
+                continue
+            self.garbage_bytes += j
+            return tail
+        if rep is not None:
+            return rep   # CRC-valid but not printable: the caller's parser says what is wrong with it
+        raise err
+
+    def _binary_start(self, limit: int) -> int | None:
+        """Offset > 0 of the first binary header (``C4 A5``, header CRC valid) in the buffer before ``limit``;
+        -1 when a candidate's header is not complete yet; None when there is none."""
+        buf = self._buf
+        k = buf.find(b"\xc4\xa5", 1, limit + 1)
+        while k >= 0:
+            if len(buf) < k + 6:
+                return -1
+            if struct.unpack_from("<H", buf, k + 4)[0] == crc16(buf[k:k + 4]):
+                return k
+            k = buf.find(b"\xc4\xa5", k + 1, limit + 1)
+        return None
 
     def _pop_binary(self) -> Reply | None:
         buf = self._buf
@@ -285,6 +337,11 @@ class FrameReader:
         body = bytes(buf[6:6 + n])
         del buf[:n + 6]
         return Reply(body, True)
+
+
+def _printable(b: bytes) -> bool:
+    """Only bytes an ASCII reply contains: printable characters and LF (multi-line replies)."""
+    return all(0x20 <= c < 0x7F or c == 0x0A for c in b)
 
 
 def parse_ascii_frame(frame: bytes) -> Reply:
