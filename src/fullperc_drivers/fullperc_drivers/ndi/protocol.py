@@ -225,20 +225,26 @@ class FrameReader:
       the read timed out, 0.5 s per garbled BX);
     * ASCII: a frame up to CR whose CRC fails as a whole is tried from each later offset that
       follows a byte no ASCII reply contains (so a reply whose own bytes were corrupted is never
-      cut to a shorter one); the first printable suffix with a matching CRC is the reply. A false
-      match needs a CRC-16 collision at one of the few candidate offsets inside the garbage (about
-      1e-5 per garbled reply); no match: NdiCrcError, as before.
+      cut to a shorter one): the one candidate is the printable tail after the last such byte; its
+      CRC decides. A false match needs a CRC-16 collision (1 in 65536 of the garbled replies whose
+      tail is printable); no match: NdiCrcError, as before.
     """
 
     def __init__(self) -> None:
         self._buf = bytearray()
         self.garbage_bytes = 0   # skipped before replies (see above)
+        self._scan = 1
 
     def feed(self, data: bytes) -> None:
         self._buf += data
 
     def clear(self) -> None:
         self._buf.clear()
+        self._scan = 1
+
+    def _consume(self, n: int) -> None:
+        del self._buf[:n]
+        self._scan = 1   # where the search for a binary header goes on (_binary_start)
 
     @property
     def pending(self) -> int:
@@ -261,16 +267,16 @@ class FrameReader:
         if k == -1:
             return None   # a header candidate not complete yet
         if k is not None:
-            del buf[:k]
+            self._consume(k)
             self.garbage_bytes += k
             return self._pop_binary()
         if idx < 0:
             if len(buf) > MAX_REPLY:
-                self._buf.clear()
+                self.clear()
                 raise NdiProtocolError("no CR within the maximum reply length")
             return None
         frame = bytes(buf[:idx])
-        del buf[:idx + 1]
+        self._consume(idx + 1)
         rep: Reply | None = None
         try:
             rep = parse_ascii_frame(frame)
@@ -278,16 +284,17 @@ class FrameReader:
                 return rep
         except NdiError as e:
             err = e
-        # (CRC-16/ARC starts from 0, so zero bytes before a reply leave its CRC valid: resynchronise those too)
-        for j in range(1, len(frame) - 3):
-            if _printable(frame[j - 1:j]) or not _printable(frame[j:-4]):
-                continue   # a reply starts right after a byte no reply contains, and is printable
+        # The one candidate: right after the last byte no reply contains (the rest printable), a linear scan.
+        # (CRC-16/ARC starts from 0, so zero bytes before a reply leave its CRC valid: resynchronised too.)
+        j = _last_unprintable(frame[:-4]) + 1
+        if 0 < j <= len(frame) - 4:
             try:
                 tail = parse_ascii_frame(frame[j:])
             except NdiError:
-                continue
-            self.garbage_bytes += j
-            return tail
+                tail = None
+            if tail is not None:
+                self.garbage_bytes += j
+                return tail
         if rep is not None:
             return rep   # CRC-valid but not printable: the caller's parser says what is wrong with it
         raise err
@@ -296,13 +303,15 @@ class FrameReader:
         """Offset > 0 of the first binary header (``C4 A5``, header CRC valid) in the buffer before ``limit``;
         -1 when a candidate's header is not complete yet; None when there is none."""
         buf = self._buf
-        k = buf.find(b"\xc4\xa5", 1, limit + 1)
+        k = buf.find(b"\xc4\xa5", self._scan, limit + 1)
         while k >= 0:
             if len(buf) < k + 6:
+                self._scan = k
                 return -1
             if struct.unpack_from("<H", buf, k + 4)[0] == crc16(buf[k:k + 4]):
                 return k
             k = buf.find(b"\xc4\xa5", k + 1, limit + 1)
+        self._scan = max(1, min(limit, len(buf) - 1))   # bytes searched stay searched (a lone C4 at the end not)
         return None
 
     def _pop_binary(self) -> Reply | None:
@@ -313,13 +322,13 @@ class FrameReader:
         (hcrc,) = struct.unpack_from("<H", buf, 4)
         if hcrc != crc16(buf[:4]):
             # Length cannot be trusted: drop the start bytes so the caller resynchronises.
-            del buf[:2]
+            self._consume(2)
             raise NdiCrcError("binary reply header CRC mismatch")
         if len(buf) < n + 8:
             return None
         body = bytes(buf[6:6 + n])
         (bcrc,) = struct.unpack_from("<H", buf, 6 + n)
-        del buf[:n + 8]
+        self._consume(n + 8)
         if bcrc != crc16(body):
             raise NdiCrcError("binary reply body CRC mismatch")
         return Reply(body, True)
@@ -330,18 +339,32 @@ class FrameReader:
             return None
         (n,) = struct.unpack_from("<I", buf, 2)
         if n > MAX_REPLY * 64:
-            del buf[:2]
+            self._consume(2)
             raise NdiProtocolError(f"extended reply length {n} is implausible")
         if len(buf) < n + 6:
             return None
         body = bytes(buf[6:6 + n])
-        del buf[:n + 6]
+        self._consume(n + 6)
         return Reply(body, True)
 
 
+_REPLY_BYTES = bytes(range(0x20, 0x7F)) + b"\n"   # what an ASCII reply contains: printable characters and LF
+
+
 def _printable(b: bytes) -> bool:
-    """Only bytes an ASCII reply contains: printable characters and LF (multi-line replies)."""
-    return all(0x20 <= c < 0x7F or c == 0x0A for c in b)
+    """Only bytes an ASCII reply contains."""
+    return not b.translate(None, _REPLY_BYTES)
+
+
+def _last_unprintable(b: bytes) -> int:
+    """Index of the last byte of ``b`` no ASCII reply contains, -1 when there is none."""
+    for i in range(len(b) - 1, -1, -1):
+        if b[i] not in _REPLY_SET:
+            return i
+    return -1
+
+
+_REPLY_SET = frozenset(_REPLY_BYTES)
 
 
 def parse_ascii_frame(frame: bytes) -> Reply:
