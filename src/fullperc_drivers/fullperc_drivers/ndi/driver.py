@@ -95,7 +95,8 @@ class DriverConfig:
     init_timeout_s: float = 5.0
     max_retries: int = 3
     backoff_initial_s: float = 0.05
-    backoff_max_s: float = 2.0
+    backoff_max_s: float = 0.5  # a device back after an outage is found within this (+ one bring-up); an attempt
+    #                             is one TCP connect or a serial INIT probe, cheap at 2 per second (2.0 until 2026-12)
     crc_form: bool = True
     pvwr_pad_to: int | None = None  # 1024 to write the whole virtual SROM like ndicapi
 
