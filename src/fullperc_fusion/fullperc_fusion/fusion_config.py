@@ -20,7 +20,7 @@ from __future__ import annotations
 import array
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -228,10 +228,14 @@ PARAMS: tuple[Param, ...] = (
 )
 """Every node-wide parameter of fusion_node."""
 
-# Per target; the name is "<target>.<suffix>", the default (None) is the target's name.
+# Per target; the name is "<target>.<suffix>"; a string's default (None) is the target's name, a number's none
+# (the node-wide value applies).
 TARGET_PARAMS: tuple[Param, ...] = (
     Param("omc_body", None, "str", bool, "must not be empty", "", "OMC rigid body of the target (global measurement)"),
     Param("ots_tool", None, "str", bool, "must not be empty", "", "NDI tool of the target (local measurement)"),
+    Param("ang_accel_noise", None, "float", _pos, "must be finite and > 0", "rad^2/s^3",
+          "fullperc's white angular-acceleration density for this target (unset: fullperc.ang_accel_noise); how "
+          "the target turns: an arm-held tool far more smoothly than a hand-held one"),
 )
 
 BY_NAME = {p.name: p for p in PARAMS}
@@ -244,7 +248,7 @@ def spec(name: str) -> Param:
     target, _, suffix = name.rpartition(".")
     for tp in TARGET_PARAMS:
         if suffix == tp.name and target:
-            return Param(name, target, tp.kind, tp.check, tp.why, tp.unit, tp.doc)
+            return Param(name, target if tp.kind == "str" else tp.default, tp.kind, tp.check, tp.why, tp.unit, tp.doc)
     if target and suffix in SOURCE_KEYS:   # a source block (sources.py)
         kind, unit, doc = SOURCE_KEYS[suffix]
         return Param(name, None, kind, None, "", unit, f"source '{target}': {doc}")
@@ -425,8 +429,11 @@ def target_config(get: Get | dict[str, Any], target: str, filters: tuple[str, ..
                             calibration_file=path)
         sources, chain = source_set(vals, target, base)
         nm = noise_model(vals)
+        params = nm.apply(filter_params(vals))
+        if vals.get(f"{target}.ang_accel_noise") is not None:   # the target's own motion model (TARGET_PARAMS)
+            params = replace(params, ang_accel_noise=vals[f"{target}.ang_accel_noise"]).validate()
         return TargetConfig(name=target, chain=chain, sources=sources, filters=tuple(filters),
-                            params=nm.apply(filter_params(vals)), omc_model=nm.omc,
+                            params=params, omc_model=nm.omc,
                             slop_ns=int(vals["slop"] * 1e9), delay_ns=int(vals["reorder_delay"] * 1e9),
                             max_future_ns=int(round(vals["max_future"] * 1e9)),
                             processing=vals["processing"], history_ns=int(round(vals["history"] * 1e9)),

@@ -11,6 +11,7 @@ import yaml
 
 from fullperc_common.params import ParameterError
 from fullperc_fusion import fusion_config as fc
+from fullperc_fusion.filters import FilterParams
 from fullperc_fusion.frame_chain import ChainConfig
 from fullperc_fusion.fullperc_filter import FullpercParams
 from fullperc_fusion.fusion_health import HealthParams
@@ -103,6 +104,8 @@ def test_values_are_mapped(tmp_path):
     ({"filters": ["kf", "ukf"]}, "filters"),
     ({"targets": []}, "targets"),
     ({"tool": {"omc_body": ""}}, "tool.omc_body"),
+    ({"tool": {"ang_accel_noise": -1.0}}, "tool.ang_accel_noise"),
+    ({"tool": {"ang_accel_noise": "fast"}}, "tool.ang_accel_noise"),
     ({"clock": "wall"}, "clock"),
     ({"alarm": {"hop_window": 0.0}}, "alarm.hop_window"),
     ({"alarm": {"hop_max": 0}}, "alarm.hop_max"),
@@ -150,7 +153,7 @@ def test_the_mapping_is_the_same_for_a_getter_and_for_values():
 
     cfg = fc.target_config(get, "probe")
     assert cfg.params.accel_noise == 0.3 and cfg.chain.ots_target == "p2" and cfg.filters == ("cbkf",)
-    assert set(seen) == {p.name for p in fc.PARAMS} | {"probe.omc_body", "probe.ots_tool"}
+    assert set(seen) == {p.name for p in fc.PARAMS} | {"probe.omc_body", "probe.ots_tool", "probe.ang_accel_noise"}
     vals = fc.read_values(get, ["probe"])
     _same_config(fc.target_config(vals, "probe"), cfg)
     with pytest.raises(ParameterError, match="'probe.omc_body'"):
@@ -218,7 +221,6 @@ def test_a_bad_calibration_file_names_the_parameter_the_file_and_the_field(tmp_p
 def test_fullperc_block_is_mapped_and_its_layout_loaded_only_when_used(tmp_path):
     """filter: fullperc -> FullpercParams from the fullperc.* rows and the layout for the OMC model's view margin;
     without a filter that uses the models no layout is read; a bad layout file names the parameter."""
-    from fullperc_fusion.fullperc_filter import FullpercParams
     from fullperc_fusion.layout import Layout
 
     p = _write(tmp_path, {"filter": "fullperc", "fullperc": {"sys_time": 2.5, "rot_local_std": 1e-3}})
@@ -263,3 +265,19 @@ def test_a_float_without_a_dot_is_read_as_rcl_reads_it(tmp_path):
     p.write_text("fusion_node:\n  ros__parameters:\n    noise:\n      accel: '1e-3'\n")
     with pytest.raises(fc.FusionConfigError, match="noise.accel"):
         fc.load_fusion_config(p, filters=None)
+
+
+def test_a_targets_own_angular_acceleration_noise(tmp_path):
+    """``<target>.ang_accel_noise`` sets fullperc's turn model for that target only (an arm-held tool turns far more
+    smoothly than a hand-held instrument); unset, the node-wide ``fullperc.ang_accel_noise``; the paper filters'
+    parameters are the same either way."""
+    p = _write(tmp_path, {"targets": ["tool", "instrument"], "tool": {"ang_accel_noise": 0.005},
+                          "fullperc": {"ang_accel_noise": 0.7}})
+    tool = fc.load_fusion_config(p, target="tool").config
+    inst = fc.load_fusion_config(p, target="instrument").config
+    assert tool.params.ang_accel_noise == 0.005 and inst.params.ang_accel_noise == 0.7
+    assert fc.spec("tool.ang_accel_noise").default is None and fc.spec("tool.ots_tool").default == "tool"
+    plain = fc.load_fusion_config(_write(tmp_path, {"targets": ["tool"]})).config
+    assert plain.params.ang_accel_noise == FullpercParams().ang_accel_noise
+    for f in FilterParams.__dataclass_fields__:     # what the paper's four read
+        assert getattr(tool.params, f) == getattr(plain.params, f), f
