@@ -1,4 +1,5 @@
-"""Reading a user's YAML file with an error that names the file: the layout, a calibration.
+"""Reading a user's YAML file with an error that names the file: the layout, a calibration, a noise model, a
+fusion_node params file read offline.
 
 Why one function: a file a user points a node at (``layout_file``, ``calibration_file``) must fail with one line
 that says which file and why (unreadable, not YAML), as the caller's own error type, so the node exits 2 naming it.
@@ -29,14 +30,16 @@ RosParamsLoader.add_implicit_resolver(
     list("-+0123456789"))
 
 
-def load_yaml_file(path: str | os.PathLike, what: str, error: type[Exception]) -> Any:
-    """The parsed content of ``path``; ``error("<what> <path>: cannot read: …" | "…: not valid YAML: …")``."""
+def load_yaml_file(path: str | os.PathLike, what: str, error: type[Exception],
+                   loader: type[yaml.SafeLoader] = yaml.SafeLoader) -> Any:
+    """The parsed content of ``path``; ``error("<what> <path>: cannot read: …" | "…: not valid YAML: …")``.
+    ``loader``: a SafeLoader (:class:`RosParamsLoader` for a ROS 2 params file)."""
     p = Path(path)
     try:
         text = p.read_text()
     except (OSError, UnicodeDecodeError) as e:   # not UTF-8 (a binary file given by mistake) is unreadable too
         raise error(f"{what} {p}: cannot read: {e}") from e
     try:
-        return yaml.safe_load(text)
+        return yaml.load(text, Loader=loader)
     except yaml.YAMLError as e:
         raise error(f"{what} {p}: not valid YAML: {e}") from e

@@ -186,15 +186,20 @@ def test_binary_header_and_body_crc_errors():
         parse_frame(bytes(bad_head))
 
 
-def test_frame_reader_splits_a_stream_fed_byte_by_byte():
-    stream = BX_VALID + b"OKAYA896\r" + BX_MISSING + b"Info.Timeout.PINIT=5\n96A7\r"
-    fr = FrameReader()
+def _bytewise(fr: FrameReader, data: bytes) -> list:
+    """The frames ``fr`` pops when ``data`` is fed one byte at a time."""
     out = []
-    for b in stream:
+    for b in data:
         fr.feed(bytes([b]))
         r = fr.pop()
         if r is not None:
             out.append(r)
+    return out
+
+
+def test_frame_reader_splits_a_stream_fed_byte_by_byte():
+    stream = BX_VALID + b"OKAYA896\r" + BX_MISSING + b"Info.Timeout.PINIT=5\n96A7\r"
+    out = _bytewise(FrameReader(), stream)
     assert [r.binary for r in out] == [True, False, True, False]
     assert out[1].data == b"OKAY" and out[3].data == b"Info.Timeout.PINIT=5\n"
 
@@ -233,16 +238,6 @@ def test_pvwr_chunks_match_the_real_trace_format():
     assert len(R.pvwr_params(1, bytes(752), pad_to=1024)) == 16
     with pytest.raises(NdiProtocolError):
         R.pvwr_params(1, bytes(1100))
-
-
-def _bytewise(fr: FrameReader, data: bytes) -> list:
-    out = []
-    for b in data:
-        fr.feed(bytes([b]))
-        r = fr.pop()
-        if r is not None:
-            out.append(r)
-    return out
 
 
 @pytest.mark.parametrize("garbage", [b"\x00", b"\xff\x13\x9a", b"\xc4\x01\x02\x03\x04\x05\x06",

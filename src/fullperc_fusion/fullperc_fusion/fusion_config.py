@@ -480,15 +480,10 @@ def flatten(d: dict, prefix: str = "") -> dict[str, Any]:
 
 def read_params_file(path: str | Path) -> dict[str, Any]:
     """The flat ``ros__parameters`` of fusion_node in a params file (``fusion_node:`` or ``/**:``)."""
-    import yaml
-
-    from fullperc_common.yaml_file import RosParamsLoader
+    from fullperc_common.yaml_file import RosParamsLoader, load_yaml_file
 
     p = Path(path)
-    try:
-        data = yaml.load(p.read_text(), Loader=RosParamsLoader) or {}   # a SafeLoader: numbers read as rcl reads them
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as e:
-        raise FusionConfigError(f"fusion config {p}: cannot read ({type(e).__name__}: {e})") from None
+    data = load_yaml_file(p, "fusion config", FusionConfigError, RosParamsLoader) or {}   # numbers read as rcl does
     node = None
     if isinstance(data, dict):
         node = data.get("fusion_node", data.get("/**", data))

@@ -424,8 +424,8 @@ class TargetPipeline:
                 continue
             if st.q is not None and st.pose_cov is not None:   # the filter fused the orientation (fullperc)
                 q, cov, osrc = st.q, st.pose_cov, SOURCE_GLOBAL | SOURCE_LOCAL
-                if getattr(f, "uses_models", False):
-                    cov = self._with_frame_cov(cov, st.p)
+                if frame is not None and getattr(f, "uses_models", False):
+                    cov = self._with_frame_cov(cov, st.p, frame)
             else:
                 if name == "omc" or ml is None:
                     mq, osrc, ostd = mg, SOURCE_GLOBAL, self.config.orientation_std_global
@@ -457,16 +457,11 @@ class TargetPipeline:
         """The frame the local samples come in (the primary chain's static link), for ``express_in``."""
         return self.chain.links.T_base_ots if self.chain.cfg.local_chain == "static" else None
 
-    def _with_frame_cov(self, cov: np.ndarray, p: np.ndarray) -> np.ndarray:
-        """``cov`` plus the covariance of the local chain's frame at p (module docstring, "Frame covariance")."""
-        chain = self.chain
-        if chain.cfg.local_chain != "static":
-            return cov
-        est = chain.links.estimates.get("T_base_ots")
-        T = chain.links.T_base_ots
-        if est is None or T is None:
-            return cov
-        return cov + link_covariance_at(est.cov, p - T[:3, 3])
+    def _with_frame_cov(self, cov: np.ndarray, p: np.ndarray, frame: np.ndarray) -> np.ndarray:
+        """``cov`` plus the covariance of the local chain's frame (:meth:`_frame`) at p (module docstring, "Frame
+        covariance"); ``cov`` itself when the link has no covariance."""
+        est = self.chain.links.estimates.get("T_base_ots")
+        return cov if est is None else cov + link_covariance_at(est.cov, p - frame[:3, 3])
 
     def _model_measurements(self, item: SyncItem, mg: Measurement | None, ml: Measurement | None,
                             Tg: np.ndarray | None, Tl: np.ndarray | None, eq: str,

@@ -8,10 +8,12 @@ sightings) differ by a millimetre or more at the tool: the two frames are told a
 
 from __future__ import annotations
 
-import numpy as np
-from scipy.spatial.transform import Rotation as Rot
+import sys
+from pathlib import Path
 
-from fullperc_common.transforms import inv_T, make_T, mean_T
+import numpy as np
+
+from fullperc_common.transforms import inv_T, mean_T
 from fullperc_fusion.arrival import ArrivalPipeline
 from fullperc_fusion.calibration import se3_retract
 from fullperc_fusion.frame_chain import ChainConfig
@@ -20,17 +22,11 @@ from fullperc_fusion.link_monitor import MonitorParams
 from fullperc_fusion.measurement_models import link_covariance_at
 from fullperc_fusion.pipeline import TargetConfig, TargetPipeline
 
-S = 1_000_000_000
-T0 = 1_700_000_000 * S
-T_OMC_BASE = make_T([1.0, 0.5, 0.8], Rot.from_euler("z", 30, degrees=True).as_quat())
-T_OMC_OTS = make_T([3.0, 1.0, 1.5], Rot.from_euler("zyx", [150, 20, 0], degrees=True).as_quat())
+sys.path.insert(0, str(Path(__file__).parent))
+from test_pipeline_links import BUMP, T0, T_OMC_BASE, T_OMC_OTS, S, run, truth  # noqa: E402  (the same OR and path)
+
 SIG_BASE = np.array([0.05e-3, 0.05e-3, 0.15e-3, 5e-3, 5e-3, 5e-3])   # the Vega's sightings of the base marker
 OMC_BIAS = np.array([1.5e-3, -1.0e-3, 0.5e-3])                       # the OMC's error at the tool (the bias b)
-
-
-def truth(t):
-    return make_T([0.5 + 0.1 * np.cos(0.3 * t), 0.1 * np.sin(0.3 * t), 0.3], Rot.from_euler("z", 5 * t, degrees=True)
-                  .as_quat())
 
 
 def stream(seconds, tool_seen_until, seed=3, bump_at=None):
@@ -47,19 +43,11 @@ def stream(seconds, tool_seen_until, seed=3, bump_at=None):
         ev.append(("omc", "tool", ns, Tm))
         if k % 2 == 0:
             nl = ns + 3_000_000
-            ots = T_OMC_OTS @ make_T([3e-3, 0.0, 0.0]) if bump_at is not None and t >= bump_at else T_OMC_OTS
+            ots = T_OMC_OTS @ BUMP if bump_at is not None and t >= bump_at else T_OMC_OTS
             ev.append(("ots", "base", nl, se3_retract(inv_T(ots) @ T_OMC_BASE, rng.normal(size=6) * SIG_BASE)))
             if t < tool_seen_until:
                 ev.append(("ots", "tool", nl, inv_T(ots) @ T_OMC_BASE @ truth(t + 0.003)))
     return ev
-
-
-def run(pipe, ev):
-    outs = []
-    for dev, body, t, T in ev:
-        (pipe.push_omc if dev == "omc" else pipe.push_ots)(body, t, T)
-        outs.extend(pipe.poll())
-    return outs + pipe.flush()
 
 
 class Recording(FullpercFilter):
