@@ -28,6 +28,8 @@ class Diagnostics:
         self._hw = hardware_id
         self._lock = threading.Lock()
         self._status: dict[str, DiagnosticStatus] = {}
+        self.published = 0   # DiagnosticArrays sent so far: a component with per-period figures knows when a
+        #                      period's values went out (fusion_node's input load)
         self._pub = node.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._timer = node.create_timer(period_s, self.publish)
 
@@ -65,3 +67,4 @@ class Diagnostics:
         arr = DiagnosticArray(status=statuses)
         arr.header.stamp = self._node.get_clock().now().to_msg()
         self._pub.publish(arr)
+        self.published += 1

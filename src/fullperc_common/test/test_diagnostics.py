@@ -63,3 +63,13 @@ def test_set_verdict_publishes_a_level_change_at_once():
     st = node.published[-1].status[0]
     assert st.level == bytes([2]) and st.message == "no frames"
     assert {kv.key: kv.value for kv in st.values} == {"state": "reconnecting", "rate_hz": "0.0"}
+
+
+def test_published_counts_the_arrays_sent():
+    node = _FakeNode()
+    d = diagnostics.Diagnostics(node)
+    d.publish()                               # nothing to send yet
+    assert d.published == 0 and not node.published
+    d.set("a", diagnostics.OK, "ok", publish_on_change=True)
+    d.publish()
+    assert d.published == len(node.published) == 2

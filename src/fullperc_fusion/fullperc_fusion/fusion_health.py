@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -272,48 +272,91 @@ class SourceLoss:
                 setattr(self, expired, getattr(self, expired) + 1)
 
 
+@dataclass
+class LoadWindow:
+    """The input callbacks of one stretch of time: the largest queue depth, callback delay and lag, the smallest
+    lag, the number of callbacks. None where no callback measured it."""
+
+    depth_max: int = 0
+    delay_max_ns: int | None = None
+    lag_max_ns: int | None = None
+    lag_min_ns: int | None = None
+    callbacks: int = 0
+
+    def add(self, depth: int, delay_ns: int | None, lag_ns: int | None) -> None:
+        self.callbacks += 1
+        self.depth_max = max(self.depth_max, depth)
+        self.delay_max_ns = _opt(max, self.delay_max_ns, delay_ns)
+        self.lag_max_ns = _opt(max, self.lag_max_ns, lag_ns)
+        self.lag_min_ns = _opt(min, self.lag_min_ns, lag_ns)
+
+    def merged(self, other: LoadWindow) -> LoadWindow:
+        """Both stretches as one."""
+        return LoadWindow(max(self.depth_max, other.depth_max), _opt(max, self.delay_max_ns, other.delay_max_ns),
+                          _opt(max, self.lag_max_ns, other.lag_max_ns), _opt(min, self.lag_min_ns, other.lag_min_ns),
+                          self.callbacks + other.callbacks)
+
+
+def _opt(f, a: int | None, b: int | None) -> int | None:
+    """f(a, b) of two optional values; the one that is there when the other is None."""
+    return b if a is None else a if b is None else f(a, b)
+
+
 class InputLoad:
-    """What fusion_node's input callbacks saw since the last /diagnostics period (issue 16 item 5: overload visible).
+    """What fusion_node's input callbacks saw (issue 16 item 5: overload visible).
 
     Why: at 1 kHz + 1 kHz the node fell half a second behind and /diagnostics said OK. ``depth``: samples waiting
     besides the one that started the callback (taken in the same callback); ``delay``: from the DDS reception of
     that sample to the callback; ``lag``: node clock - stamp of the newest sample, after it was fused (with arrival
-    processing the fused estimate is that old; with ordered processing add the synchronizer's wait). ``lag_min``
-    over a period is what the overload WARN looks at: a lag that never came down for a whole period is overload,
-    a single late callback on a busy machine is not.
+    processing the fused estimate is that old; with ordered processing add the synchronizer's wait).
+
+    Two stretches. The **window** is one evaluation period of the node (``_update_diagnostics``, every 0.5 s): its
+    ``lag_min`` is what the overload WARN looks at -- a lag that never came down for a whole period is overload, a
+    single late callback on a busy machine is not. The **report** is what /diagnostics shows: every window since
+    the last report that was published (:meth:`begin_report`). The node evaluates twice per /diagnostics period,
+    and each evaluation replaces the status; a report of its own window alone left every other window unpublished,
+    so a burst processed in one of those (a node catching up after a stall) never showed as a queue depth or a lag.
     """
 
     def __init__(self) -> None:
-        self.depth = self.depth_max = 0
-        self.delay_max_ns: int | None = None
+        self.depth = 0
         self.lag_ns: int | None = None
-        self.lag_max_ns: int | None = None
-        self.lag_min_ns: int | None = None
-        self.callbacks = 0
+        self.window = LoadWindow()
+        self.report = LoadWindow()
+
+    # the window's figures, for the overload verdict
+    @property
+    def depth_max(self) -> int:
+        return self.window.depth_max
+
+    @property
+    def lag_min_ns(self) -> int | None:
+        return self.window.lag_min_ns
 
     def callback(self, depth: int, delay_ns: int | None, lag_ns: int | None) -> None:
         """``depth`` samples were waiting besides the callback's own; ``delay_ns`` from its reception to the
         callback; ``lag_ns`` node clock - stamp of the newest sample, after it was fused."""
-        self.callbacks += 1
         self.depth = depth
-        self.depth_max = max(self.depth_max, depth)
-        if delay_ns is not None:
-            self.delay_max_ns = delay_ns if self.delay_max_ns is None else max(self.delay_max_ns, delay_ns)
         if lag_ns is not None:
             self.lag_ns = lag_ns
-            self.lag_max_ns = lag_ns if self.lag_max_ns is None else max(self.lag_max_ns, lag_ns)
-            self.lag_min_ns = lag_ns if self.lag_min_ns is None else min(self.lag_min_ns, lag_ns)
+        self.window.add(depth, delay_ns, lag_ns)
+
+    def begin_report(self, previous_published: bool) -> None:
+        """Fold the window into the report; ``previous_published``: the report set at the last evaluation went out
+        on /diagnostics, so the new one starts with this window (else it adds it: nothing is dropped unpublished).
+        """
+        self.report = replace(self.window) if previous_published else self.report.merged(self.window)
 
     def values(self) -> dict:
+        """The report's figures, and the newest depth and lag."""
         def ms(v: int | None) -> float | None:
             return None if v is None else round(v * 1e-6, 3)
 
-        return {"queue_depth": self.depth, "queue_depth_max": self.depth_max, "lag_ms": ms(self.lag_ns),
-                "lag_min_ms": ms(self.lag_min_ns), "lag_max_ms": ms(self.lag_max_ns),
-                "callback_delay_max_ms": ms(self.delay_max_ns),
-                "input_callbacks": self.callbacks}
+        r = self.report
+        return {"queue_depth": self.depth, "queue_depth_max": r.depth_max, "lag_ms": ms(self.lag_ns),
+                "lag_min_ms": ms(r.lag_min_ns), "lag_max_ms": ms(r.lag_max_ns),
+                "callback_delay_max_ms": ms(r.delay_max_ns), "input_callbacks": r.callbacks}
 
     def reset_period(self) -> None:
-        self.depth_max = 0
-        self.delay_max_ns = self.lag_max_ns = self.lag_min_ns = None
-        self.callbacks = 0
+        """End of one evaluation period: a new window."""
+        self.window = LoadWindow()

@@ -25,7 +25,8 @@ Publishes:
                                source; ERROR: every sample of a source rejected), naming target and source;
                                WARN when the link monitor sees a bump of the static link (link and size named);
                                overload: queue_depth(_max), lag_ms / lag_max_ms (node clock - stamp of the newest
-                               fused sample), callback_delay_max_ms, <omc|ots>_frames_lost / _samples_lost of the
+                               fused sample), callback_delay_max_ms (the _max / _min figures over every input
+                               callback since the last published report), <omc|ots>_frames_lost / _samples_lost of the
                                target's sources (TrackingQuality frame-number gaps; visible frames whose pose never
                                came); WARN when the lag stayed above ``lag_warn`` for a whole period, or samples
                                were lost (held problem_hold)
@@ -132,6 +133,7 @@ class FusionNode(Node):
         self._problem_hold = vals["problem_hold"]
         self._lag_warn = vals["lag_warn"]
         self._load = InputLoad()
+        self._diag_sent = 0   # /diagnostics arrays sent before the last evaluation's values were set
         self._cal_duration = vals["calibration.duration"]
         self._cal_output = vals["calibration.output"]
         self._cal_timeout = vals["calibration.timeout"]
@@ -478,6 +480,7 @@ class FusionNode(Node):
 
     def _update_diagnostics(self) -> None:
         now = time.monotonic()
+        self._load.begin_report(self._diag.published > self._diag_sent)
         for t, pipe in self.pipes.items():
             s = pipe.stats()
             values = {k: v for k, v in s.items() if k != "init_progress"}
@@ -528,6 +531,7 @@ class FusionNode(Node):
             level = self._overload(t, now, level, msgs, values)
             self._diag.set(f"target {t}", level, "; ".join(msgs) or "ok", values)
         self._load.reset_period()
+        self._diag_sent = self._diag.published
 
     def _overload(self, target: str, now: float, level: int, msgs: list[str], values: dict) -> int:
         """Queue depth, processing lag, callback delay and lost samples of ``target`` (WARN: lag above lag_warn,

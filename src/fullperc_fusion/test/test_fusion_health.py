@@ -191,8 +191,34 @@ def test_input_load_keeps_the_period_maximum():
     load.callback(3, 2_000_000, 40_000_000)
     load.callback(0, None, 5_000_000)
     load.callback(1, 1_000_000, None)     # no clock yet: lag unknown
+    assert (load.depth_max, load.lag_min_ns) == (3, 5_000_000)   # the window, for the overload verdict
+    load.begin_report(previous_published=True)
     v = load.values()
     assert (v["queue_depth"], v["queue_depth_max"], v["lag_ms"], v["lag_min_ms"], v["lag_max_ms"],
             v["callback_delay_max_ms"], v["input_callbacks"]) == (1, 3, 5.0, 5.0, 40.0, 2.0, 3)
     load.reset_period()
+    assert (load.depth_max, load.lag_min_ns) == (0, None)
+    load.begin_report(previous_published=True)
     assert load.values()["lag_max_ms"] is None and load.values()["lag_ms"] == 5.0
+
+
+def test_input_load_reports_every_window_until_a_report_is_published():
+    """The node evaluates every 0.5 s and /diagnostics goes out every 1 s: a burst in a window whose report was
+    replaced before it was published must still show in the next report (it used to be lost: a node catching up
+    after a stall could report no lag at all)."""
+    from fullperc_fusion.fusion_health import InputLoad
+
+    load = InputLoad()
+    load.callback(50, 3_000_000, 900_000_000)            # the burst
+    load.begin_report(previous_published=False)
+    load.reset_period()
+    load.callback(0, 1_000_000, 2_000_000)               # quiet window; the burst's report was never published
+    load.begin_report(previous_published=False)
+    v = load.values()
+    assert (v["queue_depth_max"], v["lag_max_ms"], v["lag_min_ms"], v["callback_delay_max_ms"],
+            v["input_callbacks"]) == (50, 900.0, 2.0, 3.0, 2)
+    assert (load.depth_max, load.lag_min_ns) == (0, 2_000_000)   # the verdict still looks at its own window only
+    load.reset_period()
+    load.begin_report(previous_published=True)           # that report went out: the next starts afresh
+    v = load.values()
+    assert (v["queue_depth_max"], v["lag_max_ms"], v["input_callbacks"]) == (0, None, 0)
