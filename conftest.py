@@ -1,39 +1,33 @@
 """Fixtures shared by every test in the repository (pytest loads this rootdir conftest first).
 
-DDS isolation: every test that talks DDS gets its own ROS_DOMAIN_ID (unique per process and
-test, see DEVELOPERS notes) and ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, so nothing leaves this
-machine and parallel pytest runs do not cross-talk.
+DDS isolation: every test that talks DDS gets its own ROS_DOMAIN_ID (an id no other test process on
+this machine holds: fullperc_common.testing.claim_domain) and ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST,
+so nothing leaves this machine and parallel pytest runs do not cross-talk.
 """
 
 from __future__ import annotations
 
-import itertools
 import os
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-from fullperc_common.testing import Procs, installed_exe, wait_for  # noqa: F401 (re-exported)
+from fullperc_common.testing import Procs, claim_domain, installed_exe, wait_for  # noqa: F401 (re-exported)
 
 ROOT = Path(__file__).resolve().parent
-_counter = itertools.count()
-# Domain ids 1..100 are safe for Fast DDS port arithmetic; spread by pid to keep parallel runs apart.
-_base = (os.getpid() * 7) % 100
-
-
-def _next_domain() -> int:
-    return 1 + (_base + next(_counter)) % 100
 
 
 @pytest.fixture
-def ros_env(monkeypatch) -> dict[str, str]:
-    """Environment (also applied to this process) with a test-unique ROS_DOMAIN_ID."""
-    dom = str(_next_domain())
-    monkeypatch.setenv("ROS_DOMAIN_ID", dom)
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    monkeypatch.setenv("PYTHONUNBUFFERED", "1")
-    return dict(os.environ)
+def ros_env(monkeypatch) -> Iterator[dict[str, str]]:
+    """Environment (also applied to this process) with a ROS_DOMAIN_ID no other test on this machine holds
+    (fullperc_common.testing.claim_domain), released after the test's processes are gone."""
+    with claim_domain() as lease:
+        monkeypatch.setenv("ROS_DOMAIN_ID", str(lease.domain))
+        monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+        monkeypatch.setenv("PYTHONUNBUFFERED", "1")
+        yield dict(os.environ)
 
 
 @pytest.fixture

@@ -47,11 +47,11 @@ EXECUTORS = [e for e in os.environ.get("FULLPERC_BENCH_EXECUTORS", "events,singl
 REPEATS = int(os.environ.get("FULLPERC_BENCH_REPEATS", "3"))
 
 
-def step(n: int, procs: int, domain: int, executor: str) -> dict:
+def step(n: int, procs: int, executor: str) -> dict:
     targets = [f"t{k}" for k in range(n)]
     parts = [targets[i::procs] for i in range(procs) if targets[i::procs]]
     try:
-        res = run_live([target_params(p) for p in parts], targets, domain, DURATION, executor=executor)
+        res = run_live([target_params(p) for p in parts], targets, None, DURATION, executor=executor)
     except (RuntimeError, subprocess.TimeoutExpired) as e:     # e.g. nodes never subscribed: the step failed
         return {"targets": n, "processes": len(parts), "ok": False, "error": f"{type(e).__name__}: {e}"[:300],
                 "lost": None, "samples": None, "p99_ms": None, "raw_p99_ms": None, "publisher_ok": True,
@@ -72,10 +72,10 @@ def step(n: int, procs: int, domain: int, executor: str) -> dict:
             "load": res.load, "ok": lost == 0 and p99 <= P99_MAX_MS and res.nodes_alive}
 
 
-def search(procs: int, domain: int, executor: str) -> tuple[int, list[dict]]:
+def search(procs: int, executor: str) -> tuple[int, list[dict]]:
     best, steps = 0, []
-    for k, n in enumerate([n for n in STEPS if n >= procs]):   # two processes need two targets
-        s = step(n, procs, domain + k, executor)
+    for n in [n for n in STEPS if n >= procs]:   # two processes need two targets
+        s = step(n, procs, executor)
         steps.append(s)
         print(f"# capacity procs={procs} executor={executor} {s}", file=sys.stderr, flush=True)
         if not s["ok"]:
@@ -98,13 +98,12 @@ def why_failed(steps: list[dict]) -> str | None:
 
 
 def main() -> None:
-    domain = 100 + os.getpid() % 50
     for name, procs in (("capacity_targets", 1), ("capacity_targets_2proc", 2)):
         runs: dict[str, list[tuple[int, list[dict]]]] = {e: [] for e in EXECUTORS}
         for r in range(REPEATS):
             order = EXECUTORS if r % 2 == 0 else EXECUTORS[::-1]
-            for j, ex in enumerate(order):
-                runs[ex].append(search(procs, domain + 20 * (procs - 1) + 8 * j, ex))
+            for ex in order:
+                runs[ex].append(search(procs, ex))
         for ex in EXECUTORS:
             steps = [s for _, st in runs[ex] for s in st]
             raw = [s["raw_p99_ms"] for s in steps if s["raw_p99_ms"] is not None]

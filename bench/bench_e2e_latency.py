@@ -47,9 +47,9 @@ def every_filter() -> tuple[str, list[str]]:
     return primary, [f for f in FILTERS if f != primary]
 
 
-def one_run(primary: str, extra: list[str], domain: int, executor: str) -> dict:
+def one_run(primary: str, extra: list[str], executor: str) -> dict:
     """One run of the node with every filter: its latencies, raw baseline, loss, CPU and load."""
-    res = run_live([["-p", f"filter:={primary}", "-p", f"filters:=[{', '.join(extra)}]"]], ["tool"], domain,
+    res = run_live([["-p", f"filter:={primary}", "-p", f"filters:=[{', '.join(extra)}]"]], ["tool"], None,
                    DURATION, executor=executor)
     lat, raw = res.latency_ms["tool"], res.raw_latency_ms
     r = {"p50": float(np.median(lat)) if len(lat) else None, "p99": float(np.percentile(lat, 99)) if len(lat) else None,
@@ -72,11 +72,10 @@ def _med(runs: list[dict], key: str) -> float | None:
 
 def main() -> None:
     primary, extra = every_filter()
-    domain = 40 + os.getpid() % 50
     runs: dict[str, list[dict]] = {e: [] for e in EXECUTORS}
     for k in range(REPEATS):
-        for j, ex in enumerate(EXECUTORS if k % 2 == 0 else EXECUTORS[::-1]):
-            runs[ex].append(one_run(primary, extra, domain + 2 * j, ex))
+        for ex in EXECUTORS if k % 2 == 0 else EXECUTORS[::-1]:
+            runs[ex].append(one_run(primary, extra, ex))
     for ex, rs in runs.items():
         common = {"executor": ex, "filters": [primary, *extra], "setting": "node defaults", "omc_hz": 240,
                   "ots_hz": 400, "repeats": len(rs)}

@@ -109,12 +109,18 @@ def target_params(targets: list[str]) -> list[str]:
     return out
 
 
-def run_live(nodes: list[list[str]], targets: list[str], domain: int, duration: float,
+def run_live(nodes: list[list[str]], targets: list[str], domain: int | None, duration: float,
              omc_hz: float = 240.0, ots_hz: float = 400.0, executor: str | None = None) -> LiveResult:
     """Run ``len(nodes)`` fusion_node processes (each with the given extra ``--ros-args``) against the publisher.
 
-    ``executor``: ``events`` | ``single`` sets ``FULLPERC_EXECUTOR`` for the nodes (fullperc_common.executor_choice);
-    None leaves the node's default."""
+    ``domain`` None: a domain id no test or other bench on this machine holds (fullperc_common.testing.claim_domain),
+    held for the run. ``executor``: ``events`` | ``single`` sets ``FULLPERC_EXECUTOR`` for the nodes
+    (fullperc_common.executor_choice); None leaves the node's default."""
+    if domain is None:
+        from fullperc_common.testing import claim_domain
+
+        with claim_domain() as lease:
+            return run_live(nodes, targets, lease.domain, duration, omc_hz, ots_hz, executor)
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseStamped

@@ -7,7 +7,7 @@ exactly what `ros2 run fullperc_eval pub|echo` would exec, on a test-unique doma
 import json
 import subprocess
 
-from fullperc_common.testing import installed_exe
+from fullperc_common.testing import claim_domain, installed_exe
 
 
 def test_tracking_quality_crosses_processes(procs, ros_env):
@@ -30,12 +30,13 @@ def test_tracking_quality_crosses_processes(procs, ros_env):
 
 def test_domain_isolation(procs, ros_env):
     """A publisher on another domain id must not be heard: the per-test domain really isolates."""
-    env_other = dict(ros_env, ROS_DOMAIN_ID=str((int(ros_env["ROS_DOMAIN_ID"]) % 100) + 101))
-    pub = procs.start([installed_exe("fullperc_eval", "pub"), "/test/iso", "std_msgs/msg/String",
-                       '{"data": "leak"}', "--rate", "20"], env=env_other)
-    echo = subprocess.run([installed_exe("fullperc_eval", "echo"), "/test/iso", "--type", "std_msgs/msg/String",
-                           "--count", "1", "--timeout", "4"], env=ros_env, capture_output=True, timeout=60)
-    procs.stop(pub)
+    with claim_domain() as other:
+        env_other = dict(ros_env, ROS_DOMAIN_ID=str(other.domain))
+        pub = procs.start([installed_exe("fullperc_eval", "pub"), "/test/iso", "std_msgs/msg/String",
+                           '{"data": "leak"}', "--rate", "20"], env=env_other)
+        echo = subprocess.run([installed_exe("fullperc_eval", "echo"), "/test/iso", "--type", "std_msgs/msg/String",
+                               "--count", "1", "--timeout", "4"], env=ros_env, capture_output=True, timeout=60)
+        procs.stop(pub)
     assert echo.returncode == 1 and echo.stdout == b""
 
 

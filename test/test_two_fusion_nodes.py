@@ -9,7 +9,6 @@ no rate or latency bound.
 from __future__ import annotations
 
 import io
-import os
 import time
 from pathlib import Path
 
@@ -48,7 +47,9 @@ def test_graph_loads_and_partitions_the_targets() -> None:
     assert a and b and not set(a) & set(b), parts
 
 
-def test_two_processes_publish_their_targets(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_two_processes_publish_their_targets(tmp_path: Path, ros_env: dict[str, str]) -> None:
+    # ros_env: a domain id of this test's own, set in this process's environment, which the supervisor
+    # passes on to both nodes
     import rclpy
     from geometry_msgs.msg import PoseStamped
     from rclpy.context import Context
@@ -58,9 +59,6 @@ def test_two_processes_publish_their_targets(tmp_path: Path, monkeypatch: pytest
     from fullperc_common.testing import SpunNode
     from fullperc_common.transforms import T_to_pq, inv_T, make_T
 
-    domain = str(120 + os.getpid() % 50)
-    monkeypatch.setenv("ROS_DOMAIN_ID", domain)               # the supervisor passes its environment on
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     graph = load_graph(GRAPH, {"params_dir": str(CONFIG)})
     parts = _partition(graph)
     targets = [t for ts in parts.values() for t in ts]

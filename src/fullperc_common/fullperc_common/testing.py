@@ -1,16 +1,20 @@
 """Helpers for fullperc's multi-process tests (imported by tests and by the root conftest).
 
 Pure Python: starting installed executables in their own process groups, making sure they are
-gone afterwards, and polling with a liveness bound.
+gone afterwards, polling with a liveness bound, and a DDS domain id no other test on this machine holds.
 """
 
 from __future__ import annotations
 
+import fcntl
+import itertools
 import os
 import signal
 import subprocess
+import tempfile
 import time
 from pathlib import Path
+from typing import IO
 
 import pytest
 
@@ -18,6 +22,56 @@ import pytest
 def workspace_root() -> Path:
     """The workspace root: $FULLPERC_ROOT (set by scripts/env.sh) or the current directory."""
     return Path(os.environ.get("FULLPERC_ROOT", os.getcwd()))
+
+
+DOMAIN_IDS = range(1, 201)   # Fast DDS: 7400 + 250 d + participant ports stay below 65535 for these
+_claims = itertools.count()
+
+
+class DomainLease:
+    """A ROS_DOMAIN_ID held by this process until :meth:`release` (or the process ends).
+
+    Why a lock file and not a number derived from the pid: two test runs on one machine (two terminals, a helper
+    beside CI, the benches while the tests run) that picked the same id saw each other's topics -- a run of
+    test_two_local_sources.py fused another test's tool poses (a mean error of 419 mm). Each id is an exclusive
+    ``flock`` on ``<tmp>/fullperc-ros-domains/<id>.lock``: the kernel drops it when the holder exits, even on
+    SIGKILL, so a crashed run never leaves an id taken. The file descriptor is not inherited by child processes
+    (PEP 446), so a node started under the id does not keep it after the test.
+    """
+
+    def __init__(self, domain: int, lock: IO[str]) -> None:
+        self.domain = domain
+        self._lock: IO[str] | None = lock
+
+    def release(self) -> None:
+        if self._lock is not None:
+            self._lock.close()     # closing the only descriptor drops the flock
+            self._lock = None
+
+    def __enter__(self) -> DomainLease:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+def claim_domain(ids: range = DOMAIN_IDS, lock_dir: Path | None = None) -> DomainLease:
+    """The first free id of ``ids``, searched from a per-process and per-claim offset (successive tests of one run
+    take different ids, so a peer that outlives its test by a moment cannot meet the next test). Raises
+    RuntimeError when every id is held."""
+    d = lock_dir or Path(tempfile.gettempdir()) / "fullperc-ros-domains"
+    d.mkdir(parents=True, exist_ok=True)
+    start = os.getpid() * 7 + next(_claims)
+    for k in range(len(ids)):
+        dom = ids[(start + k) % len(ids)]
+        f = open(d / f"{dom}.lock", "a")   # noqa: SIM115 (held open: the lock lives as long as the descriptor)
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            f.close()
+            continue
+        return DomainLease(dom, f)
+    raise RuntimeError(f"every ROS domain id in {ids} is held by another test process (lock files in {d})")
 
 
 def installed_exe(pkg: str, exe: str) -> str:

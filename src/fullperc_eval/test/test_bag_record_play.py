@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fullperc_common.testing import Procs, installed_exe, wait_for
+from fullperc_common.testing import Procs, claim_domain, installed_exe, wait_for
 
 PREFIX = "/fp_test"
 TOPICS = {
@@ -196,7 +196,8 @@ def run_play(procs: Procs, bag: Path, out: Path, *play_args: str, topics=tuple(T
 def recorded(tmp_path_factory):
     """One 1 kHz recording shared by the round-trip and replay tests (own domain id)."""
     tmp = tmp_path_factory.mktemp("recorded")
-    env = dict(os.environ, ROS_DOMAIN_ID=str(150 + os.getpid() % 50), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+    lease = claim_domain()
+    env = dict(os.environ, ROS_DOMAIN_ID=str(lease.domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                PYTHONUNBUFFERED="1")
     procs = Procs(env, tmp)
     try:
@@ -209,6 +210,7 @@ def recorded(tmp_path_factory):
         yield bag, log["stamps"], Procs.log(rec)
     finally:
         procs.stop_all()
+        lease.release()
 
 
 @pytest.mark.system
