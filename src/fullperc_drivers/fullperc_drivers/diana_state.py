@@ -67,7 +67,7 @@ class DianaStateNode(Node):
         dh = [declare(self, f"dh_{k}", DIANA7_MDH[:, i].tolist(), lambda v: len(v) == 7, "7 values")
               for k, i in (("a", 1), ("alpha", 0), ("d", 2), ("theta", 3))]
         qos = declare(self, "qos", "reliable", lambda v: v in ("reliable", "sensor"), "reliable or sensor")
-        depth = declare(self, "qos_depth", 10, lambda v: v > 0, "> 0")
+        depth = declare(self, "qos_depth", 1000, lambda v: v > 0, "> 0")   # config/diana.yaml: why
         window = declare(self, "sync_window_s", 5.0, lambda v: v > 0, "> 0")
         age = declare(self, "age_compensation_s", 0.0, lambda v: 0 <= v < 1, "0..1 s")
         self.stale_s = declare(self, "stale_timeout_s", 1.0, lambda v: v > 0, "> 0")

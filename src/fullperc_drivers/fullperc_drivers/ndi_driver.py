@@ -21,7 +21,7 @@ host [127.0.0.1]; port [8765]; serial_device [/dev/ttyUSB0]; baud [115200]; tool
 start: exit 2 naming a file that is not an NDI tool definition); tool_priorities [] (S/D/B per tool, default
 D); mode [BX] | TX; reply_option [1] (0x0001; 0x0801 also reports out-of-volume tools); rate_hz [60.0];
 frame_rate_hz [60.0]; device_latency_s [0.0]; volume [-1: keep]; read_timeout_s [0.5]; frame_id [ots];
-topic_prefix [/ots]; qos_depth [50]; health.stale_after_s [2.0]; health.reconnect_window_s [10.0];
+topic_prefix [/ots]; qos_depth [2000]; health.stale_after_s [2.0]; health.reconnect_window_s [10.0];
 health.max_reconnects [3].
 """
 
@@ -86,7 +86,7 @@ class NdiDriverNode(Node):
         read_timeout = declare(self, "read_timeout_s", 0.5, lambda v: v > 0, "> 0")
         self.frame_id = declare(self, "frame_id", "ots")
         prefix = declare(self, "topic_prefix", "/ots").rstrip("/")
-        depth = declare(self, "qos_depth", 50, lambda v: v > 0, "> 0")
+        depth = declare(self, "qos_depth", 2000, lambda v: v > 0, "> 0")   # config/ndi_vega.yaml: why
         health_cfg = declare_health(self)
         if len(roms) != len(names):
             raise ParameterError(f"parameter 'tool_roms' needs one ROM per tool ({len(names)}), got {len(roms)}")

@@ -52,7 +52,7 @@ class OmcDriverNode(Node):
         bodies = declare(self, "bodies", ["all"], description="body names to publish, or ['all']")
         self.frame_id = declare(self, "frame_id", "omc", lambda v: bool(v), "non-empty")
         qos = declare(self, "qos", "reliable", lambda v: v in ("reliable", "sensor"), "reliable or sensor")
-        depth = declare(self, "qos_depth", 10, lambda v: v > 0, "> 0")
+        depth = declare(self, "qos_depth", 1000, lambda v: v > 0, "> 0")   # config/omc.yaml: why
         lat = declare(self, "latency_compensation", True)
         dev_stamp = declare(self, "device_stamp", "capture", lambda v: v in ("capture", "send"), "capture or send")
         stamp_src = declare(self, "stamp_source", "device", lambda v: v in ("device", "receive"),
