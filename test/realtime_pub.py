@@ -39,7 +39,10 @@ def main() -> int:
     phases = [(float(x.split(":")[0]), float(x.split(":")[1])) for x in (a.phase or ["3:0"])]
     rclpy.init()
     node = rclpy.create_node("realtime_pub")
-    qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+    # a history the writers can re-send from for the whole run (Fast DDS asks again after its 3 s heartbeat), and
+    # wait for every acknowledgement before exiting: a sample lost on the way at the end of the stream would be
+    # lost for good with no later frame number to reveal it, and the test could not account for it
+    qos = QoSProfile(depth=50000, reliability=ReliabilityPolicy.RELIABLE)
     pubs = {(d, b): node.create_publisher(PoseStamped, f"/{d}/{b}/pose", qos)
             for d in ("omc", "ots") for b in ("tool", "base")}
     qpubs = {d: node.create_publisher(TrackingQuality, f"/{d}/tool/quality", qos) for d in ("omc", "ots")}
@@ -77,11 +80,13 @@ def main() -> int:
             q.body, q.visible, q.frame_number, q.fit_error = "tool", True, k, -1.0
             qpubs[dev].publish(q)
             sent[dev].append(stamp)
-    time.sleep(1.0)   # let the reliable writers deliver
+    from rclpy.duration import Duration
+
+    acked = all(p.wait_for_all_acked(Duration(seconds=60)) for p in [*pubs.values(), *qpubs.values()])
     if a.stamps:
         with open(a.stamps, "w") as f:
             json.dump(sent, f)
-    print(json.dumps({k: len(v) for k, v in sent.items()}), flush=True)
+    print(json.dumps({**{k: len(v) for k, v in sent.items()}, "all_acked": acked}), flush=True)
     node.destroy_node()
     rclpy.shutdown()
     return 0
