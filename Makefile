@@ -8,6 +8,10 @@ export PYTHON VENV
 ENV := source scripts/env.sh &&
 COLCON_FLAGS ?= --symlink-install --event-handlers console_direct- summary+
 PYTEST_ARGS ?=
+# `make test` runs the suite on this many pytest-xdist workers (one per core of the 2-core CI machine; 1 = no
+# workers). Whole test modules go to one worker (--dist loadscope), so a module's fixtures are built once.
+TEST_WORKERS ?= 2
+XDIST = $(if $(filter-out 0 1,$(TEST_WORKERS)),-n $(TEST_WORKERS) --dist loadscope)
 TASK ?= P-B-G-P
 
 .PHONY: setup build test unit system lint clean demo bench dataset eval accuracy twin-report lock
@@ -25,13 +29,13 @@ lint: setup
 	@$(ENV) ruff check src test bench scripts soak
 
 test: build lint
-	@$(ENV) python -m pytest $(PYTEST_ARGS)
+	@$(ENV) python -m pytest $(XDIST) $(PYTEST_ARGS)
 
 unit: build
-	@$(ENV) python -m pytest src $(PYTEST_ARGS)
+	@$(ENV) python -m pytest $(XDIST) src $(PYTEST_ARGS)
 
 system: build
-	@$(ENV) python -m pytest test $(PYTEST_ARGS)
+	@$(ENV) python -m pytest $(XDIST) test $(PYTEST_ARGS)
 
 demo: build
 	@$(ENV) install/fullperc_eval/lib/fullperc_eval/supervisor demo --task $(TASK) --profile $(PROFILE) $(if $(CALIBRATION),--calibration $(CALIBRATION)) $(DEMO_ARGS)

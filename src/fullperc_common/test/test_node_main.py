@@ -128,3 +128,49 @@ def test_signal_in_any_phase_exits_0_after_close(phase, sig, executor, ros_env):
         assert f"spinning on {'EventsExecutor' if executor == 'events' else 'SingleThreadedExecutor'}" in out, out
     ticks = int(p.stdout.split("close after ", 1)[1].split()[0])
     assert (ticks == 0) if phase == "startup" else (ticks >= 50), out
+
+
+class _Pub:
+    def __init__(self, topic: str, acked: bool, log: list, clock: list[float], takes_s: float = 0.0):
+        self.topic_name, self.acked, self.log, self.clock, self.takes_s = topic, acked, log, clock, takes_s
+
+    def wait_for_all_acked(self, timeout) -> bool:
+        left = timeout.nanoseconds / 1e9
+        self.log.append(("wait", self.topic_name, left))
+        self.clock[0] += min(left, self.takes_s) if self.acked else left
+        return self.acked
+
+
+def test_wait_for_acks_shares_one_deadline_and_names_the_unacknowledged_topics():
+    log: list = []
+    clock = [100.0]
+    node = type("N", (), {})()
+    node.publishers = [_Pub("/a", True, log, clock, takes_s=1.0), _Pub("/b", False, log, clock),
+                       _Pub("/c", True, log, clock)]
+    late = node_main.wait_for_acks(node, 4.0, clock=lambda: clock[0])
+    assert late == ["/b"]
+    # /a used 1 s of the 4, /b (never acknowledged) the remaining 3, /c gets no time left but is still asked
+    assert [(w, t, pytest.approx(s)) for w, t, s in log] == [("wait", "/a", 4.0), ("wait", "/b", 3.0),
+                                                            ("wait", "/c", 0.0)]
+
+
+def test_release_waits_for_acknowledgements_after_close_and_before_destroy(capsys):
+    """A node's last samples reach a reader that was behind: the wait sits between close() (no more samples) and
+    destroy_node() (the writers gone); a topic never acknowledged is named on stderr."""
+    log: list = []
+    clock = [0.0]
+
+    class Node:
+        publishers = [_Pub("/diana/joint_states", True, log, clock), _Pub("/diagnostics", False, log, clock)]
+
+        def close(self):
+            log.append("close")
+
+        def destroy_node(self):
+            log.append("destroy")
+
+    assert node_main._release("unit_node", {"node": Node(), "initialised": False})
+    assert [e if isinstance(e, str) else e[:2] for e in log] == [
+        "close", ("wait", "/diana/joint_states"), ("wait", "/diagnostics"), "destroy"]
+    err = capsys.readouterr().err
+    assert "[unit_node] samples on /diagnostics still unacknowledged" in err and "/diana" not in err

@@ -191,7 +191,13 @@ def _statuses(lis, target):
 def test_fusion_node_alarms_on_diagnostics(procs, rclpy_context, python_exe, tmp_path):
     """Issue 14: three OMC targets in one node. ``tool`` jumps by 1 m (while the OTS sees it): WARN naming the
     target and its OMC body; ``probe`` hops once by 3 mm (cameras changing): a hop in FusionStatus, no WARN;
-    every OMC sample of ``broken`` is NaN from 1.5 s on: ERROR naming it once that lasted 1 s."""
+    every OMC sample of ``broken`` is NaN from 1.5 s on: ERROR naming it once that lasted 1 s.
+
+    The node's input queues hold the whole run (``qos_depth`` 5000): with the default 100 (0.8 s of each topic) a
+    node that falls behind on a busy machine loses samples, and after such a gap the prediction's covariance has
+    grown enough to take the 3 mm step as motion (no hop flag: right for that input, not what this test asks). The
+    suspected cause of the one failure seen (two test workers on 2 cores; the figures were not recorded then: the
+    message names them now)."""
     from fullperc_common.diagnostics import as_level
 
     targets = ["tool", "probe", "broken"]
@@ -200,7 +206,7 @@ def test_fusion_node_alarms_on_diagnostics(procs, rclpy_context, python_exe, tmp
     try:
         node = procs.start([installed_exe("fullperc_fusion", "fusion_node"), "--ros-args",
                             "-p", "targets:=[tool, probe, broken]", "-p", "init_samples:=20",
-                            "-p", "alarm.reject_timeout:=1.0"], name="fusion_node")
+                            "-p", "alarm.reject_timeout:=1.0", "-p", "qos_depth:=5000"], name="fusion_node")
         wait_for(lambda: all(lis.node.count_publishers(t) > 0 for t in topics), 30, what="node's publishers")
         wait_for(lambda: all(p.get_publisher_count() > 0 for p in lis.node.subscriptions if p.topic_name in topics),
                  30, what="subscriptions matched")
@@ -227,7 +233,11 @@ def test_fusion_node_alarms_on_diagnostics(procs, rclpy_context, python_exe, tmp
     assert "non-finite" in err[0].message
     # the single hop of probe: in FusionStatus, not on /diagnostics
     probe = lis.got["/fullperc/probe/status"]
-    assert any(s.hop for s in probe), "the 3 mm step of probe raised no hop flag"
+    last = {kv.key: kv.value for kv in _statuses(lis, "probe")[-1].values}
+    assert any(s.hop for s in probe), (
+        f"the 3 mm step of probe raised no hop flag: {len(probe)} statuses, stamps "
+        f"{[round((_ns(s.header.stamp) - _ns(probe[0].header.stamp)) / 1e9, 3) for s in probe[::50]]}; "
+        f"node's last figures: {last}")
     assert sum(s.hop for s in probe) <= 5
     for st in _statuses(lis, "probe"):
         assert "hops too often" not in st.message and "compensation" not in st.message, st.message
@@ -288,7 +298,14 @@ def test_fusion_node_time_guard_one_sample_an_hour_ahead_does_not_stall(procs, r
         assert node.poll() is None, procs.log(node)
     finally:
         lis.close()
-    assert re.search(rf"OMC body 'tool': stamp {bad_ns} ns is 3(600\.0|599\.9)\d* s ahead", named[0].message), \
-        named[0].message
+    # The node names the stamp, how far ahead it is and its own clock then. The publisher stamped it 3600 s after
+    # its clock at publishing; the node's clock reads later by the delivery delay (0.9 s seen with a second test
+    # worker beside it), so 'ahead' is just under 3600 s and is the difference of the two stamps it names.
+    m = re.search(rf"OMC body 'tool': stamp {bad_ns} ns is (\d+\.\d+) s ahead of the clock \((\d+) ns;",
+                  named[0].message)
+    assert m, named[0].message
+    ahead, clock_ns = float(m[1]), int(m[2])
+    assert ahead == pytest.approx((bad_ns - clock_ns) / 1e9, abs=1e-3), named[0].message
+    assert 3600.0 - 30.0 < ahead <= 3600.0 + 1e-3, named[0].message
     stamps = [_ns(m.header.stamp) for m in lis.got["/fullperc/tool/pose"]]
     assert stamps == sorted(stamps) and max(stamps) < bad_ns
