@@ -48,8 +48,9 @@ TIMEOUT_S = 300  # liveness bound for a hung process, not a performance limit
 def publisher_main(argv: list[str]) -> int:
     import rclpy
     from geometry_msgs.msg import PointStamped
-    from rclpy.duration import Duration
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    from fullperc_common.node_main import wait_for_acks
 
     ap = argparse.ArgumentParser()
     ap.add_argument("--n", type=int, required=True)
@@ -83,7 +84,7 @@ def publisher_main(argv: list[str]) -> int:
         stamps.append(stamp)
         if seq == args.n // 2:
             print("HALF", flush=True)
-    acked = all(p.wait_for_all_acked(Duration(seconds=60)) for p in pubs)
+    acked = not wait_for_acks(node, 60.0)
     Path(args.log).write_text(json.dumps({"stamps": stamps, "acked": acked,
                                           "late_s": time.monotonic() - t0 - args.n / RATE_HZ}))
     print("DONE", flush=True)

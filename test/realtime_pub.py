@@ -20,6 +20,7 @@ import rclpy
 from geometry_msgs.msg import PoseStamped
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
+from fullperc_common.node_main import wait_for_acks
 from fullperc_common.ros_conv import ns_to_stamp, pose_stamped
 from fullperc_msgs.msg import TrackingQuality
 
@@ -80,9 +81,7 @@ def main() -> int:
             q.body, q.visible, q.frame_number, q.fit_error = "tool", True, k, -1.0
             qpubs[dev].publish(q)
             sent[dev].append(stamp)
-    from rclpy.duration import Duration
-
-    acked = all(p.wait_for_all_acked(Duration(seconds=60)) for p in [*pubs.values(), *qpubs.values()])
+    acked = not wait_for_acks(node, 60.0)
     if a.stamps:
         with open(a.stamps, "w") as f:
             json.dump(sent, f)

@@ -102,8 +102,9 @@ def publisher_main(argv: list[str]) -> int:
     import argparse
 
     import rclpy
-    from rclpy.duration import Duration
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    from fullperc_common.node_main import wait_for_acks
 
     ap = argparse.ArgumentParser()
     ap.add_argument("--n", type=int, default=N)
@@ -134,7 +135,7 @@ def publisher_main(argv: list[str]) -> int:
         stamps.append(stamp)
         if seq == args.n // 2:
             print("HALF", flush=True)
-    acked = all(p.wait_for_all_acked(Duration(seconds=60)) for p in pubs.values())
+    acked = not wait_for_acks(node, 60.0)
     Path(args.log).write_text(json.dumps({"stamps": stamps, "acked": acked}))
     print("DONE", flush=True)
     try:
