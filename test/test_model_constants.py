@@ -49,6 +49,8 @@ def test_systematic_error_parameters_are_the_structure_function_fits(stats):
     assert pr.sys_std == pytest.approx(s, rel=REL) and pr.sys_time == pytest.approx(tau, rel=REL)
     _, _, _, s_slow, tau_slow = stats["paper"]["rot_gm2"]
     assert pr.rot_sys_std == pytest.approx(s_slow, rel=REL) and pr.rot_sys_time == pytest.approx(tau_slow, rel=REL)
+    # beta's spatial decay: the paper bags' rotation error over distance (the same fit, lags in metres)
+    assert pr.rot_bias_length == pytest.approx(stats["paper"]["rot_gm_dist"][2], rel=REL)
     # spec's slow rotation part is a random walk (tau at the fit grid's end): rot_bias_walk is its order of magnitude
     _, _, _, s_spec, tau_spec = stats["spec"]["rot_gm2"]
     assert tau_spec >= 100.0 and 0.3 <= pr.rot_bias_walk / (2 * s_spec**2 / tau_spec) <= 3.0

@@ -14,7 +14,8 @@ from fullperc_fusion.noise_model_file import load_noise_model
 def stats(**over):
     f = {"pos_white": np.array([0.02e-3, 0.08, 0.12e-3]), "pos_total": np.array([0.13e-3, 0.5, 0.5e-3]),
          "rot_total": np.array([1.7e-3, 5.0, 4.0e-3]), "fit_median": 0.05e-3, "n_omc": 1000,
-         "pos_gm": (0.05e-3, 0.25e-3, 3.0), "rot_gm2": (1.2e-3, 1.5e-3, 0.4, 11e-3, 3.8)}
+         "pos_gm": (0.05e-3, 0.25e-3, 3.0), "rot_gm2": (1.2e-3, 1.5e-3, 0.4, 11e-3, 3.8),
+         "rot_gm_dist": (0.5e-3, 10e-3, 0.05)}
     f.update(over)
     return f
 
@@ -27,12 +28,13 @@ def test_the_mapping_of_each_constant():
     assert omc["marker_lever"] == pytest.approx(0.1)                                   # k_fit / k_rot
     assert omc["rot_sys_floor"] == pytest.approx(np.sqrt(1.7e-3**2 - (0.02e-3 / 0.1) ** 2))
     assert omc["rot_margin_std"] == 4.0e-3
-    assert bias == {"sys_time": 3.0, "sys_std": 0.25e-3, "rot_sys_time": 3.8, "rot_sys_std": 11e-3}
+    assert bias == {"sys_time": 3.0, "sys_std": 0.25e-3, "rot_sys_time": 3.8, "rot_sys_std": 11e-3,
+                    "rot_bias_length": 0.05}   # the distance fit's length
 
 
 def test_a_slow_rotation_part_at_the_grids_end_is_a_random_walk():
     _, bias = noise_model_from_stats(stats(rot_gm2=(1.2e-3, 1.5e-3, 0.4, 8e-3, RANDOM_WALK_TAU_S * 2)))
-    assert bias["rot_sys_time"] == 0.0 and bias["rot_sys_std"] == 0.0
+    assert bias["rot_sys_time"] == 0.0 and bias["rot_sys_std"] == 0.0 and bias["rot_bias_length"] == 0.0
     # same short-lag increments: 2 s^2 (1 - exp(-L/tau)) ~ 2 s^2 L / tau = q L
     assert bias["rot_bias_walk"] == pytest.approx(2 * 8e-3**2 / (RANDOM_WALK_TAU_S * 2))
 

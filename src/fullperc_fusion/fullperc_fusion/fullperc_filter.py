@@ -217,6 +217,8 @@ class FullpercFilter(StepCompat):
         self._t, self._pend, self._has_R, self._sys_var = s.t_ns, s.pending_ns, s.has_R, s.sys_var
         self._lam, self._tg, self._frame = s.noise_scale, s.t_global_ns, s.frame
         self._anchor = None if s.anchor is None else s.anchor.tolist()
+        self._tl, self._dmax = s.t_local_ns, s.rot_dmax
+        self._ra = None if s.rot_anchor is None else s.rot_anchor.tolist()
 
     @property
     def state(self) -> _State:
@@ -225,7 +227,8 @@ class FullpercFilter(StepCompat):
         return _State(np.array(x[0:3]), np.array(x[3:6]), np.array(x[6:9]), np.array(self._R).reshape(3, 3),
                       np.array(x[12:15]), np.array(x[15:18]), self._P.copy(), self._t, self._pend, self._has_R,
                       np.array(x[18:21]), self._sys_var, self._lam, self._tg, self._frame,
-                      None if self._anchor is None else np.array(self._anchor))
+                      None if self._anchor is None else np.array(self._anchor), self._tl,
+                      None if self._ra is None else np.array(self._ra), self._dmax)
 
     def express_in(self, T_frame: np.ndarray, local: bool = True) -> np.ndarray | None:
         """:meth:`FullpercReference.express_in`; a change (rare: once per link change) is delegated to the
@@ -242,14 +245,14 @@ class FullpercFilter(StepCompat):
     def snapshot(self) -> object:
         """The whole filter state, for :meth:`restore`: references only (nothing stored is changed in place)."""
         return ("fullperc", self._x, self._R, self._P, self._t, self._pend, self._has_R, self._sys_var, self._lam,
-                self._tg, self._frame, self._anchor)
+                self._tg, self._frame, self._anchor, self._tl, self._ra, self._dmax)
 
     def restore(self, obj: object) -> None:
         """Back to a :meth:`snapshot` (it stays usable)."""
-        if not (isinstance(obj, tuple) and len(obj) == 12 and obj[0] == "fullperc"):
+        if not (isinstance(obj, tuple) and len(obj) == 15 and obj[0] == "fullperc"):
             raise TypeError(f"not a fullperc snapshot: {type(obj).__name__}")
         (_, self._x, self._R, self._P, self._t, self._pend, self._has_R, self._sys_var, self._lam, self._tg,
-         self._frame, self._anchor) = obj
+         self._frame, self._anchor, self._tl, self._ra, self._dmax) = obj
 
     @property
     def time_ns(self) -> int | None:
@@ -335,6 +338,19 @@ class FullpercFilter(StepCompat):
         self._R = _mul(Rw, self._R)
         Q = self._qcache.get((dt, self._sys_var))
         P = F @ self._P @ F.T + (Q if Q is not None else self._noise(dt, self._sys_var))
+        ra, pr = self._ra, self.params
+        if ra is not None and (t - self._tl) * 1e-9 > pr.local_lost_s and pr.rot_bias_length > 0.0:
+            d = math.dist(x[0:3], ra)   # beta's spatial decay (the reference's _rot_spatial_decay)
+            if d > self._dmax:
+                f = math.exp(-(d - self._dmax) / pr.rot_bias_length)
+                self._dmax = d
+                x[15], x[16], x[17] = f * x[15], f * x[16], f * x[17]
+                P[15:18, :] *= f
+                P[:, 15:18] *= f
+                ex = pr.rot_sys_std**2 * (1.0 - f * f)
+                P[15, 15] += ex
+                P[16, 16] += ex
+                P[17, 17] += ex
         self._P = 0.5 * (P + P.T)
         self._t = t
 
@@ -465,6 +481,8 @@ class FullpercFilter(StepCompat):
         self._x, self._R, self._P, self._t = xn, Rn, P, t
         if mg is not None:
             self._lam, self._tg = lam_next, mg.t_ns
+        if ml is not None:   # where the local source last saw the tool (beta's spatial decay)
+            self._tl, self._ra, self._dmax = ml.t_ns, xn[0:3], 0.0
         return self._step(t, mg, ml, innovation=np.array(y[0:3]), nis=nis, nis_global=nis_g, hop=hop)
 
     def _reinit(self, t: int, mg: Measurement | None, ml: Measurement | None) -> Step:

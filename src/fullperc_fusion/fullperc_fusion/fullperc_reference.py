@@ -26,6 +26,11 @@ a Gauss-Markov process forgets it at the rate the sensor's error does, and the m
 * predict over dt (constant velocity, constant angular velocity):
   p += v dt, R = Exp(w dt) R, g *= phi, phi = exp(-dt / sys_time), beta *= phi_b, phi_b = exp(-dt / rot_sys_time)
   (1 when rot_sys_time is 0);
+  and, once the local source has lost the tool (its newest sample fused more than ``local_lost_s`` ago), beta's
+  spatial decay: with d the distance of p from a_r, where p was when that sample was fused, and d_max the largest d
+  since, a prediction that takes d beyond d_max multiplies beta (and its rows and columns of P) by
+  f = exp(-(d - d_max) / rot_bias_length) and adds rot_sys_std^2 (1 - f^2) to its variance, so that
+  beta = exp(-d_max / L) beta(a_r) (a Gauss-Markov process in the distance from where beta was last observed);
   F = I with F_pv = dt I, F_thth = Exp(w dt), F_thw = dt I, F_gg = phi I, F_bebe = phi_b I;
   Q = q_a [[dt^3/3, dt^2/2], [dt^2/2, dt]] on (p, v), q_b dt on b, q_alpha the same form on (theta, w),
   q_beta dt + s_b^2 (1 - phi_b^2) on beta (a random walk plus a Gauss-Markov part of stationary variance
@@ -63,6 +68,16 @@ a Gauss-Markov process forgets it at the rate the sensor's error does, and the m
   (:func:`measurement_models.omc_covariance`), so a jump kept in beta would stay wrong after the OMC recovers.
 * error-state update (Joseph form), injection p += dp ..., R = Exp(dtheta) R, and the reset of the error state:
   P = G P G^T with G_thth = I - [dtheta/2]x (the first-order reset Jacobian of the multiplicative update).
+* why the spatial decay: the OMC's rotation error is a field over the room, not a process in time. The raw OMC
+  rotation error's structure function over the distance between two samples of a bag (``paper`` bags, seed 0)
+  rises from 1.7 mrad rms per axis (~1 mm apart) through 4.7 (7 mm) and 10.2 (27 mm) to 12-13 mrad at 6-9 cm:
+  D(d) = 2 w^2 + 2 s^2 (1 - exp(-d / L)) with L = 56.5 mm (``sensor_stats.structure_over_distance``). The time decay
+  (``rot_sys_time``, fitted over time lags at the bags' speeds) holds while the tool stays where beta is being
+  learnt; when the local source has lost it, the tool is usually on its way to another region (B -> P), and beta,
+  learnt where the Vega saw the tool, is the OMC's error there, not here: kept for ``rot_sys_time`` it turned the
+  OMC's orientation by the wrong amount for seconds (``paper`` seed 100 P-G-B-P, after the Vega's view: 1.74 deg
+  against the raw OMC's 0.63 deg). While the local source sees the tool the decay is off: beta is observed there,
+  and a decay with every millimetre of motion would also forget what the local samples keep telling it.
 * gaps longer than ``max_gap_s`` re-initialise p, v, R, w from the next sample; b and beta (and their variances)
   are kept (propagated over the gap: b's walk, beta's decay and walk, g's decay).
 
@@ -107,6 +122,12 @@ class FullpercParams(FilterParams):
                      OMC error's structure function, spec bags, measurement_models).
     sys_std          its per-axis std [m] for a global sample without ``sys_var`` (0.25 mm: raw OMC, spec bags).
     rot_sys_time     correlation time of beta's Gauss-Markov part [s]; 0: beta is the random walk alone.
+    rot_bias_length  L, the distance [m] over which beta decays once the local source has lost the tool (module
+                     docstring; 0: off). 0.0565 m with rot_sys_std's 11.4 mrad: the raw OMC rotation error's
+                     structure function over distance fitted as white + Gauss-Markov (``paper`` bags: 0.5 mrad
+                     white, 10.6 mrad, L 56.5 mm; ``spec``: 0.9 / 2.0 mrad, 23 mm; ``sensor_stats.fitted``).
+    local_lost_s     time [s] without a local sample after which the local source counts as having lost the
+                     tool (0.1 s: the evaluation's seen/unseen split, six Vega frames at 60 Hz).
     hop_into         "b" (default) or "g": the bias part a position hop goes into (module docstring).
     noise_adapt_time tau of the global white-noise scale lambda [s] (module docstring; 0 = off). 0.4 s: the
                      scale follows a change of the camera set within about half a second (~50 OMC frames at
@@ -131,6 +152,8 @@ class FullpercParams(FilterParams):
     sys_std: float = 0.25e-3
     rot_sys_time: float = 3.8
     rot_sys_std: float = 11.4e-3
+    rot_bias_length: float = 0.0565
+    local_lost_s: float = 0.1
     hop_into: str = "b"
     noise_adapt_time: float = 0.4
     noise_adapt_max: float = 25.0
@@ -140,11 +163,11 @@ class FullpercParams(FilterParams):
         if self.hop_into not in HOP_INTO:
             raise ValueError(f"filter parameter hop_into must be one of {HOP_INTO}, got {self.hop_into!r}")
         for name in ("ang_accel_noise", "rot_bias_walk", "init_rot_std", "init_angvel_std", "init_rot_bias_std",
-                     "rot_sys_time", "rot_sys_std", "noise_adapt_time"):
+                     "rot_sys_time", "rot_sys_std", "noise_adapt_time", "rot_bias_length"):
             v = float(getattr(self, name))
             if not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"filter parameter {name} must be finite and >= 0, got {v!r}")
-        for name in ("rot_global_std", "rot_local_std", "sys_time", "sys_std"):
+        for name in ("rot_global_std", "rot_local_std", "sys_time", "sys_std", "local_lost_s"):
             v = float(getattr(self, name))
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"filter parameter {name} must be finite and > 0, got {v!r}")
@@ -259,13 +282,16 @@ class _State:
     t_global_ns: int | None = None  # stamp of the newest global sample fused (for lambda's dt_g)
     frame: np.ndarray | None = None  # the 4x4 the caller says the estimate is expressed in (express_in)
     anchor: np.ndarray | None = None  # p when the newest local sample in that frame came (express_in)
+    t_local_ns: int | None = None  # stamp of the newest local sample fused (beta's spatial decay)
+    rot_anchor: np.ndarray | None = None  # a_r: p after that sample was fused
+    rot_dmax: float = 0.0          # d_max: the farthest p has been from a_r since
 
 
 def _copy(s: _State) -> _State:
     """A copy of every array of the state (the scalars are immutable): ~10x cheaper than copy.deepcopy."""
     return _State(s.p.copy(), s.v.copy(), s.b.copy(), s.R.copy(), s.w.copy(), s.beta.copy(), s.P.copy(), s.t_ns,
                   s.pending_ns, s.has_R, s.g.copy(), s.sys_var, s.noise_scale, s.t_global_ns, s.frame,
-                  s.anchor)
+                  s.anchor, s.t_local_ns, s.rot_anchor, s.rot_dmax)
 
 
 class FullpercReference(StepCompat):
@@ -415,8 +441,30 @@ class FullpercReference(StepCompat):
             P[6 + k, 6 + k] += pr.bias_walk * dt
             P[15 + k, 15 + k] += qbe
             P[18 + k, 18 + k] += s.sys_var * (1.0 - phi * phi)
+        self._rot_spatial_decay(P, t)
         s.P = 0.5 * (P + P.T)
         s.t_ns = t
+
+    def _rot_spatial_decay(self, P: np.ndarray, t: int) -> None:
+        """beta's spatial decay after the prediction to ``t`` (module docstring), on s.beta and ``P`` in place."""
+        s, pr = self.s, self.params
+        if pr.rot_bias_length <= 0.0 or s.rot_anchor is None or (t - s.t_local_ns) * 1e-9 <= pr.local_lost_s:
+            return
+        d = math.dist(s.p, s.rot_anchor)   # as the fast form computes it (one rounding less than norm of a difference)
+        if d <= s.rot_dmax:
+            return
+        f = math.exp(-(d - s.rot_dmax) / pr.rot_bias_length)
+        s.rot_dmax = d
+        s.beta = f * s.beta
+        P[BE, :] *= f
+        P[:, BE] *= f
+        P[BE, BE] += pr.rot_sys_std**2 * (1.0 - f * f) * _I3
+
+    def _local_fused(self, ml: Measurement | None) -> None:
+        """Record where the local source last saw the tool (beta's spatial decay starts from there)."""
+        if ml is not None:
+            s = self.s
+            s.t_local_ns, s.rot_anchor, s.rot_dmax = ml.t_ns, s.p.copy(), 0.0
 
     # ---- update ---------------------------------------------------------------------------------
     def _init_state(self, t: int, mg: Measurement | None, ml: Measurement | None) -> Step:
@@ -443,6 +491,7 @@ class FullpercReference(StepCompat):
         s.P = self._prior(Pbb, Pbe, Pgg)
         s.t_ns, s.pending_ns = t, None
         s.t_global_ns = None   # lambda is kept; its next step starts from the next global sample fused
+        self._local_fused(ml)
         return self._step(t, mg, ml, reset=True)
 
     def _rows(self, m: Measurement, t: int):
@@ -551,6 +600,7 @@ class FullpercReference(StepCompat):
         s.t_ns = t
         if mg is not None:
             s.noise_scale, s.t_global_ns = lam_next, mg.t_ns
+        self._local_fused(ml)
         return self._step(t, mg, ml, innovation=y[0:3].copy(), nis=nis, nis_global=nis_g, hop=hop)
 
     def _step(self, t: int, mg, ml, **kw) -> Step:

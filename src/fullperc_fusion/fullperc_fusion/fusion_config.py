@@ -170,6 +170,11 @@ PARAMS: tuple[Param, ...] = (
           "fullperc: correlation time of the OMC orientation bias's Gauss-Markov part; 0 = random walk alone"),
     Param("fullperc.rot_sys_std", _F.rot_sys_std, "float", _nonneg, "must be finite and >= 0", "rad",
           "fullperc: stationary per-axis std of that part"),
+    Param("fullperc.rot_bias_length", _F.rot_bias_length, "float", _nonneg, "must be finite and >= 0", "m",
+          "fullperc: distance over which the OMC orientation bias decays once the local source has lost the tool "
+          "(0 = off)"),
+    Param("fullperc.local_lost_s", _F.local_lost_s, "float", _pos, "must be finite and > 0", "s",
+          "fullperc: time without a local sample after which the local source counts as having lost the tool"),
     Param("fullperc.hop_into", _F.hop_into, "str", lambda v: v in HOP_INTO, f"one of {HOP_INTO}", "",
           "the global bias part a position hop goes into: b (the lasting compensation, CBKF's rule) | g "
           "(Gauss-Markov, forgotten over fullperc.sys_time)"),
@@ -181,7 +186,8 @@ PARAMS: tuple[Param, ...] = (
           "fullperc: OR layout for the OMC model's view margin; '' = the installed or_layout.yaml, 'none' = none"),
     Param("fullperc.noise_model_file", "", "str", None, "", "",
           "fullperc: noise model of this installation's OMC (written by fit_noise_model); '' = the built-in one. "
-          "Its omc_bias values replace fullperc.sys_time, sys_std, rot_sys_time, rot_sys_std, rot_bias_walk"),
+          "Its omc_bias values replace fullperc.sys_time, sys_std, rot_sys_time, rot_sys_std, rot_bias_walk, "
+          "rot_bias_length"),
     Param("slop", _T.slop_ns * 1e-9, "float", _nonneg, "must be finite and >= 0", "s",
           "pair OMC and OTS samples closer than this"),
     Param("reorder_delay", _T.delay_ns * 1e-9, "float", _nonneg, "must be finite and >= 0", "s",
@@ -342,7 +348,8 @@ def filter_params(vals: dict[str, Any]) -> FullpercParams:
         init_angvel_std=vals["fullperc.init_angvel_std"],
         init_rot_bias_std=vals["fullperc.init_rot_bias_std"], sys_time=vals["fullperc.sys_time"],
         sys_std=vals["fullperc.sys_std"], rot_sys_time=vals["fullperc.rot_sys_time"],
-        rot_sys_std=vals["fullperc.rot_sys_std"], hop_into=vals["fullperc.hop_into"],
+        rot_sys_std=vals["fullperc.rot_sys_std"], rot_bias_length=vals["fullperc.rot_bias_length"],
+        local_lost_s=vals["fullperc.local_lost_s"], hop_into=vals["fullperc.hop_into"],
         noise_adapt_time=vals["fullperc.noise_adapt_time"], noise_adapt_max=vals["fullperc.noise_adapt_max"]).validate()
 
 

@@ -26,7 +26,9 @@ a noise-model file for another installation: :mod:`noise_model_file`). Per-axis 
   D(L) = 2 w^2 + 2 s^2 (1 - exp(-L / tau)): position tau = 3.0 s (spec) / 12.5 s (paper), s = 0.25 / 2.35 mm.
   The rotation error as white + two Gauss-Markov processes: paper 1.2 mrad white, 5.1 mrad / 0.21 s fast (reverts
   within frames: noise of the sample, here), 11.4 mrad / 3.8 s slow (``FullpercParams.rot_sys_std`` /
-  ``rot_sys_time``); spec 1.2 mrad, 1.6 mrad / 0.37 s, and a slow part that is a random walk. Beyond the white
+  ``rot_sys_time``); spec 1.2 mrad, 1.6 mrad / 0.37 s, and a slow part that is a random walk. Over the distance
+  between two samples instead of their time lag (white + Gauss-Markov): paper 10.6 mrad with a length of 56.5 mm
+  (``FullpercParams.rot_bias_length``), spec 2.0 mrad / 23 mm. Beyond the white
   jitter the error is systematic and decorrelates within seconds of motion (distortion along the path,
   camera-set changes);
 * ``test/test_model_constants.py`` recomputes these on the committed bags and fails when a constant below (or one

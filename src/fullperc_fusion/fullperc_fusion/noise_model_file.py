@@ -21,6 +21,7 @@ Format (YAML, SI units; every key of ``omc`` and ``omc_bias`` optional: a key no
       rot_sys_time: 3.8              # [s] (0: the orientation bias is a random walk alone)
       rot_sys_std: 1.14e-02          # [rad]
       rot_bias_walk: 1.0e-06         # [rad^2/s]
+      rot_bias_length: 5.65e-02      # [m] (0: the orientation bias does not decay with distance)
 
 A file that cannot be read, has another version, an unknown key or a value that is not a finite number in its
 range raises :class:`NoiseModelError` naming the file and the key: a typo must not silently leave a default.
@@ -47,7 +48,7 @@ OMC_KEYS: dict[str, tuple[str, bool]] = {
     "rot_margin_std": ("rad", False), "default_fit": ("m", False)}
 BIAS_KEYS: dict[str, tuple[str, bool]] = {
     "sys_time": ("s", True), "sys_std": ("m", True), "rot_sys_time": ("s", False), "rot_sys_std": ("rad", False),
-    "rot_bias_walk": ("rad^2/s", False)}
+    "rot_bias_walk": ("rad^2/s", False), "rot_bias_length": ("m", False)}
 
 
 class NoiseModelError(ValueError):

@@ -2,7 +2,7 @@
 
 Agreement, stated once, checked after every step of long randomised streams: position, velocity, bias (b + g),
 the global position innovation and the orientation quaternion to 1e-12 absolute (m, m/s, unit quaternion); every
-covariance entry (the full 21x21 P and the 6x6 pose covariance) to 5e-12 of sqrt(P_ii P_jj), i.e. relative to the
+covariance entry (the full 21x21 P and the 6x6 pose covariance) to 1e-11 of sqrt(P_ii P_jj), i.e. relative to the
 scale of that entry (P spans 1e-10 m^2 to 0.25 rad^2/s^2, so one absolute figure would say little); hop, reset,
 sources, stamp and the hop counters exactly. NIS and NIS_global to 1e-10 of max(1, NIS): NIS divides by a 0.1 mm
 sigma, so the ~1e-15 m by which two implementations' positions differ after thousands of steps is ~1e-11 of it,
@@ -26,7 +26,8 @@ from fullperc_fusion.fullperc_reference import FullpercParams, FullpercReference
 
 S = 1_000_000_000
 TOL = 1e-12
-COV_TOL = 5e-12     # covariances: measured <= 1.9e-12 (the other-noise settings, beta's Gauss-Markov part on)
+COV_TOL = 1e-11     # covariances: measured <= 6.3e-12 (the other-noise settings; 3.6e-12 there without beta's
+                    # spatial decay, whose factor exp(-d / L) takes d from positions that agree to ~1e-16 m)
 
 
 def _cov(rng, mode: str | None) -> np.ndarray | None:
@@ -46,8 +47,10 @@ def _cov(rng, mode: str | None) -> np.ndarray | None:
     return 0.5 * (C + C.T)
 
 
-def _items(seed: int, n: int, cov_modes=(None, "diag", "full"), start_position_only: bool = True):
-    """Random items (module docstring). Truth: a slow position path, orientation turning at a varying rate."""
+def _items(seed: int, n: int, cov_modes=(None, "diag", "full"), start_position_only: bool = True,
+           outages: bool = False):
+    """Random items (module docstring). Truth: a slow position path, orientation turning at a varying rate.
+    ``outages``: no local sample in items 150-299 of every 300 (the Vega loses the tool: beta's spatial decay)."""
     rng = np.random.default_rng(seed)
     t, out = S, []
     R, w = so3_exp(rng.normal(size=3)), np.zeros(3)
@@ -60,6 +63,8 @@ def _items(seed: int, n: int, cov_modes=(None, "diag", "full"), start_position_o
         R = so3_exp(w * step * 1e-9) @ R
         z = np.array([0.5 + 0.05 * np.sin(k / 100), 0.2 - 0.1 * np.cos(k / 70), 0.3 + 0.02 * np.sin(k / 30)])
         mode = int(rng.integers(3))                   # 0 global, 1 local, 2 pair
+        if outages and k % 300 >= 150:
+            mode = 0
         older = SOURCE_GLOBAL if rng.random() < 0.5 else SOURCE_LOCAL
         with_q = not (start_position_only and k < 20) and rng.random() > 0.05
         ms = []
@@ -172,6 +177,14 @@ def test_fast_form_equals_the_reference(seed):
         "fast-noise-scale"])
 def test_fast_form_equals_the_reference_for_other_settings(params):
     _run(_items(23, 1500), params)
+
+
+def test_fast_form_equals_the_reference_when_the_vega_loses_the_tool():
+    """Streams with the local source gone for half of every 300 items, the path moving meanwhile: beta's spatial
+    decay (``rot_bias_length``) acts, and the two forms agree at every step; with a short length and a long one."""
+    for params in (FullpercParams(), FullpercParams(rot_bias_length=0.005, local_lost_s=0.02)):
+        fast, ref, _ = _run(_items(24, 1500, outages=True), params)
+        assert ref.s.rot_dmax > 0.0 and fast.state.rot_dmax == pytest.approx(ref.s.rot_dmax, abs=TOL)
 
 
 def test_fixed_noise_and_position_only_streams():

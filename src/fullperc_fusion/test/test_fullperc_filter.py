@@ -107,6 +107,79 @@ def test_the_orientation_bias_fades_after_the_local_source_is_gone():
     assert np.linalg.norm(so3_log(quat_to_R(st.q) @ R.T)) > 0.5 * np.linalg.norm(beta)
 
 
+def _moving_offset_run(params: FullpercParams, local_while_moving: bool) -> tuple[np.ndarray, np.ndarray, float]:
+    """OMC orientation = Exp(beta) R (beta 20 mrad): 4.8 s at rest with the Vega, then 1.5 s moving 0.1 m/s along
+    x, with the Vega or without. Returns (true beta, the filter's beta at the end, the distance moved)."""
+    beta = np.array([0.02, -0.01, 0.005])
+    R = Rot.from_euler("x", 40, degrees=True).as_matrix()
+    f = FullpercFilter(params)
+    p0 = np.array([0.0, 0.0, 0.5])
+    for k in range(600 + 188):
+        t = k * 8 * MS
+        p = p0 + [0.1 * max(0.0, (k - 600) * 8e-3), 0.0, 0.0]
+        f.predict(t)
+        ms = [_m(t, SOURCE_GLOBAL, p, R_to_quat(so3_exp(beta) @ R))]
+        if k < 600 or local_while_moving:
+            ms.append(_m(t, SOURCE_LOCAL, p, R_to_quat(R)))
+        f.update(*ms)
+    return beta, f.rot_bias, float(p[0] - p0[0])
+
+
+def test_the_orientation_bias_decays_with_the_distance_from_where_the_vega_lost_the_tool():
+    """``rot_bias_length``: once the Vega has lost the tool, beta (learnt where the Vega saw it) decays as
+    exp(-d / L) with the distance d from there -- the OMC's rotation error is a field over the room (raw-sensor
+    structure function over distance, FullpercParams); while the Vega sees the tool nothing decays. The time decay
+    is off here (``rot_sys_time`` 0) so the distance alone acts."""
+    pr = FullpercParams(rot_sys_time=0.0, rot_bias_walk=1e-9)
+    assert FullpercParams().rot_bias_length == 0.0565
+    beta, end, d = _moving_offset_run(pr, local_while_moving=False)
+    assert d == pytest.approx(0.15, abs=1e-3)
+    decay = math.exp(-(d - 0.1 * 0.1) / pr.rot_bias_length)   # the first 0.1 s (local_lost_s) does not count
+    # OMC alone: beta is not observable, so what is left is the decay (to the filter's slight pull of the motion)
+    np.testing.assert_allclose(end, decay * beta, atol=1.5e-3)
+    assert np.linalg.norm(end) < 0.15 * np.linalg.norm(beta)
+    # off: kept as learnt; with the Vega still seeing the tool: kept too (observed, no decay)
+    _, kept, _ = _moving_offset_run(FullpercParams(rot_sys_time=0.0, rot_bias_walk=1e-9, rot_bias_length=0.0), False)
+    np.testing.assert_allclose(kept, beta, atol=1e-3)
+    _, seen, _ = _moving_offset_run(pr, local_while_moving=True)
+    np.testing.assert_allclose(seen, beta, atol=1e-3)
+
+
+def test_spatial_decay_of_one_prediction_on_the_reference():
+    """The reference's prediction after the Vega lost the tool: beta' = f beta, beta's rows and columns of P times
+    f, its variance + rot_sys_std^2 (1 - f^2), f = exp(-(d - d_max) / L); nothing before ``local_lost_s``, nothing
+    when the tool comes back towards where the Vega last saw it, only the part beyond d_max when it leaves again."""
+    pr = FullpercParams(rot_sys_time=0.0, rot_bias_walk=0.0)
+    f = FullpercReference(pr)
+    beta, R = np.array([0.02, -0.01, 0.005]), Rot.from_euler("x", 40, degrees=True).as_matrix()
+    for k in range(300):
+        t = k * 8 * MS
+        f.update(_m(t, SOURCE_GLOBAL, [0, 0, 0.5], R_to_quat(so3_exp(beta) @ R)), _m(t, SOURCE_LOCAL, [0, 0, 0.5],
+                                                                                   R_to_quat(R)))
+    t0, a = f.t_ns, f.s.p.copy()
+    np.testing.assert_array_equal(f.s.rot_anchor, a)
+    f.s.v = np.array([0.2, 0.0, 0.0])
+    b0, P0 = f.s.beta.copy(), f.s.P.copy()
+    f.predict(t0 + 50 * MS)                                   # 0.05 s: the Vega has not lost the tool yet
+    np.testing.assert_array_equal(f.s.beta, b0)
+    np.testing.assert_array_equal(f.s.P[15:18, 15:18], P0[15:18, 15:18])
+    f.predict(t0 + 300 * MS)                                  # 0.3 s, 60 mm away
+    d = float(np.linalg.norm(f.s.p - a))
+    assert d == pytest.approx(0.06, abs=1e-9)
+    g = math.exp(-d / pr.rot_bias_length)
+    np.testing.assert_allclose(f.s.beta, g * b0, rtol=1e-12)
+    expected = g * g * P0[15:18, 15:18] + pr.rot_sys_std**2 * (1 - g * g) * np.eye(3)
+    np.testing.assert_allclose(f.s.P[15:18, 15:18], expected, rtol=1e-12, atol=1e-18)
+    np.testing.assert_allclose(f.s.P[15:18, 0:3], g * P0[15:18, 0:3] + g * 0.3 * P0[15:18, 3:6], rtol=1e-9, atol=1e-18)
+    f.s.v = np.array([-0.1, 0.0, 0.0])                        # back towards a: no change
+    b1 = f.s.beta.copy()
+    f.predict(t0 + 400 * MS)
+    np.testing.assert_array_equal(f.s.beta, b1)
+    f.s.v = np.array([0.3, 0.0, 0.0])                         # out again to 80 mm: only the 20 mm beyond d_max count
+    f.predict(t0 + 500 * MS)
+    np.testing.assert_allclose(f.s.beta, math.exp(-(0.08 - 0.06) / pr.rot_bias_length) * b1, rtol=1e-9)
+
+
 def test_error_state_reset_of_one_update():
     """One update by hand: Kalman correction dx, injection R = Exp(dtheta) R, and P = G P+ G^T with
     G_thth = I - [dtheta/2]x (the reset of the multiplicative error state); the fast form gives the same."""

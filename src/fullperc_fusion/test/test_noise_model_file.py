@@ -34,7 +34,8 @@ from test_pipeline_fullperc import run, stream  # noqa: E402  (same directory: t
 OMC = {"white_std": 5.6e-5, "white_fit_gain": 0.21, "white_margin_std": 1.7e-4, "sys_floor": 2.1e-3,
        "fit_gain": 1.25, "margin_std": 7.9e-4, "marker_lever": 0.17, "rot_sys_floor": 9.5e-3,
        "rot_margin_std": 1.1e-2, "default_fit": 1.9e-4}
-BIAS = {"sys_time": 8.1, "sys_std": 1.6e-3, "rot_sys_time": 2.1, "rot_sys_std": 4.5e-3, "rot_bias_walk": 2e-7}
+BIAS = {"sys_time": 8.1, "sys_std": 1.6e-3, "rot_sys_time": 2.1, "rot_sys_std": 4.5e-3, "rot_bias_walk": 2e-7,
+        "rot_bias_length": 0.03}
 
 
 def test_the_keys_are_the_fields_they_replace():
@@ -108,6 +109,7 @@ def test_fusion_node_mapping_reads_the_file(tmp_path):
     assert cfg.omc_model == dataclasses.replace(OmcModelParams(), **OMC)
     # the file's omc_bias replaces the parameters (fullperc.sys_time 99 given too: the file wins, as documented)
     assert cfg.params.sys_time == BIAS["sys_time"] and cfg.params.rot_bias_walk == BIAS["rot_bias_walk"]
+    assert cfg.params.rot_bias_length == BIAS["rot_bias_length"]
     assert vals["fullperc.noise_model_file"] == str(nm)
     (tmp_path / "empty.yaml").write_text("")
     default, _ = load_fusion_config(tmp_path / "empty.yaml")

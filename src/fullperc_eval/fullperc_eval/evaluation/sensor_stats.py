@@ -121,12 +121,38 @@ def structure(e: np.ndarray, t: np.ndarray, lags: tuple[int, ...]) -> list[float
     return out
 
 
-def fit_gauss_markov(lags_s: np.ndarray, rms: np.ndarray) -> tuple[float, float, float]:
+# distance bins [m] of the rotation error's structure function over space (:func:`structure_over_distance`)
+DISTANCE_BINS = (0.0, 0.0025, 0.005, 0.01, 0.02, 0.035, 0.05, 0.075, 0.1, 0.15, 0.2, 0.3, 0.5)
+
+
+def structure_over_distance(e: np.ndarray, x: np.ndarray, t: np.ndarray, bins=DISTANCE_BINS,
+                            stride: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """(mean distance [m], rms per-axis increment of e) per distance bin: every pair of samples (each ``stride``-th
+    sample) of the same bag, binned by the distance between their true positions ``x``. Why: the OMC's error is a
+    field over the room; over time lags it mixes the tool's speed in (``FullpercParams.rot_bias_length``)."""
+    bins = np.asarray(bins)
+    sq, dist, cnt = np.zeros(len(bins) - 1), np.zeros(len(bins) - 1), np.zeros(len(bins) - 1)
+    for seg in _segments(t):
+        k = seg[::stride]
+        i, j = np.triu_indices(len(k), 1)
+        d = np.linalg.norm(x[k][i] - x[k][j], axis=1)
+        b = np.digitize(d, bins) - 1
+        ok = (b >= 0) & (b < len(cnt))
+        np.add.at(sq, b[ok], ((e[k][i] - e[k][j]) ** 2).mean(1)[ok])
+        np.add.at(dist, b[ok], d[ok])
+        np.add.at(cnt, b[ok], 1)
+    has = cnt > 0
+    return dist[has] / cnt[has], np.sqrt(sq[has] / cnt[has])
+
+
+def fit_gauss_markov(lags_s: np.ndarray, rms: np.ndarray, grid: tuple[float, float] = (0.05, 100.0)
+                     ) -> tuple[float, float, float]:
     """(white std, systematic std, tau [s]) of D(L) = 2 w^2 + 2 s^2 (1 - exp(-L / tau)) fitted to the squared
-    rms increments (grid over tau, linear least squares for w^2 and s^2 at each tau)."""
+    rms increments (grid over tau within ``grid``, linear least squares for w^2 and s^2 at each tau). The same
+    form over distance (``lags_s`` in metres) gives a correlation length instead of a time."""
     D = rms**2
     best = (np.inf, 0.0, 0.0, 0.0)
-    for tau in np.geomspace(0.05, 100.0, 400):
+    for tau in np.geomspace(grid[0], grid[1], 400):
         A = np.column_stack([2 * np.ones_like(lags_s), 2 * (1 - np.exp(-lags_s / tau))])
         coef, *_ = np.linalg.lstsq(A, D, rcond=None)
         if np.all(coef >= 0):
@@ -187,6 +213,8 @@ def fitted(g: np.ndarray, o: np.ndarray) -> dict[str, Any]:
     out["pos_gm"] = fit_gauss_markov(out["lags_s"], out["structure_pos"])
     out["rot_gm"] = fit_gauss_markov(out["lags_s"], out["structure_rot"])
     out["rot_gm2"] = fit_two_gauss_markov(out["lags_s"], out["structure_rot"])
+    out["rot_dist_m"], out["structure_rot_dist"] = structure_over_distance(r, g[:, PX:PZ + 1], g[:, T])
+    out["rot_gm_dist"] = fit_gauss_markov(out["rot_dist_m"], out["structure_rot_dist"], grid=(0.002, 2.0))
     eo, ro, dist = o[:, EX:EZ + 1], o[:, RX:RZ + 1], o[:, DIST]
     out["ots_by_distance"] = [(lo, hi, float(np.sqrt((eo[s] ** 2).mean())), int(s.sum()))
                               for lo, hi in ((0.9, 1.3), (1.3, 1.6), (1.6, 1.8), (1.8, 2.5))
@@ -219,6 +247,9 @@ def report(name: str, f: dict[str, Any]) -> None:
     w, s1, t1, s2, t2 = f["rot_gm2"]
     print(f"OMC rotation as white + two Gauss-Markov: white {w * 1e3:.2f} mrad, fast {s1 * 1e3:.2f} mrad tau "
           f"{t1:.2f} s, slow {s2 * 1e3:.2f} mrad tau {t2:.1f} s (200 s: the grid's end, a random walk)")
+    w, sy, L = f["rot_gm_dist"]
+    print(f"OMC rotation over distance as white + Gauss-Markov: white {w * 1e3:.2f} mrad, systematic "
+          f"{sy * 1e3:.2f} mrad, length {L * 1e3:.1f} mm")
     for lo, hi, rms, n in f["ots_by_distance"]:
         print(f"OTS tool at {lo}-{hi} m: per-axis rms {rms * 1e3:.3f} mm (n={n})")
     print(f"OTS tool orientation: per-axis rms {f['ots_rot_rms'] * 1e3:.2f} mrad")
@@ -248,8 +279,11 @@ def noise_model_from_stats(f: dict[str, Any]) -> tuple[dict[str, float], dict[st
       regression term counts as 0;
     * ``omc_bias``: the position structure function's Gauss-Markov fit (``sys_time``, ``sys_std``) and the
       slow part of the rotation's two-Gauss-Markov fit: a Gauss-Markov process (``rot_sys_time``,
-      ``rot_sys_std``), or, when its time constant is at the grid's end (>= :data:`RANDOM_WALK_TAU_S`), a random
-      walk with the same short-lag increments: ``rot_bias_walk = 2 s^2 / tau`` and ``rot_sys_time = 0``.
+      ``rot_sys_std``) with the correlation length of the rotation error over distance (``rot_bias_length``:
+      how far the tool moves, once the Vega has lost it, before that part is forgotten), or, when its time
+      constant is at the grid's end (>= :data:`RANDOM_WALK_TAU_S`), a random walk with the same short-lag
+      increments: ``rot_bias_walk = 2 s^2 / tau``, ``rot_sys_time = 0`` and ``rot_bias_length = 0`` (nothing to
+      forget: the slow error of such a room stays where it was learnt).
     """
     floor_w, k_w, m_w = np.maximum(f["pos_white"], 0.0)   # a negative term (signed std): the data show none
     floor_t, k_fit, m = np.maximum(f["pos_total"], 0.0)
@@ -263,9 +297,9 @@ def noise_model_from_stats(f: dict[str, Any]) -> tuple[dict[str, float], dict[st
     bias = {"sys_time": tau, "sys_std": s}
     _, _, _, s2, t2 = f["rot_gm2"]
     if t2 >= RANDOM_WALK_TAU_S:
-        bias.update(rot_sys_time=0.0, rot_sys_std=0.0, rot_bias_walk=2.0 * s2**2 / t2)
+        bias.update(rot_sys_time=0.0, rot_sys_std=0.0, rot_bias_walk=2.0 * s2**2 / t2, rot_bias_length=0.0)
     else:
-        bias.update(rot_sys_time=t2, rot_sys_std=s2)
+        bias.update(rot_sys_time=t2, rot_sys_std=s2, rot_bias_length=f["rot_gm_dist"][2])
     return {k: float(v) for k, v in omc.items()}, {k: float(v) for k, v in bias.items()}
 
 

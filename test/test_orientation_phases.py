@@ -1,0 +1,48 @@
+"""``scripts/orientation_phases.py`` (README "The orientation bias after the Vega lost the tool") on a committed bag:
+the three phases partition the outputs, the seen / unseen figures are the evaluation's own
+(``orientation_by_local_deg``), and the raw figures are the sensors' error where the Vega sees the tool."""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+
+from fullperc_eval.evaluation.metrics import evaluate_bag
+
+ROOT = Path(__file__).resolve().parents[1]
+BAG = ROOT / "bags" / "paper" / "P-G-B-P"
+
+
+def _script():
+    spec = importlib.util.spec_from_file_location("orientation_phases", ROOT / "scripts" / "orientation_phases.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_phases_partition_the_outputs_and_match_the_evaluation(capsys):
+    mod = _script()
+    ev = evaluate_bag(BAG, progress=False)
+    ph = mod.phases(ev)
+    by_local = ev.result["orientation_by_local_deg"]
+    for f in ("fullperc", "omc"):
+        (mb, nb), (ms, ns), (ma, na) = ph[f]["before"], ph[f]["seen"], ph[f]["after"]
+        assert nb + ns + na == len(ev.series["outputs"][f]["t_ns"]) and min(nb, ns, na) > 0
+        assert ms == by_local[f]["seen"]
+        # unseen = before and after together, weighted by their outputs (all have an orientation here)
+        assert math.isclose((mb * nb + ma * na) / (nb + na), by_local[f]["unseen"], rel_tol=1e-9)
+    # this task's point: while the Vega sees the tool fullperc is far below the raw OMC
+    assert ph["fullperc"]["seen"][0] < 0.5 * ph["omc"]["seen"][0]
+    mod.main([str(BAG), "--raw"])
+    out = capsys.readouterr().out.splitlines()
+    assert len(out) == 3 and out[0].startswith(str(BAG))
+    assert f"fullperc after {ph['fullperc']['after'][0]:.3f}" in out[0]
+    for line, name in zip(out[1:], ("omc", "local"), strict=True):
+        m = re.search(rf"raw {name} rotation error .*: std \[([0-9. ]+)\], white \[([0-9. ]+)\]", line)
+        assert m, line
+        sd, white = (np.array(g.split(), dtype=float) for g in m.groups())
+        assert sd.shape == white.shape == (3,) and np.all(sd > 0) and np.all(white > 0)
