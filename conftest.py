@@ -7,6 +7,7 @@ so nothing leaves this machine and parallel pytest runs do not cross-talk.
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import sys
 from collections.abc import Iterator
@@ -28,6 +29,18 @@ def ros_env(monkeypatch) -> Iterator[dict[str, str]]:
         monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
         monkeypatch.setenv("PYTHONUNBUFFERED", "1")
         yield dict(os.environ)
+
+
+@pytest.fixture
+def load_script():
+    """Loader of ``scripts/<name>.py`` as a module (the scripts are run from a checkout, not installed): the tests
+    of a script call its functions and its ``main`` in this process."""
+    def load(name: str):
+        spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        return mod
+    return load
 
 
 @pytest.fixture

@@ -4,7 +4,6 @@ filter's own figures, and leaves the filter as it was."""
 from __future__ import annotations
 
 import ast
-import importlib.util
 from pathlib import Path
 
 import fullperc_fusion.fullperc_filter as ff
@@ -12,16 +11,9 @@ import fullperc_fusion.fullperc_filter as ff
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _script():
-    spec = importlib.util.spec_from_file_location("hop_trace", ROOT / "scripts" / "hop_trace.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def test_hop_trace_prints_every_hop_and_restores_the_filter(capsys):
+def test_hop_trace_prints_every_hop_and_restores_the_filter(load_script, capsys):
     update = ff.FullpercFilter.update
-    _script().main([str(ROOT / "bags" / "spec" / "P-G-B-P"), "--all", "--from", "10", "--to", "12"])
+    load_script("hop_trace").main([str(ROOT / "bags" / "spec" / "P-G-B-P"), "--all", "--from", "10", "--to", "12"])
     assert ff.FullpercFilter.update is update
     out = capsys.readouterr().out.splitlines()
     rows = [line for line in out if " s src " in line]

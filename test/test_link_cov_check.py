@@ -4,7 +4,6 @@ covariance function put back."""
 
 from __future__ import annotations
 
-import importlib.util
 import re
 from pathlib import Path
 
@@ -15,16 +14,9 @@ import fullperc_fusion.pipeline as pipeline
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _script():
-    spec = importlib.util.spec_from_file_location("link_cov_check", ROOT / "scripts" / "link_cov_check.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def test_link_cov_check_compares_each_links_error_with_its_covariance(capsys):
+def test_link_cov_check_compares_each_links_error_with_its_covariance(load_script, capsys):
     original = pipeline.local_covariance
-    mod = _script()
+    mod = load_script("link_cov_check")
     groups = mod.link_errors(str(ROOT / "bags" / "paper" / "B-G-P"))
     assert pipeline.local_covariance is original
     # this run starts where the Vega sees the tool: its samples go through the 30-sample bridge link (a few tenths

@@ -4,7 +4,6 @@ the three phases partition the outputs, the seen / unseen figures are the evalua
 
 from __future__ import annotations
 
-import importlib.util
 import math
 import re
 from pathlib import Path
@@ -17,15 +16,8 @@ ROOT = Path(__file__).resolve().parents[1]
 BAG = ROOT / "bags" / "paper" / "P-G-B-P"
 
 
-def _script():
-    spec = importlib.util.spec_from_file_location("orientation_phases", ROOT / "scripts" / "orientation_phases.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def test_phases_partition_the_outputs_and_match_the_evaluation(capsys):
-    mod = _script()
+def test_phases_partition_the_outputs_and_match_the_evaluation(load_script, capsys):
+    mod = load_script("orientation_phases")
     ev = evaluate_bag(BAG, progress=False)
     ph = mod.phases(ev)
     by_local = ev.result["orientation_by_local_deg"]

@@ -3,7 +3,6 @@ arm-held tool's turn rate and its change, from the Diana's forward kinematics.""
 
 from __future__ import annotations
 
-import importlib.util
 import math
 import re
 from pathlib import Path
@@ -11,15 +10,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _script():
-    spec = importlib.util.spec_from_file_location("truth_motion", ROOT / "scripts" / "truth_motion.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def test_truth_motion_reports_the_turn_rate_and_its_change(capsys):
-    mod = _script()
+def test_truth_motion_reports_the_turn_rate_and_its_change(load_script, capsys):
+    mod = load_script("truth_motion")
     f = mod.turn_figures(str(ROOT / "bags" / "paper" / "G-B-P"))
     assert all(math.isfinite(v) for v in f.values())
     assert 0.01 < f["w_max"] < 1.0                     # the arm turns the tool, slowly

@@ -18,21 +18,23 @@ from fullperc_eval.bag.errors import BagError
 from fullperc_eval.bag.metadata import load_metadata
 from fullperc_eval.bag.reader import BagReader
 
+# SIGINT sets a flag the loop polls, as bag/record.py does: a KeyboardInterrupt raised inside write_msg (likelier on
+# a busy machine) would leave half a record in the file before close() writes the footer.
 RECORDER = textwrap.dedent("""
-    import sys, time
+    import signal, sys, time
     from fullperc_eval.bag.writer import BagWriter
+    stop = []
+    signal.signal(signal.SIGINT, lambda *a: stop.append(1))
     w = BagWriter(sys.argv[1], flush_interval=0.1).open()
     w.add_topic("/a", "std_msgs/msg/String")
     String = w.typestore.types["std_msgs/msg/String"]
     print("Recording to", sys.argv[1], flush=True)
     i = 0
     try:
-        while True:
+        while not stop:
             w.write_msg("/a", time.time_ns(), String(data=str(i)))
             i += 1
             time.sleep(0.01)
-    except KeyboardInterrupt:
-        pass
     finally:
         w.close()
 """)

@@ -26,11 +26,10 @@ a Gauss-Markov process forgets it at the rate the sensor's error does, and the m
 * predict over dt (constant velocity, constant angular velocity):
   p += v dt, R = Exp(w dt) R, g *= phi, phi = exp(-dt / sys_time), beta *= phi_b, phi_b = exp(-dt / rot_sys_time)
   (1 when rot_sys_time is 0);
-  and, once the local source has lost the tool (its newest sample fused more than ``local_lost_s`` ago), beta's
-  spatial decay: with d the distance of p from a_r, where p was when that sample was fused, and d_max the largest d
-  since, a prediction that takes d beyond d_max multiplies beta (and its rows and columns of P) by
-  f = exp(-(d - d_max) / rot_bias_length) and adds rot_sys_std^2 (1 - f^2) to its variance, so that
-  beta = exp(-d_max / L) beta(a_r) (a Gauss-Markov process in the distance from where beta was last observed);
+  and, once the local source has lost the tool (newest local sample older than ``local_lost_s``), beta's spatial
+  decay: d = |p - a_r| (a_r: p when that sample was fused), d_max the largest d since; a prediction taking d beyond
+  d_max scales beta and its rows and columns of P by f = exp(-(d - d_max) / rot_bias_length) and adds
+  rot_sys_std^2 (1 - f^2) to its variance: beta = exp(-d_max / L) beta(a_r), Gauss-Markov in that distance;
   F = I with F_pv = dt I, F_thth = Exp(w dt), F_thw = dt I, F_gg = phi I, F_bebe = phi_b I;
   Q = q_a [[dt^3/3, dt^2/2], [dt^2/2, dt]] on (p, v), q_b dt on b, q_alpha the same form on (theta, w),
   q_beta dt + s_b^2 (1 - phi_b^2) on beta (a random walk plus a Gauss-Markov part of stationary variance
@@ -68,16 +67,11 @@ a Gauss-Markov process forgets it at the rate the sensor's error does, and the m
   (:func:`measurement_models.omc_covariance`), so a jump kept in beta would stay wrong after the OMC recovers.
 * error-state update (Joseph form), injection p += dp ..., R = Exp(dtheta) R, and the reset of the error state:
   P = G P G^T with G_thth = I - [dtheta/2]x (the first-order reset Jacobian of the multiplicative update).
-* why the spatial decay: the OMC's rotation error is a field over the room, not a process in time. The raw OMC
-  rotation error's structure function over the distance between two samples of a bag (``paper`` bags, seed 0)
-  rises from 1.7 mrad rms per axis (~1 mm apart) through 4.7 (7 mm) and 10.2 (27 mm) to 12-13 mrad at 6-9 cm:
-  D(d) = 2 w^2 + 2 s^2 (1 - exp(-d / L)) with L = 56.5 mm (``sensor_stats.structure_over_distance``). The time decay
-  (``rot_sys_time``, fitted over time lags at the bags' speeds) holds while the tool stays where beta is being
-  learnt; when the local source has lost it, the tool is usually on its way to another region (B -> P), and beta,
-  learnt where the Vega saw the tool, is the OMC's error there, not here: kept for ``rot_sys_time`` it turned the
-  OMC's orientation by the wrong amount for seconds (``paper`` seed 100 P-G-B-P, after the Vega's view: 1.74 deg
-  against the raw OMC's 0.63 deg). While the local source sees the tool the decay is off: beta is observed there,
-  and a decay with every millimetre of motion would also forget what the local samples keep telling it.
+* why the spatial decay: the OMC's rotation error is a field over the room (its structure function over the
+  distance between samples, ``sensor_stats.structure_over_distance``: L = 56.5 mm on the ``paper`` bags); once the
+  local source has lost the tool, the tool is usually on its way elsewhere and beta, the OMC's error where the Vega
+  saw it, is not the error here (README "The orientation bias after the Vega lost the tool"). While the local
+  source sees the tool, beta is observed: no decay by distance.
 * gaps longer than ``max_gap_s`` re-initialise p, v, R, w from the next sample; b and beta (and their variances)
   are kept (propagated over the gap: b's walk, beta's decay and walk, g's decay).
 
@@ -96,6 +90,7 @@ import numpy as np
 
 from .filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement, Step, StepCompat, predict_interval, split_update
 from .filters import FilterParams
+from .so3 import R_to_quat, _skew, quat_to_R, so3_exp, so3_log
 
 __all__ = ["HOP_INTO", "FullpercParams", "FullpercReference", "so3_exp", "so3_log", "quat_to_R", "R_to_quat"]
 
@@ -122,12 +117,9 @@ class FullpercParams(FilterParams):
                      OMC error's structure function, spec bags, measurement_models).
     sys_std          its per-axis std [m] for a global sample without ``sys_var`` (0.25 mm: raw OMC, spec bags).
     rot_sys_time     correlation time of beta's Gauss-Markov part [s]; 0: beta is the random walk alone.
-    rot_bias_length  L, the distance [m] over which beta decays once the local source has lost the tool (module
-                     docstring; 0: off). 0.0565 m with rot_sys_std's 11.4 mrad: the raw OMC rotation error's
-                     structure function over distance fitted as white + Gauss-Markov (``paper`` bags: 0.5 mrad
-                     white, 10.6 mrad, L 56.5 mm; ``spec``: 0.9 / 2.0 mrad, 23 mm; ``sensor_stats.fitted``).
-    local_lost_s     time [s] without a local sample after which the local source counts as having lost the
-                     tool (0.1 s: the evaluation's seen/unseen split, six Vega frames at 60 Hz).
+    rot_bias_length  L [m], beta's decay length once the local source has lost the tool (0: off); 0.0565: the raw
+                     OMC rotation error over distance, white + Gauss-Markov (``paper`` bags; ``sensor_stats``).
+    local_lost_s     no local sample for this long [s]: it has lost the tool (0.1: the evaluation's split).
     hop_into         "b" (default) or "g": the bias part a position hop goes into (module docstring).
     noise_adapt_time tau of the global white-noise scale lambda [s] (module docstring; 0 = off). 0.4 s: the
                      scale follows a change of the camera set within about half a second (~50 OMC frames at
@@ -191,64 +183,6 @@ class FullpercParams(FilterParams):
         if params is None:
             return cls()
         return cls(**{k: getattr(params, k) for k in FilterParams.__dataclass_fields__})
-
-
-# ---------------------------------------------------------------------------------------------- SO(3)
-def _skew(a: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
-
-
-def so3_exp(w: np.ndarray) -> np.ndarray:
-    """Exp of a rotation vector (Rodrigues); series below 1e-8 rad."""
-    th = math.sqrt(float(w @ w))
-    K = _skew(w)
-    if th < 1e-8:
-        return _I3 + K + 0.5 * K @ K
-    return _I3 + (math.sin(th) / th) * K + ((1.0 - math.cos(th)) / (th * th)) * K @ K
-
-
-def so3_log(R: np.ndarray) -> np.ndarray:
-    """Log of a rotation matrix as a rotation vector, |w| <= pi (robust near 0 and near pi)."""
-    c = max(-1.0, min(1.0, 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)))
-    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    th = math.acos(c)
-    if th < 1e-6:
-        return 0.5 * v
-    if th > math.pi - 1e-4:   # near pi: axis from the symmetric part
-        B = 0.5 * (R + _I3)
-        i = int(np.argmax(np.diag(B)))
-        ax = B[:, i] / math.sqrt(max(B[i, i], 1e-300))
-        if ax @ v < 0:
-            ax = -ax
-        return th * ax / np.linalg.norm(ax)
-    return (th / (2.0 * math.sin(th))) * v
-
-
-def quat_to_R(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a quaternion x y z w (normalised here)."""
-    x, y, z, w = np.asarray(q, dtype=float) / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-
-
-def R_to_quat(R: np.ndarray) -> np.ndarray:
-    """Quaternion x y z w (w >= 0) of a rotation matrix (Shepperd)."""
-    t = R[0, 0] + R[1, 1] + R[2, 2]
-    if t > 0:
-        s = 2.0 * math.sqrt(t + 1.0)
-        q = np.array([(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s])
-    else:
-        i = int(np.argmax([R[0, 0], R[1, 1], R[2, 2]]))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * math.sqrt(max(1.0 + R[i, i] - R[j, j] - R[k, k], 1e-300))
-        q = np.zeros(4)
-        q[i] = 0.25 * s
-        q[j] = (R[j, i] + R[i, j]) / s
-        q[k] = (R[k, i] + R[i, k]) / s
-        q[3] = (R[k, j] - R[j, k]) / s
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
 
 
 def noise_scale_step(lam: float, t_prev_ns: int | None, t_ns: int, nis_g: float, pr: FullpercParams) -> float:
