@@ -114,6 +114,7 @@ class ArrivalPipeline(TargetPipeline):
         self.newest_ns: int | None = None         # newest target stamp accepted
         self._fresh: list[_Entry] = []            # (re)processed since the last poll
         self._published_ns: int | None = None
+        self._carried: list[FusedOutput] = []     # live outputs of the timeline a restart ended, for the next poll
         self._final: list[FusedOutput] = []
         self._nres = 0                            # the first _nres entries are resolved (links fixed)
         self._late_run: int | None = None         # first stamp of a run of samples all behind the history
@@ -233,6 +234,10 @@ class ArrivalPipeline(TargetPipeline):
                                           f"before the newest ({self.newest_ns} ns), for more than the history; "
                                           "history ended, filters restarted", t)
         self._resolve_and_commit(everything=True)
+        # the live outputs not yet polled belong to the old timeline: gated against it now and handed out first by
+        # the next poll; left in _fresh, the hour-ahead one would go out after the new timeline's outputs of the
+        # same poll and hold back every later output (stamps an hour older) for good
+        self._carried = self.poll()
         self.horizon_ns = self.newest_ns = self._published_ns = self._late_run = None
         self._last_committed = [None] * len(self._names)
         for f in (*self.filters.values(), *self._lane_final.values()):
@@ -384,7 +389,7 @@ class ArrivalPipeline(TargetPipeline):
     # ---- output -----------------------------------------------------------------------------------------------
     def poll(self, now_ns: int | None = None) -> list[FusedOutput]:
         """The live outputs since the last poll (module docstring); ``now_ns`` is not needed (nothing waits)."""
-        out: list[FusedOutput] = []
+        out, self._carried = self._carried, []
         for e in sorted((e for e in self._fresh if e.alive and e.outs), key=lambda e: e.item.t_ns):
             live = [o for o in e.outs if o.filter not in self._lane_final]
             # gate on the outputs' own stamps, not the item's: a pair re-run when the partner of a published sample

@@ -324,3 +324,30 @@ def test_fullperc_primary_with_quality_after_its_pose_equals_ordered():
     assert len(do) > 500 and do.keys() == da.keys()
     for k, o in do.items():
         assert np.array_equal(o.p, da[k].p) and np.array_equal(o.cov, da[k].cov), k
+
+
+def test_a_restart_between_two_polls_does_not_stall_the_output():
+    """The node polls after a burst of callbacks; on a busy machine the hour-ahead sample, the late run behind it
+    and the restart can all fall between two polls. The live outputs from before the restart (the hour-ahead one
+    among them) go out with that poll, gated against the old timeline; the outputs after it are not held back by
+    the hour-ahead stamp (before the fix: the hour-ahead output was published after the restart and every later
+    output, an hour older, was suppressed for good -- the time-guard system test's 2 poses after the pause)."""
+    cfg = TargetConfig(filters=("cbkf",))
+    pipe = ArrivalPipeline(cfg)
+    eye = np.eye(4)
+    for k in range(40):
+        pipe.push_omc("base", T0 + k * MS, eye)
+    pipe.push_omc("tool", T0, eye)
+    assert [o.t_ns for o in pipe.poll()] == [T0]
+    assert pipe.push_omc("tool", T0 + 3600 * S, eye)
+    for k in range(1, 40):                                # no poll in between: one burst
+        pipe.push_omc("tool", T0 + k * 10 * MS, eye)
+    assert pipe.counts["timeline_restart"] == 1
+    burst = [o.t_ns for o in pipe.poll()]
+    assert T0 + 3600 * S in burst and burst.count(T0 + 3600 * S) == 1, "the hour-ahead output went out once"
+    assert burst[-1] == T0 + 39 * 10 * MS, "the outputs after the restart went out too"
+    after = []
+    for k in range(40, 60):
+        pipe.push_omc("tool", T0 + k * 10 * MS, eye)
+        after += [o.t_ns for o in pipe.poll()]
+    assert after == [T0 + k * 10 * MS for k in range(40, 60)], "one output per sample after the burst"
