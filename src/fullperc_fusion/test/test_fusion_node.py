@@ -167,7 +167,7 @@ def test_fusion_node_end_to_end(procs, rclpy_context, python_exe, tmp_path):
     texts = " | ".join(st.message for arr in lis.diag for st in arr.status if st.name.startswith("fusion_node"))
     assert "non-finite pose" in texts
     assert "non-unit quaternion" in texts
-    assert "older than the history" in texts         # arrival processing (default): beyond the 0.2 s history
+    assert "older than the history" in texts, texts  # arrival processing (default): beyond the 0.2 s history
     assert "no OTS (local) sample for" in texts      # the OTS went silent at 2.5 s
     # single bad samples and the usual hops are no alarm (fusion_health)
     from fullperc_common.diagnostics import as_level
