@@ -81,11 +81,12 @@ def main() -> int:
             q.body, q.visible, q.frame_number, q.fit_error = "tool", True, k, -1.0
             qpubs[dev].publish(q)
             sent[dev].append(stamp)
-    acked = not wait_for_acks(node, 60.0)
+    unacked = [t for t in wait_for_acks(node, 60.0) if t.startswith(("/omc/", "/ots/"))]   # not /rosout ...
     if a.stamps:
         with open(a.stamps, "w") as f:
             json.dump(sent, f)
-    print(json.dumps({**{k: len(v) for k, v in sent.items()}, "all_acked": acked}), flush=True)
+    print(json.dumps({**{k: len(v) for k, v in sent.items()}, "all_acked": not unacked, "unacked": unacked}),
+          flush=True)
     node.destroy_node()
     rclpy.shutdown()
     return 0

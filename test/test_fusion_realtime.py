@@ -158,6 +158,10 @@ def _run_pub(procs, args, tmp_path):
     pub = procs.start([sys.executable, str(PUB), "--stamps", str(stamps), *args], name="pub")
     wait_for(lambda: pub.poll() is not None, 300, what="the publisher to finish")
     assert pub.returncode == 0, procs.log(pub)
+    summary = [json.loads(x) for x in procs.log(pub).splitlines() if x.startswith("{") and '"all_acked"' in x]
+    # reliable delivery: the node acknowledged every sample of every data topic (else a loss counted below could
+    # be one DDS never delivered, not one of the node's)
+    assert summary and summary[-1]["all_acked"], f"samples not acknowledged: {procs.log(pub)[-2000:]}"
     return json.loads(stamps.read_text())
 
 

@@ -3,7 +3,10 @@
 
 The target (OMC body and OTS tool ``tool``) moves slowly in ``base``; the OMC sees it with a constant
 offset, the OTS sees it only during [ots_from, ots_to) seconds. With ``--bad`` it also publishes a NaN
-OMC pose, an OTS pose with a non-unit quaternion and an OMC pose stamped 0.5 s in the past.
+OMC pose, an OTS pose with a non-unit quaternion and, after the run, an OMC pose stamped 0.5 s before its last
+sample -- once the node's /fullperc/tool/final has passed that stamp (at most ``--wait`` seconds), so the sample is
+older than the node's history however far the node lagged (sent while the node was 0.5 s behind, it would have been
+taken in the same batch as the samples it precedes, sorted by stamp: in order, not late).
 Everything published is written as JSON lines to ``--log`` (kind, body, stamp, position, flags) so the
 test can check the node's output against exactly what went in.
 
@@ -120,6 +123,12 @@ def main() -> int:
         d = make_T(link_rng.normal(0, sig_p, 3), Rot.from_rotvec(link_rng.normal(0, sig_r, 3)).as_quat())
         return T_to_pq(T @ d)
 
+    final_max = [0]   # newest stamp of the node's final estimates (--bad: when to send the backwards sample)
+    if a.bad:
+        node.create_subscription(
+            PoseStamped, "/fullperc/tool/final",
+            lambda m: final_max.__setitem__(0, max(final_max[0], m.header.stamp.sec * 10**9 + m.header.stamp.nanosec)),
+            QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT))
     t0_ns = time.time_ns()
     t0 = time.monotonic()
     k = 0
@@ -164,10 +173,6 @@ def main() -> int:
         if a.bad and t >= 1.5 and "nan" not in bad_done:
             bad_done.add("nan")
             pub("/omc/tool/pose", "omc", "tool", ns, "omc", [math.nan, p[1], p[2]], q, bad="nan")
-        elif a.bad and t >= 2.0 and "backwards" not in bad_done:
-            bad_done.add("backwards")
-            pub("/omc/tool/pose", "omc", "tool", ns, "omc", p, q)
-            pub("/omc/tool/pose", "omc", "tool", ns - 500_000_000, "omc", p, q, bad="backwards")
         else:
             pub("/omc/tool/pose", "omc", "tool", ns, "omc", p, q, **tool_flags)
         if future is not None and t >= future[0] and "future" not in bad_done:
@@ -186,7 +191,15 @@ def main() -> int:
                 else:
                     pub("/ots/tool/pose", "ots", "tool", ns_l, "ots", pl, ql)
         rclpy.spin_once(node, timeout_sec=0)
+        last_ns, last_p, last_q = ns, p, q
         k += 1
+    if a.bad:   # a sample 0.5 s older than the last one (between two frames: not a duplicate stamp)
+        back_ns = last_ns - 500_000_000 + 1_000_000
+        end = time.monotonic() + a.wait
+        while time.monotonic() < end and final_max[0] < back_ns + 200_000_000:
+            rclpy.spin_once(node, timeout_sec=0.05)
+        pub("/omc/tool/pose", "omc", "tool", back_ns, "omc", last_p, last_q, bad="backwards",
+            node_final_ns=final_max[0])
     log.write(json.dumps({"kind": "meta", "t0_ns": t0_ns}) + "\n")
     log.close()
     time.sleep(1.0)   # keep the publishers alive until reliable delivery completed
