@@ -86,8 +86,12 @@ def test_fusion_node_end_to_end(procs, rclpy_context, python_exe, tmp_path):
               "/fullperc/tool/kf/pose", "/fullperc/tool/kf/status"]
     lis = Listener(rclpy_context, topics)
     try:
+        # qos_depth 1000: every input queue holds the whole 4 s run, so a node stalled on a busy machine still gets
+        # each bad sample this test expects named (the default 100 is 0.8 s of one 120 Hz topic; the stand-in
+        # publishes no TrackingQuality, so a sample lost from a full queue would go unnoticed)
         node = procs.start([installed_exe("fullperc_fusion", "fusion_node"), "--ros-args",
-                            "-p", "filters:=[kf]", "-p", "init_samples:=20"], name="fusion_node")
+                            "-p", "filters:=[kf]", "-p", "init_samples:=20", "-p", "qos_depth:=1000"],
+                           name="fusion_node")
         # start the data only once this listener is matched with every output of the node
         wait_for(lambda: all(lis.node.count_publishers(t) > 0 for t in topics), 30, what="node's publishers")
         wait_for(lambda: all(p.get_publisher_count() > 0 for p in lis.node.subscriptions if p.topic_name in topics),
@@ -165,8 +169,8 @@ def test_fusion_node_end_to_end(procs, rclpy_context, python_exe, tmp_path):
     assert all(s.filter == "kf" for s in lis.got["/fullperc/tool/kf/status"])
     # diagnostics explained the bad input
     texts = " | ".join(st.message for arr in lis.diag for st in arr.status if st.name.startswith("fusion_node"))
-    assert "non-finite pose" in texts
-    assert "non-unit quaternion" in texts
+    assert "non-finite pose" in texts, texts
+    assert "non-unit quaternion" in texts, texts
     # arrival processing (default): a sample sent once the node's final estimates had passed its stamp is beyond
     # the 0.2 s history however far the node lagged (synthetic_driver_pub --bad)
     back = [r for r in rows if r.get("bad") == "backwards"]
