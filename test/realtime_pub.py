@@ -36,6 +36,8 @@ def main() -> int:
     ap.add_argument("--phase", action="append", default=[], help="SECONDS:SHIFT_S")
     ap.add_argument("--wait-subscribers", type=float, default=30.0)
     ap.add_argument("--stamps", default="")
+    ap.add_argument("--drop-last", action="store_true",
+                    help="the last frame of each device: its TrackingQuality (visible) but not its tool pose")
     a = ap.parse_args()
     phases = [(float(x.split(":")[0]), float(x.split(":")[1])) for x in (a.phase or ["3:0"])]
     rclpy.init()
@@ -53,7 +55,7 @@ def main() -> int:
     time.sleep(0.5)
     frames = {"omc": 0, "ots": 0}
     sent: dict[str, list[int]] = {"omc": [], "ots": []}
-    for seconds, shift in phases:
+    for i_phase, (seconds, shift) in enumerate(phases):
         t0 = time.monotonic_ns()
         due = {"omc": t0, "ots": t0}
         period = {"omc": int(1e9 / a.omc_hz), "ots": int(1e9 / a.ots_hz)}
@@ -74,13 +76,16 @@ def main() -> int:
             base = T_OMC_BASE if dev == "omc" else T_OTS_BASE
             if k % a.base_every == 0:
                 pubs[(dev, "base")].publish(pose_stamped(stamp, dev, *base))
-            pubs[(dev, "tool")].publish(pose_stamped(stamp, dev, base[0] + p_base, base[1]))
+            dropped = a.drop_last and i_phase == len(phases) - 1 and due[dev] >= stop   # this device's last frame
+            if not dropped:
+                pubs[(dev, "tool")].publish(pose_stamped(stamp, dev, base[0] + p_base, base[1]))
             q = TrackingQuality()
             q.header.stamp = ns_to_stamp(stamp)
             q.header.frame_id = dev
             q.body, q.visible, q.frame_number, q.fit_error = "tool", True, k, -1.0
             qpubs[dev].publish(q)
-            sent[dev].append(stamp)
+            if not dropped:
+                sent[dev].append(stamp)
     unacked = [t for t in wait_for_acks(node, 60.0) if t.startswith(("/omc/", "/ots/"))]   # not /rosout ...
     if a.stamps:
         with open(a.stamps, "w") as f:

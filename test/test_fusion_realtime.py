@@ -194,6 +194,33 @@ def test_output_resumes_after_ten_minutes_of_silence(procs, rclpy_context, tmp_p
     assert final_after and set(final_after) <= sent_after, "and they became final (history, then idle flush)"
 
 
+def test_a_pose_lost_at_the_end_of_a_stream_is_counted_once_the_source_is_silent(procs, rclpy_context, tmp_path):
+    """The last frame of each device comes with its TrackingQuality (visible) but without its pose: no later sample
+    shows it overdue, so the node counts it when the source has been silent for stale_timeout (1 s) -- one lost
+    sample per device, WARNed -- instead of never."""
+    out = Outputs(rclpy_context)
+    try:
+        node = _fusion_node(procs, "-p", "qos_depth:=1000")
+        wait_for(out.matched, 60, what="the node's publishers")
+        sent = _run_pub(procs, ["--omc-hz", "50", "--ots-hz", "50", "--phase", "2:0", "--drop-last"], tmp_path)
+
+        def counted():
+            v = out.diag[-1][2] if out.diag else {}
+            return int(v.get("omc_samples_lost", 0)) >= 1 and int(v.get("ots_samples_lost", 0)) >= 1
+        try:
+            wait_for(counted, 60, interval=0.5, what="the two lost poses on /diagnostics")
+        except pytest.fail.Exception:
+            pytest.fail(f"last /diagnostics values: {out.diag[-1][2] if out.diag else None}")
+        assert node.poll() is None, procs.log(node)
+    finally:
+        out.close()
+    v = out.diag[-1][2]
+    assert (int(v["omc_samples_lost"]), int(v["ots_samples_lost"])) == (1, 1), v
+    assert (int(v["omc_frames_lost"]), int(v["ots_frames_lost"])) == (0, 0), v
+    assert int(v["global_in"]) == len(sent["omc"]) and int(v["local_in"]) == len(sent["ots"]), v
+    assert any(lvl >= 1 and "lost samples" in m for lvl, m, _ in out.diag), "WARNed"
+
+
 def test_1khz_omc_and_1khz_ots_every_sample_fused_or_its_loss_counted_and_warned(procs, rclpy_context, tmp_path):
     """OMC 1 kHz + OTS 1 kHz for 5 s. Every tool sample the publisher sent is accounted for on /diagnostics:
     taken in (global_in / local_in), dropped as late or duplicate, or lost (TrackingQuality frame gaps / visible
@@ -212,7 +239,13 @@ def test_1khz_omc_and_1khz_ots_every_sample_fused_or_its_loss_counted_and_warned
             n = {s: sum(int(v.get(f"{s}_{k}", 0)) for k in ("in", "late", "duplicate")) for s in ("global", "local")}
             lost = {s: int(v.get(f"{d}_samples_lost", 0)) for s, d in (("global", "omc"), ("local", "ots"))}
             return n["global"] + lost["global"] >= len(sent["omc"]) and n["local"] + lost["local"] >= len(sent["ots"])
-        wait_for(accounted, 120, interval=0.5, what="every published sample to show up on /diagnostics")
+        try:
+            wait_for(accounted, 120, interval=0.5, what="every published sample to show up on /diagnostics")
+        except pytest.fail.Exception:
+            last = out.diag[-1][2] if out.diag else None
+            pytest.fail(f"not every published sample accounted for on /diagnostics within 120 s: sent omc "
+                        f"{len(sent['omc'])}, ots {len(sent['ots'])}; the node's last /diagnostics values: {last}; "
+                        f"messages: {sorted({m for _, m, _ in out.diag})}")
         assert node.poll() is None, procs.log(node)
     finally:
         out.close()

@@ -217,6 +217,9 @@ class SourceLoss:
       come either -- the gap frames minus the poses that came without a quality message. Frames of a gap are taken
       as visible (their quality is unknown), so this is an upper bound when the body was occluded during a gap.
 
+    A frame waits for its pose until a sample ``match_ns`` newer arrives; at the end of a stream none does, so the
+    caller says when the source has gone silent (:meth:`end_of_stream`) and what is still waiting is settled then.
+
     Pure: the caller passes stamps; a source without quality messages reports nothing.
     """
 
@@ -259,6 +262,21 @@ class SourceLoss:
         else:
             self._poses[stamp_ns] = None
         self._settle(stamp_ns)
+
+    @property
+    def pending(self) -> int:
+        """Visible frames still waiting for their pose plus poses still waiting for their quality."""
+        return len(self._waiting) + len(self._poses)
+
+    def end_of_stream(self) -> None:
+        """The source went silent (the caller has had neither a pose nor a quality message of it for a while):
+        the visible frames still waiting for their pose will not get it and count as lost now -- else a loss in
+        a stream's last ``match_ns`` would never be counted -- and the poses still waiting for their quality are
+        orphans (they reduce the gap frames' share, as when they expire)."""
+        self._unmatched += len(self._waiting)
+        self._orphans += len(self._poses)
+        self._waiting.clear()
+        self._poses.clear()
 
     def _settle(self, stamp_ns: int) -> None:
         self._newest = max(self._newest, stamp_ns)

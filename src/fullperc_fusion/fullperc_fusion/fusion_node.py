@@ -152,6 +152,7 @@ class FusionNode(Node):
         self._final_pubs: dict[str, object] = {}
         self._loss: dict[tuple[str, str], SourceLoss] = {}   # (dev, target body): frames / samples never received
         self._loss_seen: dict[tuple[str, str], tuple[int, float]] = {}
+        self._loss_rx: dict[tuple[str, str], float] = {}   # monotonic time of its newest pose or quality message
         self._quality_subs: dict[tuple[str, str], object] = {}
         self._region: dict[str, int] = {}
         self._last_rx: dict[str, dict[str, float]] = {}
@@ -263,10 +264,12 @@ class FusionNode(Node):
                             clock - batch[-1][0] if clock else None)
         for d, b, m in ((d, b, m) for _t, d, b, m in batch if (d, b) in self._loss):
             self._loss[(d, b)].pose(stamp_to_ns(m.header.stamp))
+            self._loss_rx[(d, b)] = time.monotonic()
 
     def _on_quality(self, key: tuple[str, str], msg: TrackingQuality) -> None:
         """This quality message and every one queued behind it (one executor round each would fall behind)."""
         loss = self._loss[key]
+        self._loss_rx[key] = time.monotonic()
         for m in [msg, *take_queued(self._quality_subs[key])]:
             loss.quality(int(m.frame_number), stamp_to_ns(m.header.stamp), bool(m.visible))
             if key[0] == "omc" and m.visible:   # H3: the OMC model covariance of filters with uses_models (fullperc)
@@ -551,6 +554,8 @@ class FusionNode(Node):
             loss = self._loss.get((dev, body))
             if loss is None:
                 continue
+            if loss.pending and now - self._loss_rx.get((dev, body), now) > self._stale:
+                loss.end_of_stream()   # silent for stale_timeout: what still waits for its pose will not get it
             values[f"{dev}_frames_lost"] = loss.frames_lost
             values[f"{dev}_samples_lost"] = loss.samples_lost
             n, when = self._loss_seen.get((dev, body), (0, -1e9))

@@ -184,6 +184,27 @@ def test_source_loss_pose_before_its_quality_is_not_lost():
     assert loss.lost == 0 and loss.frames_lost == 0
 
 
+def test_source_loss_settles_the_tail_of_a_stream_when_the_caller_says_it_ended():
+    """A pose lost in a stream's last match_ns is counted only once the caller says the source went silent: no
+    later sample would ever settle it (1 kHz test: the node's last /diagnostics never accounted for every sample)."""
+    from fullperc_fusion.fusion_health import SourceLoss
+
+    loss = SourceLoss(match_ns=100)
+    for fn in range(1, 6):
+        loss.quality(fn, fn * 10, visible=True)
+        if fn != 4:                       # the pose of frame 4 (stamp 40) never comes
+            loss.pose(fn * 10)
+    loss.pose(60)                         # a pose whose quality never comes
+    assert (loss.samples_lost, loss.pending) == (0, 2), "nothing is 100 stamp-ns overdue yet"
+    loss.end_of_stream()
+    assert (loss.samples_lost, loss.frames_lost, loss.pending) == (1, 0, 0)
+    loss.quality(6, 60, visible=True)     # the stream resumes: counting goes on from there
+    loss.pose(70)
+    loss.quality(7, 70, visible=True)
+    loss.quality(8, 300, visible=False)
+    assert (loss.samples_lost, loss.frames_lost) == (2, 0), "frame 6's pose came before the silence: now unmatched"
+
+
 def test_input_load_keeps_the_period_maximum():
     from fullperc_fusion.fusion_health import InputLoad
 
