@@ -90,8 +90,7 @@ def main() -> int:
     if a.stamps:
         with open(a.stamps, "w") as f:
             json.dump(sent, f)
-    print(json.dumps({**{k: len(v) for k, v in sent.items()}, "all_acked": not unacked, "unacked": unacked}),
-          flush=True)
+    print(json.dumps({**{k: len(v) for k, v in sent.items()}, "unacked": unacked}), flush=True)
     node.destroy_node()
     rclpy.shutdown()
     return 0

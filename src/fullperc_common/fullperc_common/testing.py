@@ -13,6 +13,7 @@ import signal
 import subprocess
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import IO
 
@@ -138,11 +139,13 @@ class Procs:
         return Path(p.log_path).read_text(errors="replace")  # type: ignore[attr-defined]
 
 
-def wait_for(pred, timeout: float = 20.0, interval: float = 0.05, what: str = "condition"):
+def wait_for(pred, timeout: float = 20.0, interval: float = 0.05, what: str = "condition",
+             detail: Callable[[], object] | None = None):
     """Poll ``pred`` until truthy (returned) or fail the test after ``timeout`` seconds.
 
     This is a liveness bound for multi-process tests (a hung peer must not hang CI), not a
-    performance assertion.
+    performance assertion. ``detail``: called on timeout only, its result appended to the failure
+    message (what the peers had done by then), so a failure says why.
     """
     end = time.monotonic() + timeout
     while time.monotonic() < end:
@@ -150,7 +153,7 @@ def wait_for(pred, timeout: float = 20.0, interval: float = 0.05, what: str = "c
         if v:
             return v
         time.sleep(interval)
-    pytest.fail(f"timed out after {timeout:.0f} s waiting for {what}")
+    pytest.fail(f"timed out after {timeout:.0f} s waiting for {what}" + (f": {detail()}" if detail else ""))
 
 
 def poll_until(pred, timeout: float, interval: float = 0.05):

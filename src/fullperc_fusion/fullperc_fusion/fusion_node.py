@@ -262,9 +262,10 @@ class FusionNode(Node):
         clock = self.get_clock().now().nanoseconds   # 0: sim time not started, no lag known
         self._load.callback(len(batch) - 1, None if not received else wall - int(received),
                             clock - batch[-1][0] if clock else None)
+        rx = time.monotonic()
         for d, b, m in ((d, b, m) for _t, d, b, m in batch if (d, b) in self._loss):
             self._loss[(d, b)].pose(stamp_to_ns(m.header.stamp))
-            self._loss_rx[(d, b)] = time.monotonic()
+            self._loss_rx[(d, b)] = rx
 
     def _on_quality(self, key: tuple[str, str], msg: TrackingQuality) -> None:
         """This quality message and every one queued behind it (one executor round each would fall behind)."""

@@ -290,18 +290,18 @@ def test_fusion_node_time_guard_one_sample_an_hour_ahead_does_not_stall(procs, r
         def after_pause():
             return [m for m in lis.got["/fullperc/tool/pose"] if (_ns(m.header.stamp) - t0) / 1e9 > 3.0]
 
+        def why_not():
+            sts = _statuses(lis, "tool")
+            # every distinct problem the node named (the restart's message gives the stamp it restarted at)
+            named = sorted({m for st in sts for m in st.message.split("; ") if "no OMC" not in m})
+            return (f"{len(after_pause())} fused poses after the pause (of {len(lis.got['/fullperc/tool/pose'])}); "
+                    f"the node's last /diagnostics: "
+                    f"{(sts[-1].message, {kv.key: kv.value for kv in sts[-1].values}) if sts else None}; "
+                    f"every message it had: {named}; t0 {t0} ns, bad stamp {bad_ns} ns; node log tail: "
+                    f"{procs.log(node)[-2000:]}")
+
         def poses_after_pause():
-            try:
-                wait_for(lambda: len(after_pause()) > 50, 20, what="fused poses after the pause")
-            except pytest.fail.Exception:
-                sts = _statuses(lis, "tool")
-                # every distinct problem the node named (the restart's message gives the stamp it restarted at)
-                named = sorted({m for st in sts for m in st.message.split("; ") if "no OMC" not in m})
-                pytest.fail(f"{len(after_pause())} fused poses after the pause within 20 s (of "
-                            f"{len(lis.got['/fullperc/tool/pose'])}); the node's last /diagnostics: "
-                            f"{(sts[-1].message, {kv.key: kv.value for kv in sts[-1].values}) if sts else None}; "
-                            f"every message it had: {named}; t0 {t0} ns, bad stamp {bad_ns} ns; node log tail: "
-                            f"{procs.log(node)[-2000:]}")
+            wait_for(lambda: len(after_pause()) > 50, 20, what="fused poses after the pause", detail=why_not)
         if max_future > 3600 and processing == "arrival":
             poses_after_pause()
             wait_for(lambda: [st for st in _statuses(lis, "tool") if "timeline_restart" in st.message], 20,
