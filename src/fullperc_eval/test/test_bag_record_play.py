@@ -182,15 +182,15 @@ def stop_ok(procs: Procs, p, sig: int = signal.SIGINT) -> None:
     assert "Traceback" not in Procs.log(p), Procs.log(p)
 
 
-def run_play(procs: Procs, bag: Path, out: Path, *play_args: str, topics=tuple(TOPICS), with_log: bool = False):
-    """Record what `play bag *play_args` publishes into ``out``; return read_all(out) [, play's log]."""
+def run_play(procs: Procs, bag: Path, out: Path, *play_args: str, topics=tuple(TOPICS)) -> tuple[dict, str]:
+    """Record what `play bag *play_args` publishes into ``out``; return (read_all(out), play's log)."""
     rec = procs.start(record_cmd(out, "--topics", *topics), name=f"record_{out.name}")
     play = procs.start([installed_exe("fullperc_eval", "play"), str(bag), "--wait-for-subscribers", "60",
                         *play_args], name=f"play_{out.name}")
     wait_for(lambda: play.poll() is not None, timeout=120, what="play to finish")
     assert play.returncode == 0 and "Traceback" not in Procs.log(play), Procs.log(play)
     stop_ok(procs, rec)
-    return (read_all(out), Procs.log(play)) if with_log else read_all(out)
+    return read_all(out), Procs.log(play)
 
 
 # ------------------------------------------------------------------ tests
@@ -298,7 +298,7 @@ def _player_lateness_ms(log: str) -> float:
 def test_replay_reproduces_bytes_and_timing(recorded, procs, tmp_path, rate):
     bag, _, _ = recorded
     original = read_all(bag)
-    replay, play_log = run_play(procs, bag, tmp_path / f"replay_{rate:g}", "--rate", str(rate), with_log=True)
+    replay, play_log = run_play(procs, bag, tmp_path / f"replay_{rate:g}", "--rate", str(rate))
     # The player judged by its own clock: messages go out when due (sleep wake-up latency; the
     # player spends ~15 us per message).
     late = _player_lateness_ms(play_log)
@@ -397,8 +397,8 @@ def test_play_topics_and_start_offset(procs, tmp_path, storage):
     """--topics selects, --start-offset skips the first 0.2 s; bytes unchanged (both storages)."""
     bag = _small_bag(tmp_path / "gen", storage=storage)
     src = read_all(bag)
-    out = run_play(procs, bag, tmp_path / "out", "--topics", "/gen/a", "--start-offset", "0.2",
-                   topics=("/gen/a", "/gen/b"))
+    out, _ = run_play(procs, bag, tmp_path / "out", "--topics", "/gen/a", "--start-offset", "0.2",
+                      topics=("/gen/a", "/gen/b"))
     assert list(out) == ["/gen/a"]
     t0 = src["/gen/a"][0][0]
     want = [m[1] for m in src["/gen/a"] if m[0] >= t0 + 200_000_000]

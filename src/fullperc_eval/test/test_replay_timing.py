@@ -27,7 +27,7 @@ def _replay_timeline(rate: float, slow: tuple[float, float, float] | None, rng) 
         t = 0.0
         for i in range(N):
             t = max(t, recv[i])
-            while a <= t < b and f == 0.0:  # stalled: nothing until b
+            if f == 0.0 and a <= t < b:  # stalled: nothing until b
                 t = b
             t += need / f if a <= t < b else need
             recv[i] = t

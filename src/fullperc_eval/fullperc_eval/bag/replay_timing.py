@@ -31,7 +31,8 @@ def envelope_timing(t_rec: np.ndarray, t_play: np.ndarray, rate: float, bins: in
     err = d2 - d1 / rate
     edges = np.linspace(0.0, d1[-1], bins + 1)
     idx = np.clip(np.searchsorted(edges, d1, side="right") - 1, 0, bins - 1)
-    env = np.array([np.flatnonzero(idx == b)[np.argmin(err[idx == b])] for b in range(bins) if np.any(idx == b)])
+    slices = (np.flatnonzero(idx == b) for b in np.unique(idx))
+    env = np.array([s[np.argmin(err[s])] for s in slices])
     slope = theilslopes(d2[env], d1[env])[0]
     off = d2[env] - slope * d1[env]
     resid = np.abs(off - np.median(off))
