@@ -13,7 +13,9 @@ Health (``/diagnostics``, status ``ndi_driver: link``; the rule is in :mod:`full
 no new frame arrived for ``health.stale_after_s`` (not connected / reconnecting / frame number frozen), or when
 every pose was refused; WARN per tool not seen or refused for that long, per tool the device refused (its ROM),
 and for repeated reconnects; OK only while every enabled tool's poses flow. The console gets the reason the
-device cannot be reached and every tool the device refuses, throttled.
+device cannot be reached and every tool the device refuses, throttled. Its values carry the driver's counters,
+among them ``skipped_frames``: device frames never read (BX answers the newest frame, so a late poll skips some),
+which a consumer counting ``frame_number`` gaps of the quality topic cannot tell from messages lost on the way.
 
 Parameters (defaults in brackets; units and comments in ``config/ndi_vega.yaml``): transport [tcp] | serial;
 host [127.0.0.1]; port [8765]; serial_device [/dev/ttyUSB0]; baud [115200]; tools [tool, base]; tool_roms

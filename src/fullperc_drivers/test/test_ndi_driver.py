@@ -106,9 +106,11 @@ def test_frame_clock_keeps_nanoseconds_on_epoch_host_times():
         assert abs(clk.stamp(1000 + f, capture + 1_700_003) - (capture + 1_700_003)) <= 1, f
 
 
-def _bx_device(poses):
-    """A minimal device for the bring-up sequence: returns handle 01.. and BX with ``poses``."""
+def _bx_device(poses, frames=None):
+    """A minimal device for the bring-up sequence: returns handle 01.. and BX with ``poses``; frame numbers 101,
+    102, ... or those of the iterable ``frames``."""
     state = {"next": 1, "frame": 100}
+    frames = iter(frames) if frames is not None else None
 
     def respond(raw):
         c = decode_command(raw)
@@ -122,7 +124,7 @@ def _bx_device(poses):
         if c.name == "VER":
             return encode_ascii_reply("Freeze Tag: test")
         if c.name == "BX":
-            state["frame"] += 1
+            state["frame"] = next(frames) if frames is not None else state["frame"] + 1
             tools = [R.ToolTransform(h, "valid" if p is not None else "missing", *(p or (None, None, None)),
                                      port_status=0x31, frame_number=state["frame"]) for h, p in poses.items()]
             return encode_binary_reply(R.format_bx(R.TrackingData(tools, 0)))
@@ -150,6 +152,22 @@ def test_bringup_sequence_and_nonfinite_pose_refused():
     assert not fr.tools["b"].visible and fr.tools["b"].position_m is None  # NaN quaternion refused
     assert not fr.tools["c"].visible
     assert d.counters.bad_poses == 1
+
+
+def test_device_frames_never_read_are_counted_as_skipped():
+    """A poll that comes late gets the device's newest frame: the ones in between were measured and never read.
+    ``skipped_frames`` counts them (fusion_node counts frame-number gaps as lost samples and cannot tell these from
+    messages lost on the way); a repeated frame, a counter that goes back (device re-initialised) and a jump of
+    more than the frame clock's ``max_jump`` (10 s of frames) are not skips."""
+    rom = write_rom(TOOLS["tool"][1], "8700339")
+    poses = {1: (np.array([1.0, 0, 0, 0]), np.array([1.0, 2.0, -1500.0]), 0.1)}
+    seq = [101, 101, 102, 105, 106, 50, 51, 51 + 601, 51 + 601 + 3]
+    d = NdiDriver(DriverConfig(tools=[ToolConfig("a", rom)]), transport=ScriptedTransport(_bx_device(poses, seq)))
+    d.connect()
+    got = [d.poll_once() for _ in seq]
+    assert [None if f is None else f.frame_number for f in got] == [101, None, 102, 105, 106, 50, 51, 652, 655]
+    assert d.counters.skipped_frames == 2 + 2 and d.counters.duplicate_frames == 1
+    assert d.counters.as_dict()["skipped_frames"] == 4   # on /diagnostics (ndi_driver publishes as_dict())
 
 
 def _refusing_device(refuse: dict[str, str], poses):
@@ -219,3 +237,50 @@ def test_rom_files_are_checked_before_use(tmp_path, content, why):
     good = tmp_path / "good.rom"
     good.write_bytes(write_rom(TOOLS["tool"][1], "8700339"))
     assert ToolConfig.from_file("x", good).source == str(good)
+
+
+@pytest.mark.parametrize("name", ["TSTART", "TSTOP"])
+def test_a_mode_change_repeated_after_a_garbled_okay_that_finds_it_done_succeeds(name):
+    """The OKAY to TSTART/TSTOP comes back garbled: the repeat finds the device already in the new mode and answers
+    ERROR0C -- the first one took effect (it used to fail the bring-up, which then re-loaded every tool). ERROR0C to
+    the first attempt still raises (test_device_error_names_the_code)."""
+    replies = iter([b"OKAYA897\r", encode_ascii_reply("ERROR0C")])
+    c = NdiClient(ScriptedTransport(lambda cmd: next(replies)), read_timeout=0.05)
+    (c.tstart if name == "TSTART" else c.tstop)()
+    assert c.counters.crc_errors == 1 and c.counters.retries == 1 and c.counters.device_errors == 1
+
+
+class ScriptedSerial(ScriptedTransport):
+    """A serial line: the device answers only when host and device run at the same rate; COMM switches the device
+    after its reply, which the line garbles when ``garble_comm``."""
+
+    def __init__(self, garble_comm: bool):
+        self.host_baud, self.dev_baud, self.garble_comm = 9600, 9600, garble_comm
+        super().__init__(self._respond)
+
+    def _respond(self, raw):
+        if self.host_baud != self.dev_baud:
+            return None                      # wrong rate: the device hears noise and stays silent
+        c = decode_command(raw)
+        if c.name == "COMM":
+            self.dev_baud = {"50000": 115200, "00000": 9600}[c.params]
+            return b"OKAYA897\r" if self.garble_comm else okay()
+        return okay()
+
+    def set_baud(self, baud):
+        self.host_baud = baud
+
+
+@pytest.mark.parametrize("garble_comm", [False, True])
+def test_serial_bring_up_goes_to_the_new_rate_even_when_the_comm_okay_is_garbled(garble_comm):
+    """COMM's OKAY garbled on the line: the device has switched, so the host switches too and INIT at the new rate
+    proves it, without a read timeout. (It used to repeat COMM at 9600 to a device at 115200: three read timeouts,
+    then a failed bring-up and a reconnect through break and RESET.)"""
+    t = ScriptedSerial(garble_comm)
+    drv = NdiDriver(DriverConfig(transport="serial", baud=115200, init_timeout_s=0.05, read_timeout_s=0.05,
+                                 tools=[ToolConfig("a", write_rom(TOOLS["tool"][1], "8700339"))]), transport=t)
+    c = NdiClient(t, read_timeout=0.05)
+    drv._serial_bringup(c, t)
+    assert (t.host_baud, t.dev_baud) == (115200, 115200) and c.counters.timeouts == 0
+    assert [decode_command(s).name for s in t.sent] == ["INIT", "COMM", "INIT"]
+    assert c.counters.crc_errors == int(garble_comm)

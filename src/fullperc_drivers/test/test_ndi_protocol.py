@@ -278,3 +278,27 @@ def test_a_corrupted_ascii_reply_is_not_cut_to_a_shorter_one():
         with pytest.raises(NdiCrcError):
             fr.pop()
         assert fr.garbage_bytes == 0
+
+
+@pytest.mark.parametrize("noise", [b"\r", b"\x01\r", b"ab\x9c\r", b"\x93\r\x80", b"OKAY\xff\r\xfe", b"\r\r\r\x00"])
+def test_noise_holding_a_cr_is_skipped_and_the_reply_behind_it_read(noise):
+    """Noise with a CR in it ends a "frame" that cannot be a reply (a byte no reply contains among the last four,
+    or fewer than four bytes): skipped as garbage, and the ASCII or binary reply behind it is read -- it used to be a
+    CRC error, after which the client dropped the reply with the buffer and repeated the command (CI: a stray read
+    timeout when the reply's tail came after the drain)."""
+    for reply in (b"OKAYA896\r", BX_VALID):
+        for feed in ("whole", "bytewise"):
+            fr = FrameReader()
+            if feed == "whole":
+                fr.feed(noise + reply)
+                out = [fr.pop()]
+            else:
+                out = _bytewise(fr, noise + reply)
+            assert len(out) == 1 and out[0].binary == (reply == BX_VALID), (feed, out)
+            assert fr.garbage_bytes == len(noise) and fr.pending == 0 and fr.pop() is None
+
+
+def test_thousands_of_noise_crs_do_not_exhaust_the_stack():
+    fr = FrameReader()
+    fr.feed(b"\x00\r" * 50_000 + b"OKAYA896\r")
+    assert fr.pop().data == b"OKAY" and fr.garbage_bytes == 100_000

@@ -135,8 +135,12 @@ def test_pty_serial_comm_rate_switch_and_poses():
         d, frames = run_driver(cfg, during=lambda: rate.append(emu.device.serial_baud))
         assert rate == [921600]  # COMM accepted, and the host followed after OKAY (else no frames)
         assert emu.stats.rx_wrong_baud == 0
-        assert emu.device.serial_baud == 9600  # shutdown returned the device to its default rate
-        assert emu.device.commands[:3] == ["INIT", "COMM", "INIT"]
+        # shutdown returned the device to its default rate: its last command is COMM (9600, sent once), and the
+        # device switches once the OKAY is out -- after the driver may already have read it and returned, so the
+        # switch is waited for (checked at once, a busy machine failed it in CI: the emulator thread not yet past
+        # its write)
+        assert emu.device.commands[:3] == ["INIT", "COMM", "INIT"] and emu.device.commands[-1] == "COMM"
+        wait_for(lambda: emu.device.serial_baud == 9600, timeout=10, what="the device back at 9600 baud")
         check_poses(frames, emu, names, (), 0.006, 6e-5)
     finally:
         emu.stop()
@@ -211,8 +215,7 @@ def test_garbage_before_replies_costs_no_read_timeout(transport, prob):
     """Random bytes (1-16) before the device's replies, bring-up included (TCP: before every one): each reply is
     still read (the noise skipped and counted), so no command waits out its read timeout (before, every garbled BX
     did: 0.5 s each, the ``make soak`` figure of 73 Hz instead of 120 Hz with 1 % garbage); the poses that arrive
-    are exact. Serial at 20 %: with garbage before every reply the 9600-baud bring-up (INIT, COMM) does not get
-    through its retries (not solved here)."""
+    are exact. Serial at 20 % (noise before every serial reply: `soak/soak_ndi_noise.py --prob 1.0`, README)."""
     names = ["tool", "base"]
     emu = VegaEmulator(moving_source(names), {n: ROMS[n] for n in names},
                        faults=FaultConfig(garbage_prob=prob, seed=11))
@@ -226,8 +229,10 @@ def test_garbage_before_replies_costs_no_read_timeout(transport, prob):
         d, frames = run_driver(cfg, n_frames=150)
         c = d.counters
         assert emu.stats.garbage >= 150 * prob and c.garbage_bytes >= 150 * prob
-        # before: every garbled BX timed out (here 20 % / 100 % of the polls); left: a stray timeout when the noise
-        # itself holds a CR and the reply's tail comes after the drain (serial, ~1 in 3000 commands)
+        # before: every garbled BX timed out (here 20 % / 100 % of the polls); then, until 2026-12, stray timeouts
+        # (3 in 1,039 commands in CI): noise holding a CR (now skipped, FrameReader), and a garbled OKAY to COMM
+        # repeated at the old rate (the bring-up now goes to the new rate) or to TSTART/TSTOP (ERROR0C, now taken as
+        # done). 0 in 10 seeds with two busy loops beside; what may be left: a reply's tail after the drain
         assert c.timeouts <= 0.002 * c.commands and c.link_losses == 0
         assert c.crc_errors + c.garbled <= 0.1 * c.commands     # garbage holding a CR or ending printable: a retry
         check_poses(frames, emu, names)

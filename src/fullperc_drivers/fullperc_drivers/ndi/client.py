@@ -16,6 +16,7 @@ from . import replies as R
 from .protocol import (
     FrameReader,
     NdiCrcError,
+    NdiDeviceError,
     NdiError,
     NdiProtocolError,
     Reply,
@@ -41,6 +42,8 @@ class Counters:
     commands: int = 0
     frames: int = 0  # tracking replies parsed
     duplicate_frames: int = 0  # poll returned a frame number already delivered
+    skipped_frames: int = 0  # device frames never read: frame-number gaps between delivered frames (the poll
+    #                          came late; not counted across a bring-up or a counter that goes back)
     crc_errors: int = 0
     garbled: int = 0  # replies that passed framing but failed to parse
     timeouts: int = 0
@@ -131,8 +134,8 @@ class NdiClient:
             raise last
         raise NdiLinkError(f"{name}: {attempts} attempts failed, last: {last}") from last
 
-    def okay(self, name: str, params: str = "", timeout: float | None = None) -> None:
-        warn = parse_okay(self.raw(name, params, timeout), name)
+    def okay(self, name: str, params: str = "", timeout: float | None = None, retry: bool = True) -> None:
+        warn = parse_okay(self.raw(name, params, timeout, retry), name)
         if warn is not None:
             self.counters.device_warnings += 1
             log.warning("NDI %s answered WARNING%02X", name, warn)
@@ -191,13 +194,27 @@ class NdiClient:
         self.okay("PENA", f"{handle:02X}{priority}")
 
     def tstart(self) -> None:
-        self.okay("TSTART", "")
+        self._mode_change("TSTART")
 
     def tstop(self) -> None:
-        self.okay("TSTOP", "")
+        self._mode_change("TSTOP")
 
-    def comm(self, baud: int) -> None:
-        self.okay("COMM", f"{baud_code(baud)}0000")
+    def _mode_change(self, name: str) -> None:
+        """TSTART / TSTOP. When the OKAY came back garbled (or not at all) the command is repeated, and the repeat
+        finds the device already in the new mode: ERROR0C (invalid in the current mode) then means the first one
+        took effect, not a failure (it used to fail the bring-up, which re-loaded every tool)."""
+        retries = self.counters.retries
+        try:
+            self.okay(name, "")
+        except NdiDeviceError as e:
+            if e.code != 0x0C or self.counters.retries == retries:
+                raise
+            log.info("NDI %s repeated after an unread OKAY answered ERROR0C: the first one took effect", name)
+
+    def comm(self, baud: int, retry: bool = True) -> None:
+        """``retry=False``: once -- a garbled OKAY means the device has most likely switched already, and a repeat
+        at the old rate would meet silence (the driver's serial bring-up and shutdown)."""
+        self.okay("COMM", f"{baud_code(baud)}0000", retry=retry)
 
     def bx(self, options: int = R.OPT_TRANSFORMS) -> R.TrackingData:
         def parse(r: Reply) -> R.TrackingData:

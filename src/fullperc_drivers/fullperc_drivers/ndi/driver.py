@@ -309,7 +309,14 @@ class NdiDriver:
                 raise NdiLinkError(f"expected RESET after a serial break, got {rep.data[:16]!r}") from None
             c.init(self.cfg.init_timeout_s)
         if self.cfg.baud != 9600:
-            c.comm(self.cfg.baud)
+            try:
+                c.comm(self.cfg.baud, retry=False)
+            except (NdiLinkError, NdiProtocolError) as e:
+                # The OKAY was garbled or lost on its way back, so the device has most likely switched: COMM again
+                # at 9600 would talk to a device at the new rate (silence: three read timeouts, then a reconnect).
+                # INIT at the new rate below tells; if the device did not switch, it fails and the reconnect's
+                # probe at 9600 (else break -> RESET) starts over. An ERROR reply (rate refused) still raises.
+                log.info("NDI COMM reply not read (%s); trying the new rate", e)
             time.sleep(0.1)  # the device switches after sending OKAY
             t.set_baud(self.cfg.baud)
             c.init(self.cfg.init_timeout_s)  # also proves the new rate works
@@ -324,8 +331,9 @@ class NdiDriver:
             except NdiError as e:
                 log.info("TSTOP on shutdown failed: %s", e)
             if isinstance(c.t, SerialTransport):
-                try:
-                    c.comm(9600)  # leave the device at its default rate
+                try:   # leave the device at its default rate; once: a garbled OKAY repeated at the old rate would
+                    # talk to a device already at 9600 (three read timeouts for nothing)
+                    c.comm(9600, retry=False)
                 except (NdiError, ValueError):
                     pass
             c.t.close()
@@ -348,6 +356,11 @@ class NdiDriver:
             self._dup_run += 1
             return None
         self._dup_run = 0
+        if self._last_frame is not None and 1 < fno - self._last_frame <= self.clock.max_jump:
+            # frames the device measured and nobody read (BX answers the newest frame): a consumer that counts
+            # frame-number gaps downstream (fusion_node's lost samples) sees these too, and cannot tell them from
+            # messages lost on the way; this counter says how many were never read
+            self.counters.skipped_frames += fno - self._last_frame - 1
         self._last_frame = fno
         self._frames_since_connect += 1
         stamp = self.clock.stamp(fno, recv)
