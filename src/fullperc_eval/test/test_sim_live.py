@@ -121,11 +121,46 @@ def test_task_waits_until_a_driver_tracks():
             wait_for(lambda: any(e["event"] == "start" for e in events), 10, what="task start")
         assert [e["event"] for e in events][:2] == ["tracking", "start"]
         assert server.t0_host_ns >= t_tstart - 50_000_000
+        # the emulator ran before the task clock was set; from then on its frames are the simulated Vega's
+        _assert_frames_carry_their_own_sample(server)
         assert len(so.recv(65536)) > 0  # and now the streams play
     finally:
         server.stop()
         th.join(10)
     assert not th.is_alive()
+
+
+def _assert_frames_carry_their_own_sample(server: LiveServer, n: int = 120) -> None:
+    """Each emulator frame from the task start on is captured at one of the simulated Vega's sample times and
+    carries that sample (not the one before it: stamped by its frame time, such a pose was up to a period old)."""
+    run, dev = server.run, server.vega.device
+    first = dev.frame_number(server.host_ns(run.ots.t_ns[0]))
+    served = 0
+    for f in range(first, first + n):
+        s = server.sim_ns(dev.frame_time_ns(f))
+        if s < run.ots.t_ns[0]:
+            continue
+        k = int(np.argmin(np.abs(run.ots.t_ns - s)))
+        assert abs(int(run.ots.t_ns[k]) - s) <= 2 * server.speed + 2, (f, s, run.ots.t_ns[k])   # ns of rounding
+        poses = dev.poses_for_frame(f)
+        for name, tool in run.ots.tools.items():
+            if tool.visible[k]:
+                np.testing.assert_array_equal(poses[name].position_mm, tool.position[k] * 1000.0)
+                served += 1
+    assert served > 0
+
+
+def test_vega_restarted_during_the_task_is_on_the_task_s_frame_grid():
+    """A Vega emulator started while the task plays (the demo's ``vega_outage``: a fresh one after a kill)."""
+    run = run_task(TASK, seed=SEED)
+    server = LiveServer(run, speed=1.0, vega_port=0, log=lambda rec: None,
+                        omc_addr=("127.0.0.1", 9), diana_addr=("127.0.0.1", 9))
+    try:
+        server.t0_host_ns = time.time_ns() - 1_234_567   # a task clock off the emulator's own frame grid
+        server._start_vega()
+        _assert_frames_carry_their_own_sample(server, n=int(run.ots.t_ns.size))
+    finally:
+        server.close()
 
 
 def test_task_starts_anyway_when_nobody_tracks():

@@ -202,3 +202,28 @@ def test_fault_drop_closes_the_link(emu):
         pass
     Raw(emu.port).cmd("INIT")  # the server keeps accepting
     assert emu.stats.drops == 1
+
+
+def test_align_frames_puts_frame_times_on_the_given_grid_and_never_back():
+    """``align_frames``: the frame times fall on ``ref + k / rate`` (to rounding), the frame number at a given
+    time does not go back (it may skip one), and ``TSTART:80`` (frame numbers restart) keeps the grid."""
+    from fullperc_eval.emulators.vega_device import VegaDevice
+
+    dev = VegaDevice(ROMS, frame_rate_hz=60.0)
+    period = 1e9 / 60.0
+    ref = dev.t0_ns + 5_000_000_000 + 7_777_777   # off the emulator's own grid by 7.8 ms, and in its future
+    now = dev.t0_ns + 3_210_000_000
+    before = dev.frame_number(now)
+    dev.align_frames(ref)
+    assert before <= dev.frame_number(now) <= before + 1
+    for f in (dev.frame_number(now), dev.frame_number(now) + 1, dev.frame_number(now) + 600):
+        k = (dev.frame_time_ns(f) - ref) / period
+        assert abs(k - round(k)) * period <= 2, f   # nanoseconds
+    # frame f is captured at its frame time: the device's clock at that time reads f
+    f = dev.frame_number(now)
+    assert dev.frame_number(dev.frame_time_ns(f)) == f and dev.frame_time_ns(f) <= now
+    dev.handle_line(encode_command("INIT"))
+    dev.handle_line(encode_command("TSTART", "80"))
+    f = dev.frame_number()
+    k = (dev.frame_time_ns(f) - ref) / period
+    assert f in (dev.frame_start, dev.frame_start + 1) and abs(k - round(k)) * period <= 2

@@ -15,8 +15,9 @@ Streams (wire formats: :mod:`fullperc_drivers.streams`):
     127.0.0.1:3884), stamped with the sample time on the device clock;
   * NDI Vega: the Combined-API emulator (:class:`fullperc_eval.emulators.vega_server.VegaEmulator`) on TCP
     ``vega_port`` (default 8765; 0 = any free port, reported on stdout), fed with the OTS model's
-    measurements: the latest simulated Vega frame at or before the emulator's frame time, MISSING when
-    the model did not see the tool.
+    measurements: the simulated Vega frame of the emulator's frame time, MISSING when the model did not see the
+    tool. Once the task clock is set, the emulator's frames are put on the simulated Vega's sample times
+    (``VegaDevice.align_frames``), so each frame carries the pose of its own capture time, as a real Vega's does.
 
 Stdout gets JSON lines: a ``start`` record (t0 of the task on the host clock, speed, ports), region changes
 of the true target path, a ``vega_bump`` record when the run has one (its time, size, host time), and an ``end``
@@ -44,6 +45,7 @@ from .run import SimRun
 from .scene import OMC_BODIES
 
 _REGION = {1: "BVV", 2: "GVV", 3: "PVV"}
+_ALIGN_TOLERANCE_NS = 1_000   # rounding between the host and the simulation clocks (a few ns); frames are >= 1 ms apart
 
 
 def _roms(extra: dict[str, str] | None = None) -> dict[str, bytes]:
@@ -104,7 +106,9 @@ class LiveServer:
         if not self.t0_host_ns:  # the task clock has not started: nothing in view yet
             return {}
         ots = self.run.ots
-        k = int(np.searchsorted(ots.t_ns, self.sim_ns(t_host_ns), side="right")) - 1
+        # the latest sample at or before the frame time; with the frames aligned they coincide, up to a few ns of
+        # rounding between the two clocks, which must not select the sample a whole period earlier
+        k = int(np.searchsorted(ots.t_ns, self.sim_ns(t_host_ns) + _ALIGN_TOLERANCE_NS, side="right")) - 1
         if k < 0:
             return {}
         out: dict = {}
@@ -125,6 +129,12 @@ class LiveServer:
         self.vega = VegaEmulator(pose_source=self._vega_source, tools=_roms(self._extra_roms),
                                  frame_rate_hz=float(self.run.info.get("ots_rate_hz", 60.0)) * self.speed,
                                  host=self.vega_host, port=int(self.vega_port), **kw).start()
+        self._align_vega()
+
+    def _align_vega(self) -> None:
+        """Put the emulator's frames on the simulated Vega's sample times of this task's clock (when it is set)."""
+        if self.vega is not None and self.t0_host_ns and len(self.run.ots.t_ns):
+            self.vega.device.align_frames(self.host_ns(self.run.ots.t_ns[0]))
 
     # ----------------------------------------------------------------------------------------- frames
     def omc_datagram(self, i: int) -> bytes:
@@ -188,6 +198,7 @@ class LiveServer:
 
     def _serve_once(self, start_delay_s: float) -> None:
         self.t0_host_ns = time.time_ns() + int(start_delay_s * 1e9)
+        self._align_vega()
         self.log({"event": "start", "task": self.run.task, "seed": self.run.seed, "t0_host_ns": self.t0_host_ns,
                   "speed": self.speed, "duration_s": self.run.duration_s, "omc": list(self.omc_addr),
                   "diana": list(self.diana_addr), "vega_port": None if self.vega is None else self.vega.port,
