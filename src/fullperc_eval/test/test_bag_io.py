@@ -173,6 +173,18 @@ def test_metadata_v9_layout(tmp_path, ts):
         assert tm["type_description_hash"] == json.loads(jpath.read_text())["type_hashes"][0]["hash_string"]
 
 
+def test_metadata_text_is_pyyamls_safe_dump_and_written_through_libyaml(tmp_path, ts):
+    """metadata.yaml goes through libyaml's emitter when PyYAML has it (the recorder rewrites the file at every
+    flush: 10 s of a 50 s demo recording with the pure-Python one), and the text is exactly yaml.safe_dump's."""
+    from fullperc_eval.bag import metadata as md
+
+    bag = write_bag(tmp_path / "b", ts, n=20, custom_data={"task": "P-B-G-P"})
+    text = (bag / "metadata.yaml").read_text()
+    assert text == yaml.safe_dump(yaml.safe_load(text), sort_keys=False, default_flow_style=False)
+    if yaml.__with_libyaml__:
+        assert md._DUMPER is yaml.CSafeDumper
+
+
 def test_rosbags_reader_sees_qos_and_hash(tmp_path, ts):
     from rosbags.rosbag2 import Reader
 

@@ -23,8 +23,6 @@ from importlib.metadata import version
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from .errors import BagError
 from .metadata import (
     METADATA_VERSION,
@@ -33,6 +31,7 @@ from .metadata import (
     FileInfo,
     TopicInfo,
     build_metadata,
+    dump_yaml,
     write_metadata,
 )
 from .qos import make_qos, qos_yaml
@@ -316,7 +315,7 @@ class BagWriter:
         self._write_metadata()
 
     def _serialized_metadata(self) -> str:
-        return yaml.safe_dump(self.metadata()["rosbag2_bagfile_information"], sort_keys=False)
+        return dump_yaml(self.metadata()["rosbag2_bagfile_information"], sort_keys=False)
 
     def close(self) -> None:
         if self._closed or self._file is None:
