@@ -62,6 +62,7 @@ from .pipeline import FusedOutput, TargetConfig, TargetPipeline
 from .synchronizer import GLOBAL, LOCAL, ApproxSync, Sample, SyncItem
 
 PROCESSING_MODES = ("arrival", "ordered")
+LATE_SOURCE_SPAN_NS = 5_000_000_000   # [ns] of a late source's own (in-order) stamps before it restarts the timeline
 
 
 @dataclass
@@ -118,6 +119,7 @@ class ArrivalPipeline(TargetPipeline):
         self._final: list[FusedOutput] = []
         self._nres = 0                            # the first _nres entries are resolved (links fixed)
         self._late_run: int | None = None         # first stamp of a run of samples all behind the history
+        self._own_newest: list[int | None] = [None] * len(self._names)   # newest stamp seen per stream
         self._view = None                         # snapshot of the current static links (shallow copy)
         self._sig = self._signature()
         self._new_view()
@@ -184,10 +186,19 @@ class ArrivalPipeline(TargetPipeline):
             self._problem("duplicate", f"{what}: duplicate stamp {t} ns; dropped", t)
             self.counts[f"{self._names[stream]}_duplicate"] += 1
             return False
+        own = self._own_newest[stream]
+        if own is None or t > own:
+            self._own_newest[stream] = t
         if self.newest_ns is not None and t < self.newest_ns - self.history_ns:   # behind the history
+            # Only a stream that went back against its own stamps says the stamps went back for good; a source
+            # whose samples come late but in order (its driver starved on a busy machine: seen 1.3 s behind) is
+            # dropped as late -- restarting for it put the output a second back in time. A run of a late source
+            # alone restarts only after LATE_SOURCE_SPAN_NS of its stamps (its clock may have been reset while the
+            # stream that ran ahead fell silent: the node must not stall).
+            span = self.history_ns if own is not None and t < own else max(self.history_ns, LATE_SOURCE_SPAN_NS)
             if self._late_run is None:
                 self._late_run = t
-            elif t - self._late_run > self.history_ns:
+            elif t - self._late_run > span:
                 self._restart_timeline(what, t)
         else:
             self._late_run = None
@@ -240,6 +251,7 @@ class ArrivalPipeline(TargetPipeline):
         self._carried = self.poll()
         self.horizon_ns = self.newest_ns = self._published_ns = self._late_run = None
         self._last_committed = [None] * len(self._names)
+        self._own_newest = [None] * len(self._names)
         for f in (*self.filters.values(), *self._lane_final.values()):
             f.reset()
 
