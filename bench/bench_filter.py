@@ -12,6 +12,8 @@ reference (``filters.FusionFilter`` for the paper's kinds, ``fullperc_reference.
 orientation and its model covariance (measurement_models: the OMC's from fit error and view margin, rotated into
 base, with ``sys_var``; the local one with a calibrated link's covariance through a 1.5 m lever arm, which couples
 position, rotation and the axes) -- against the reference on the same items.
+``fullperc_rot_noise_scale_step_us``: the fast form on the 6dof items with the OMC's rotation noise scale
+(``rot_noise_adapt_time`` 1 s, the default; rot_noise_scale.py) against the same filter with it off: its cost.
 ``fullperc_array_floor_us``: the array operations of one fullperc step in its fast form alone (predict F P F^T + Q,
 U = P H^T, S, the LAPACK solve, P - U K^T, the reset, the symmetrisations, the Step's arrays; k = 6 rows, a global
 sample with orientation) with no filter logic: the floor of a joint 21-state step in numpy.
@@ -37,7 +39,7 @@ from fullperc_common.transforms import inv_T, make_T
 from fullperc_fusion.filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement
 from fullperc_fusion.filter_registry import FILTERS, make_filter
 from fullperc_fusion.filters import FILTER_KINDS, FusionFilter, PassThrough
-from fullperc_fusion.fullperc_reference import FullpercReference, R_to_quat, so3_exp
+from fullperc_fusion.fullperc_reference import FullpercParams, FullpercReference, R_to_quat, so3_exp
 from fullperc_fusion.measurement_models import local_covariance, omc_covariance, omc_systematic_var, rotate_cov
 from fullperc_fusion.pipeline import FILTER_NAMES, TargetConfig, TargetPipeline
 
@@ -232,9 +234,23 @@ def run_pipeline(ev, filters):
     return n + len(pipe.flush())
 
 
+def rot_scale_cost(n: int, repeats: int = 9) -> None:
+    """``fullperc_rot_noise_scale_step_us`` (module docstring), interleaved."""
+    if "fullperc" not in FILTERS:
+        return
+    items = step_items_6dof(n)
+    on, off = [], []
+    for _ in range(repeats):
+        on.append(time_steps(make_filter("fullperc"), items))
+        off.append(time_steps(make_filter("fullperc", FullpercParams(rot_noise_adapt_time=0.0)), items))
+    emit("fullperc_rot_noise_scale_step_us", statistics.median(on) * 1e6, "us", baseline=statistics.median(off) * 1e6,
+         note="fullperc fast form on the 6dof items with the OMC rotation noise scale (default) vs with it off")
+
+
 def main() -> None:
     zs = np.random.default_rng(1).normal(0, 1e-3, size=(N, 3)) + [0.5, 0.2, 0.3]
     filter_step_figures(zs)
+    rot_scale_cost(len(zs))
     floor = statistics.median(array_floor_step() for _ in range(9))
     emit("fullperc_array_floor_us", floor * 1e6, "us", note="numpy work of one joint 21-state fullperc step alone "
          "(k = 6), no filter logic: the floor of filter_step_us[fullperc,6dof] in this form")

@@ -1,5 +1,6 @@
-"""``scripts/truth_motion.py`` (README "The `fullperc` filter", ``<target>.ang_accel_noise``) on committed bags: the
-arm-held tool's turn rate and its change, from the Diana's forward kinematics."""
+"""``scripts/truth_motion.py`` (README "The `fullperc` filter", ``<target>.ang_accel_noise``; "Several tracked
+targets", ``<target>.accel_noise``) on committed bags: how the arm-held tool and the hand-held instrument move and
+turn, from their ground truth."""
 
 from __future__ import annotations
 
@@ -16,8 +17,28 @@ def test_truth_motion_reports_the_turn_rate_and_its_change(load_script, capsys):
     assert all(math.isfinite(v) for v in f.values())
     assert 0.01 < f["w_max"] < 1.0                     # the arm turns the tool, slowly
     assert 0.0 < f["a_median"] <= f["a_p99"] <= f["a_max"] < 0.5
+    assert 0.01 < f["v_max"] < 0.2 and f["acc_max"] < 0.1 and f["q_cv"] == f["v_max"] * f["acc_max"]
     mod.main([str(ROOT / "bags" / "paper" / "G-B-P"), str(ROOT / "bags" / "spec" / "P-B-G-P")])
     out = capsys.readouterr().out.splitlines()
     assert len(out) == 3 and all("|w| max" in line for line in out)
-    m = re.search(r"over 2 bags: \|w\| max ([0-9.]+) rad/s, \|dw/dt\| max ([0-9.]+) rad/s\^2", out[-1])
+    m = re.search(r"over 2 bags \(tool\): \|w\| max ([0-9.]+) rad/s, \|dw/dt\| max ([0-9.]+) rad/s\^2", out[-1])
     assert m and float(m.group(1)) >= f["w_max"] and float(m.group(2)) >= f["a_max"]
+
+
+def test_the_hand_held_instrument_needs_a_motion_model_of_its_own(load_script, capsys):
+    """The instrument walks: its v_max * a_max (the white-acceleration density a constant-velocity model needs) is
+    three orders above the arm-held tool's; fusion.yaml's `instrument.accel_noise` is that figure and its
+    `instrument.init_vel_std` the walk's top speed, each to one significant digit."""
+    import yaml
+
+    mod = load_script("truth_motion")
+    inst = mod.motion_figures(str(ROOT / "bags" / "paper" / "G-B-P"), "instrument")
+    tool = mod.motion_figures(str(ROOT / "bags" / "paper" / "G-B-P"), "tool")
+    assert 0.5 < inst["v_max"] < 1.5 and 1.0 < inst["acc_max"] < 5.0     # a walking hand (0.88 m/s, 2.4 m/s^2)
+    assert inst["q_cv"] > 100 * tool["q_cv"]
+    doc = yaml.safe_load((ROOT / "src/fullperc_fusion/config/fusion.yaml").read_text())
+    block = doc["fusion_node"]["ros__parameters"]["instrument"]
+    assert block["accel_noise"] == float(f"{inst['q_cv']:.1g}"), (block, inst["q_cv"])
+    assert block["init_vel_std"] == float(f"{inst['v_max']:.1g}"), (block, inst["v_max"])   # its top speed
+    mod.main(["--target", "instrument", str(ROOT / "bags" / "spec" / "G-B-P")])
+    assert "over 1 bags (instrument)" in capsys.readouterr().out

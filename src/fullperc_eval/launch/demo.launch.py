@@ -46,7 +46,9 @@ def generate_launch_description():
                   arguments=["-o", PathJoinSubstitution([out, "bag"]), "--topics", *RECORD_TOPICS])
     fusion = Node(package="fullperc_fusion", executable="fusion_node", name="fusion_node",
                   parameters=[{"filter": "cbkf", "filters": ["ckf", "bkf", "kf", "omc"],
-                               "calibration_file": C("calibration_file"), "targets": ["tool", "instrument"]}])
+                               "calibration_file": C("calibration_file"), "targets": ["tool", "instrument"],
+                               "instrument.accel_noise": 2.0, "instrument.hop_to_bias": False,
+                               "instrument.init_vel_std": 0.9}])
     margin = Node(package="fullperc_fusion", executable="margin_node", name="margin_node",
                   parameters=[{"targets": ["tool", "instrument"]}])
     omc = Node(package="fullperc_drivers", executable="omc_driver", name="omc_driver",

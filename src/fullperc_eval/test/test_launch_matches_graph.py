@@ -38,3 +38,26 @@ def test_launch_file_and_graph_agree():
     rec = next(p for p in graph["processes"] if p["name"] == "record")["cmd"]
     graph_topics = set(rec[rec.index("--topics") + 1:])
     assert launch_topics == graph_topics
+
+
+def _fusion_yaml_target(target: str) -> dict:
+    doc = yaml.safe_load((PKG.parent / "fullperc_fusion" / "config" / "fusion.yaml").read_text())
+    return doc["fusion_node"]["ros__parameters"][target]
+
+
+def test_the_instruments_fusion_parameters_are_fusion_yamls_in_graph_and_launch_file():
+    """The demo's live fusion_node and its offline evaluation (which reads fusion.yaml) must fuse the hand-held
+    instrument with the same motion model and hop rule, or live and offline differ for it."""
+    want = {f"instrument.{k}": v for k, v in _fusion_yaml_target("instrument").items()}
+    assert want.keys() == {"instrument.accel_noise", "instrument.hop_to_bias", "instrument.init_vel_std"}
+    cmd = next(p for p in yaml.safe_load((PKG / "config" / "demo_graph.yaml").read_text())["processes"]
+               if p["name"] == "fusion")["cmd"]
+    given = dict(cmd[i + 1].split(":=", 1) for i, w in enumerate(cmd) if w == "-p")
+    assert {k: yaml.safe_load(given[k]) for k in want} == want
+    tree = ast.parse((PKG / "launch" / "demo.launch.py").read_text())
+    fusion = next(n for n in ast.walk(tree) if isinstance(n, ast.Call) and getattr(n.func, "id", "") == "Node"
+                  and any(k.arg == "executable" and k.value.value == "fusion_node" for k in n.keywords))
+    params = next(k.value for k in fusion.keywords if k.arg == "parameters").elts[0]
+    launch = {k.value: v.value for k, v in zip(params.keys, params.values, strict=True)
+              if isinstance(k, ast.Constant) and k.value.startswith("instrument.")}
+    assert launch == want

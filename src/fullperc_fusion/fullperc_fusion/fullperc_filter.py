@@ -61,6 +61,7 @@ from .fullperc_reference import (
     so3_exp,
     so3_log,
 )
+from .rot_noise_scale import pair_estimate, scale_decay, scale_step, scaled_cov
 
 __all__ = ["FullpercFilter", "FullpercParams", "N", "R_to_quat", "quat_to_R", "so3_exp", "so3_log"]
 
@@ -219,6 +220,7 @@ class FullpercFilter(StepCompat):
         self._anchor = None if s.anchor is None else s.anchor.tolist()
         self._tl, self._dmax = s.t_local_ns, s.rot_dmax
         self._ra = None if s.rot_anchor is None else s.rot_anchor.tolist()
+        self._mu, self._tmu = s.rot_scale, s.t_rot_scale_ns
 
     @property
     def state(self) -> _State:
@@ -228,7 +230,7 @@ class FullpercFilter(StepCompat):
                       np.array(x[12:15]), np.array(x[15:18]), self._P.copy(), self._t, self._pend, self._has_R,
                       np.array(x[18:21]), self._sys_var, self._lam, self._tg, self._frame,
                       None if self._anchor is None else np.array(self._anchor), self._tl,
-                      None if self._ra is None else np.array(self._ra), self._dmax)
+                      None if self._ra is None else np.array(self._ra), self._dmax, self._mu, self._tmu)
 
     def express_in(self, T_frame: np.ndarray, local: bool = True) -> np.ndarray | None:
         """:meth:`FullpercReference.express_in`; a change (rare: once per link change) is delegated to the
@@ -245,14 +247,14 @@ class FullpercFilter(StepCompat):
     def snapshot(self) -> object:
         """The whole filter state, for :meth:`restore`: references only (nothing stored is changed in place)."""
         return ("fullperc", self._x, self._R, self._P, self._t, self._pend, self._has_R, self._sys_var, self._lam,
-                self._tg, self._frame, self._anchor, self._tl, self._ra, self._dmax)
+                self._tg, self._frame, self._anchor, self._tl, self._ra, self._dmax, self._mu, self._tmu)
 
     def restore(self, obj: object) -> None:
         """Back to a :meth:`snapshot` (it stays usable)."""
-        if not (isinstance(obj, tuple) and len(obj) == 15 and obj[0] == "fullperc"):
+        if not (isinstance(obj, tuple) and len(obj) == 17 and obj[0] == "fullperc"):
             raise TypeError(f"not a fullperc snapshot: {type(obj).__name__}")
         (_, self._x, self._R, self._P, self._t, self._pend, self._has_R, self._sys_var, self._lam, self._tg,
-         self._frame, self._anchor, self._tl, self._ra, self._dmax) = obj
+         self._frame, self._anchor, self._tl, self._ra, self._dmax, self._mu, self._tmu) = obj
 
     @property
     def time_ns(self) -> int | None:
@@ -339,18 +341,20 @@ class FullpercFilter(StepCompat):
         Q = self._qcache.get((dt, self._sys_var))
         P = F @ self._P @ F.T + (Q if Q is not None else self._noise(dt, self._sys_var))
         ra, pr = self._ra, self.params
-        if ra is not None and (t - self._tl) * 1e-9 > pr.local_lost_s and pr.rot_bias_length > 0.0:
-            d = math.dist(x[0:3], ra)   # beta's spatial decay (the reference's _rot_spatial_decay)
+        if ra is not None and (t - self._tl) * 1e-9 > pr.local_lost_s:
+            d = math.dist(x[0:3], ra)   # beta's and mu's spatial decay (the reference's _rot_spatial_decay)
             if d > self._dmax:
-                f = math.exp(-(d - self._dmax) / pr.rot_bias_length)
+                self._mu = scale_decay(self._mu, d - self._dmax, pr.rot_noise_length)
+                if pr.rot_bias_length > 0.0:
+                    f = math.exp(-(d - self._dmax) / pr.rot_bias_length)
+                    x[15], x[16], x[17] = f * x[15], f * x[16], f * x[17]
+                    P[15:18, :] *= f
+                    P[:, 15:18] *= f
+                    ex = pr.rot_sys_std**2 * (1.0 - f * f)
+                    P[15, 15] += ex
+                    P[16, 16] += ex
+                    P[17, 17] += ex
                 self._dmax = d
-                x[15], x[16], x[17] = f * x[15], f * x[16], f * x[17]
-                P[15:18, :] *= f
-                P[:, 15:18] *= f
-                ex = pr.rot_sys_std**2 * (1.0 - f * f)
-                P[15, 15] += ex
-                P[16, 16] += ex
-                P[17, 17] += ex
         self._P = 0.5 * (P + P.T)
         self._t = t
 
@@ -403,6 +407,7 @@ class FullpercFilter(StepCompat):
         H = H.copy()
         y: list[float] = []
         Rblocks = []
+        Rq_g = Rq_l = Eb = None   # the samples' rotations and Exp(beta), reused by the rotation noise scale
         for m, lag_flat, a_flat in zip(ms, lag_idx, offs, strict=True):
             lag = (t - m.t_ns) * 1e-9
             if lag > pr.max_gap_s:
@@ -417,13 +422,22 @@ class FullpercFilter(StepCompat):
             else:
                 y += [z0 - (x[0] - lag * x[3]), z1 - (x[1] - lag * x[4]), z2 - (x[2] - lag * x[5])]
             if rot:
+                Rq = _quat_R(m.q)
                 A = _exp(-lag * x[12], -lag * x[13], -lag * x[14]) if lag > 0 else _R_IDENT
                 if glob:
-                    A = _mul(_exp(x[15], x[16], x[17]), A)
+                    Rq_g, Eb = Rq, _exp(x[15], x[16], x[17])
+                    A = _mul(Eb, A)
+                else:
+                    Rq_l = Rq
                 H.put(a_flat, A)
-                y += _log(_mul_t(_quat_R(m.q), self._R if A is _R_IDENT else _mul(A, self._R)))
+                y += _log(_mul_t(Rq, self._R if A is _R_IDENT else _mul(A, self._R)))
             c = m.cov
             Rblocks.append(self._fixed[(m.source, rot)] if c is None else c if rot else c[0:3, 0:3])
+        mu = None
+        if mg is not None and mg.q is not None and pr.rot_noise_adapt_time > 0.0:   # mu R_rot (rot_noise_scale)
+            mu = self._rot_scale(mg, ml, Rblocks, Rq_g, Rq_l, Eb)
+            if mu[0] != 1.0:
+                Rblocks[0] = scaled_cov(Rblocks[0], mu[0])
         if len(Rblocks) == 1:
             Rm = Rblocks[0]
         else:
@@ -481,9 +495,28 @@ class FullpercFilter(StepCompat):
         self._x, self._R, self._P, self._t = xn, Rn, P, t
         if mg is not None:
             self._lam, self._tg = lam_next, mg.t_ns
+        if mu is not None:
+            self._mu, self._tmu = mu[1:]
         if ml is not None:   # where the local source last saw the tool (beta's spatial decay)
             self._tl, self._ra, self._dmax = ml.t_ns, xn[0:3], 0.0
         return self._step(t, mg, ml, innovation=np.array(y[0:3]), nis=nis, nis_global=nis_g, hop=hop)
+
+    def _rot_scale(self, mg: Measurement, ml: Measurement | None, Rblocks: list, Rq_g: tuple, Rq_l: tuple | None,
+                   Eb: tuple) -> tuple:
+        """The reference's ``_rot_scale`` (mu for this update, then mu and the pair clock after it); ``Rq_g``,
+        ``Rq_l``: the samples' rotations, ``Eb`` = Exp(beta), as the update computed them."""
+        x, pr = self._x, self.params
+        mu, t_mu = self._mu, self._tmu
+        if ml is None or ml.q is None:
+            return mu, mu, t_mu
+        dl = (mg.t_ns - ml.t_ns) * 1e-9   # the local sample at the global's stamp
+        Rl = Rq_l if dl == 0.0 else _mul(_exp(dl * x[12], dl * x[13], dl * x[14]), Rq_l)
+        d = _log(_mul_t(Rq_g, _mul(Eb, Rl)))
+        Rg, Rl_, P = Rblocks[0], Rblocks[1], self._P
+        est = pair_estimate(d, Rl_[3, 3] + Rl_[4, 4] + Rl_[5, 5], P[15, 15] + P[16, 16] + P[17, 17],
+                            Rg[3, 3] + Rg[4, 4] + Rg[5, 5])
+        return mu, scale_step(mu, t_mu, mg.t_ns, est, pr.rot_noise_adapt_time, pr.rot_noise_adapt_min,
+                              pr.rot_noise_adapt_max), mg.t_ns
 
     def _reinit(self, t: int, mg: Measurement | None, ml: Measurement | None) -> Step:
         """A pending (re-)initialisation: the reference's rule, run by the reference on this state."""

@@ -55,6 +55,8 @@ a Gauss-Markov process forgets it at the rate the sensor's error does, and the m
   fused at face value those samples swing the velocity by tens of mm/s per update and cross the hop gate without
   being hops (README "Where a hop goes"). Scaling R only up, over ~tau of samples, keeps the model where it holds
   (lambda = 1) and trusts the OMC less where its innovations say it is noisier (covariance matching, Mehra 1972).
+* the global source's rotation noise, scaled by mu (``rot_noise_adapt_time`` > 0): R_rot used as mu R_rot, mu learnt
+  from the disagreement of (global, local) pairs, back to 1 over the distance beta decays over (:mod:`rot_noise_scale`).
 * hops: NIS of the global position rows above ``hop_gate`` -> the variance of b (``hop_into: b``, the default:
   CBKF's rule, :mod:`filters`) or of g (``hop_into: g``) is raised by y_p^2 per axis before the gain, so a step of
   the global source goes into its bias, not into the pose. In b a camera-set change is kept for as long as that
@@ -90,6 +92,7 @@ import numpy as np
 
 from .filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement, Step, StepCompat, predict_interval, split_update
 from .filters import FilterParams
+from .rot_noise_scale import pair_estimate, scale_decay, scale_step, scaled_cov
 from .so3 import R_to_quat, _skew, quat_to_R, so3_exp, so3_log
 
 __all__ = ["HOP_INTO", "FullpercParams", "FullpercReference", "so3_exp", "so3_log", "quat_to_R", "R_to_quat"]
@@ -125,6 +128,11 @@ class FullpercParams(FilterParams):
                      scale follows a change of the camera set within about half a second (~50 OMC frames at
                      120 Hz), long enough that a single outlier moves it little.
     noise_adapt_max  the largest lambda (25: the OMC's white std at most 5x the model's).
+    rot_noise_adapt_time  tau of the global rotation-noise scale mu [s] (:mod:`rot_noise_scale`; 0 = off): 1 s,
+                     ~60 (OMC, Vega) pairs, a few centimetres of a hand-held tool's path.
+    rot_noise_adapt_min, rot_noise_adapt_max  mu's bounds (0.05 and 25: the OMC's rotation std 0.22x to 5x the model's).
+    rot_noise_length L [m] over which mu returns to 1 once the local source has lost the tool, by the distance beta
+                     decays over (0.0565: ``rot_bias_length``'s fit; 0: mu kept).
     rot_sys_std      stationary per-axis std of that part [rad]. 3.8 s and 11.4 mrad: the slow part of the raw
                      OMC rotation error's structure function fitted as white + two Gauss-Markov processes
                      (``paper`` bags: fast 5.1 mrad / 0.21 s, slow 11.4 mrad / 3.8 s; the fast part reverts within
@@ -149,13 +157,18 @@ class FullpercParams(FilterParams):
     hop_into: str = "b"
     noise_adapt_time: float = 0.4
     noise_adapt_max: float = 25.0
+    rot_noise_adapt_time: float = 1.0
+    rot_noise_adapt_min: float = 0.05
+    rot_noise_adapt_max: float = 25.0
+    rot_noise_length: float = 0.0565
 
     def validate(self) -> FullpercParams:
         super().validate()
         if self.hop_into not in HOP_INTO:
             raise ValueError(f"filter parameter hop_into must be one of {HOP_INTO}, got {self.hop_into!r}")
         for name in ("ang_accel_noise", "rot_bias_walk", "init_rot_std", "init_angvel_std", "init_rot_bias_std",
-                     "rot_sys_time", "rot_sys_std", "noise_adapt_time", "rot_bias_length"):
+                     "rot_sys_time", "rot_sys_std", "noise_adapt_time", "rot_bias_length", "rot_noise_adapt_time",
+                     "rot_noise_length"):
             v = float(getattr(self, name))
             if not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"filter parameter {name} must be finite and >= 0, got {v!r}")
@@ -165,6 +178,10 @@ class FullpercParams(FilterParams):
                 raise ValueError(f"filter parameter {name} must be finite and > 0, got {v!r}")
         if not (np.isfinite(float(self.noise_adapt_max)) and self.noise_adapt_max >= 1.0):
             raise ValueError(f"filter parameter noise_adapt_max must be finite and >= 1, got {self.noise_adapt_max!r}")
+        lo, hi = float(self.rot_noise_adapt_min), float(self.rot_noise_adapt_max)
+        if not (np.isfinite(lo) and np.isfinite(hi) and 0.0 < lo <= 1.0 <= hi):
+            raise ValueError(f"filter parameters rot_noise_adapt_min/max must be finite with 0 < min <= 1 <= max, got "
+                             f"{lo!r} / {hi!r}")
         return self
 
     def rot_decay(self, dt: float) -> tuple[float, float]:
@@ -219,13 +236,15 @@ class _State:
     t_local_ns: int | None = None  # stamp of the newest local sample fused (beta's spatial decay)
     rot_anchor: np.ndarray | None = None  # a_r: p after that sample was fused
     rot_dmax: float = 0.0          # d_max: the farthest p has been from a_r since
+    rot_scale: float = 1.0         # mu, the global rotation noise's scale (rot_noise_scale)
+    t_rot_scale_ns: int | None = None  # stamp of the global sample of the newest pair mu was learnt from
 
 
 def _copy(s: _State) -> _State:
     """A copy of every array of the state (the scalars are immutable): ~10x cheaper than copy.deepcopy."""
     return _State(s.p.copy(), s.v.copy(), s.b.copy(), s.R.copy(), s.w.copy(), s.beta.copy(), s.P.copy(), s.t_ns,
                   s.pending_ns, s.has_R, s.g.copy(), s.sys_var, s.noise_scale, s.t_global_ns, s.frame,
-                  s.anchor, s.t_local_ns, s.rot_anchor, s.rot_dmax)
+                  s.anchor, s.t_local_ns, s.rot_anchor, s.rot_dmax, s.rot_scale, s.t_rot_scale_ns)
 
 
 class FullpercReference(StepCompat):
@@ -380,19 +399,22 @@ class FullpercReference(StepCompat):
         s.t_ns = t
 
     def _rot_spatial_decay(self, P: np.ndarray, t: int) -> None:
-        """beta's spatial decay after the prediction to ``t`` (module docstring), on s.beta and ``P`` in place."""
+        """beta's spatial decay after the prediction to ``t`` (module docstring), on s.beta and ``P`` in place; mu's
+        (:mod:`rot_noise_scale`) over the same distance."""
         s, pr = self.s, self.params
-        if pr.rot_bias_length <= 0.0 or s.rot_anchor is None or (t - s.t_local_ns) * 1e-9 <= pr.local_lost_s:
+        if s.rot_anchor is None or (t - s.t_local_ns) * 1e-9 <= pr.local_lost_s:
             return
         d = math.dist(s.p, s.rot_anchor)   # as the fast form computes it (one rounding less than norm of a difference)
         if d <= s.rot_dmax:
             return
-        f = math.exp(-(d - s.rot_dmax) / pr.rot_bias_length)
+        s.rot_scale = scale_decay(s.rot_scale, d - s.rot_dmax, pr.rot_noise_length)   # mu's own decay
+        if pr.rot_bias_length > 0.0:
+            f = math.exp(-(d - s.rot_dmax) / pr.rot_bias_length)
+            s.beta = f * s.beta
+            P[BE, :] *= f
+            P[:, BE] *= f
+            P[BE, BE] += pr.rot_sys_std**2 * (1.0 - f * f) * _I3
         s.rot_dmax = d
-        s.beta = f * s.beta
-        P[BE, :] *= f
-        P[:, BE] *= f
-        P[BE, BE] += pr.rot_sys_std**2 * (1.0 - f * f) * _I3
 
     def _local_fused(self, ml: Measurement | None) -> None:
         """Record where the local source last saw the tool (beta's spatial decay starts from there)."""
@@ -425,6 +447,7 @@ class FullpercReference(StepCompat):
         s.P = self._prior(Pbb, Pbe, Pgg)
         s.t_ns, s.pending_ns = t, None
         s.t_global_ns = None   # lambda is kept; its next step starts from the next global sample fused
+        s.rot_scale, s.t_rot_scale_ns = 1.0, None   # mu starts again (rot_noise_scale)
         self._local_fused(ml)
         return self._step(t, mg, ml, reset=True)
 
@@ -488,6 +511,11 @@ class FullpercReference(StepCompat):
             n = len(b[1])
             Rm[i:i + n, i:i + n] = b[2]
             i += n
+        mu = None
+        if mg is not None and mg.q is not None and pr.rot_noise_adapt_time > 0.0:   # mu R_rot (rot_noise_scale)
+            mu = self._rot_scale(t, mg, ml, blocks)
+            if mu[0] != 1.0:
+                Rm[0:6, 0:6] = scaled_cov(Rm[0:6, 0:6], mu[0])
         if mg is not None and s.noise_scale != 1.0:   # lambda R_p of the global sample (module docstring)
             Rm[0:3, 0:3] *= s.noise_scale
         P = s.P
@@ -534,8 +562,24 @@ class FullpercReference(StepCompat):
         s.t_ns = t
         if mg is not None:
             s.noise_scale, s.t_global_ns = lam_next, mg.t_ns
+        if mu is not None:
+            s.rot_scale, s.t_rot_scale_ns = mu[1:]
         self._local_fused(ml)
         return self._step(t, mg, ml, innovation=y[0:3].copy(), nis=nis, nis_global=nis_g, hop=hop)
+
+    def _rot_scale(self, t: int, mg: Measurement, ml: Measurement | None, blocks: list) -> tuple:
+        """(mu for this update, then mu and the pair clock after it) of a global sample with an orientation,
+        before the update (:mod:`rot_noise_scale`); ``blocks`` from :meth:`_rows`."""
+        s, pr = self.s, self.params
+        mu, t_mu = s.rot_scale, s.t_rot_scale_ns
+        if ml is None or ml.q is None:
+            return mu, mu, t_mu
+        Rl = so3_exp((mg.t_ns - ml.t_ns) * 1e-9 * s.w) @ quat_to_R(ml.q)   # the local sample at the global's stamp
+        d = so3_log(quat_to_R(mg.q) @ (so3_exp(s.beta) @ Rl).T)
+        est = pair_estimate(d.tolist(), float(np.trace(blocks[1][2][3:6, 3:6])), float(np.trace(s.P[BE, BE])),
+                            float(np.trace(blocks[0][2][3:6, 3:6])))
+        return mu, scale_step(mu, t_mu, mg.t_ns, est, pr.rot_noise_adapt_time, pr.rot_noise_adapt_min,
+                              pr.rot_noise_adapt_max), mg.t_ns
 
     def _step(self, t: int, mg, ml, **kw) -> Step:
         s = self.s

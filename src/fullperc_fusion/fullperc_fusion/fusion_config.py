@@ -182,6 +182,14 @@ PARAMS: tuple[Param, ...] = (
           "time constant of the OMC white-noise scale learnt from its innovations (0 = off: the model as it is)"),
     Param("fullperc.noise_adapt_max", _F.noise_adapt_max, "float", lambda v: _fin(v) and v >= 1.0,
           "must be finite and >= 1", "", "largest scale of the OMC's white position variance"),
+    Param("fullperc.rot_noise_adapt_time", _F.rot_noise_adapt_time, "float", _nonneg, "must be finite and >= 0", "s",
+          "time constant of the OMC rotation-noise scale learnt from (OMC, OTS) pairs (0 = off: the model as it is)"),
+    Param("fullperc.rot_noise_adapt_min", _F.rot_noise_adapt_min, "float", lambda v: _fin(v) and 0.0 < v <= 1.0,
+          "must be finite, > 0 and <= 1", "", "smallest scale of the OMC's rotation variance"),
+    Param("fullperc.rot_noise_adapt_max", _F.rot_noise_adapt_max, "float", lambda v: _fin(v) and v >= 1.0,
+          "must be finite and >= 1", "", "largest scale of the OMC's rotation variance"),
+    Param("fullperc.rot_noise_length", _F.rot_noise_length, "float", _nonneg, "must be finite and >= 0", "m",
+          "distance over which that scale returns to 1 once the local source has lost the tool (0 = kept)"),
     Param("fullperc.layout_file", "", "str", None, "", "",
           "fullperc: OR layout for the OMC model's view margin; '' = the installed or_layout.yaml, 'none' = none"),
     Param("fullperc.noise_model_file", "", "str", None, "", "",
@@ -242,6 +250,15 @@ TARGET_PARAMS: tuple[Param, ...] = (
     Param("ang_accel_noise", None, "float", _pos, "must be finite and > 0", "rad^2/s^3",
           "fullperc's white angular-acceleration density for this target (unset: fullperc.ang_accel_noise); how "
           "the target turns: an arm-held tool far more smoothly than a hand-held one"),
+    Param("accel_noise", None, "float", _pos, "must be finite and > 0", "m^2/s^3",
+          "white-acceleration density q_a of every filter for this target (unset: noise.accel); how the target "
+          "moves: an arm-held tool at a few cm/s, a hand-held instrument at up to ~1 m/s"),
+    Param("hop_to_bias", None, "bool", None, "", "",
+          "a flagged hop of this target goes into the bias (unset: hop_to_bias); false for a hand-held target, "
+          "whose own motion a hop cannot be told from"),
+    Param("init_vel_std", None, "float", _nonneg, "must be finite and >= 0", "m/s",
+          "prior std of this target's velocity at (re)initialisation (unset: init.vel_std): its top speed; a target "
+          "already moving when first seen otherwise puts its motion into the bias"),
 )
 
 BY_NAME = {p.name: p for p in PARAMS}
@@ -350,7 +367,11 @@ def filter_params(vals: dict[str, Any]) -> FullpercParams:
         sys_std=vals["fullperc.sys_std"], rot_sys_time=vals["fullperc.rot_sys_time"],
         rot_sys_std=vals["fullperc.rot_sys_std"], rot_bias_length=vals["fullperc.rot_bias_length"],
         local_lost_s=vals["fullperc.local_lost_s"], hop_into=vals["fullperc.hop_into"],
-        noise_adapt_time=vals["fullperc.noise_adapt_time"], noise_adapt_max=vals["fullperc.noise_adapt_max"]).validate()
+        noise_adapt_time=vals["fullperc.noise_adapt_time"], noise_adapt_max=vals["fullperc.noise_adapt_max"],
+        rot_noise_adapt_time=vals["fullperc.rot_noise_adapt_time"],
+        rot_noise_adapt_min=vals["fullperc.rot_noise_adapt_min"],
+        rot_noise_adapt_max=vals["fullperc.rot_noise_adapt_max"],
+        rot_noise_length=vals["fullperc.rot_noise_length"]).validate()
 
 
 def model_layout(vals: dict[str, Any], filters: tuple[str, ...]):
@@ -405,6 +426,14 @@ def primary_and_extra(vals: dict[str, Any]) -> tuple[str, list[str]]:
     return vals["filter"], list(dict.fromkeys(vals["filters"]))
 
 
+def target_overrides(vals: dict[str, Any], target: str) -> dict[str, Any]:
+    """The filter parameters ``target`` sets for itself: each :data:`TARGET_PARAMS` row named like a
+    :class:`FullpercParams` field (the target's own motion model, prior and hop rule), given a value. They replace
+    the node-wide ones for that target only, so an arm-held tool and a hand-held instrument can share one node."""
+    return {tp.name: vals[f"{target}.{tp.name}"] for tp in TARGET_PARAMS
+            if tp.name in FullpercParams.__dataclass_fields__ and vals.get(f"{target}.{tp.name}") is not None}
+
+
 def _pose(v: list[float] | None):
     return None if v is None else (np.asarray(v[:3], float), np.asarray(v[3:], float))
 
@@ -437,8 +466,7 @@ def target_config(get: Get | dict[str, Any], target: str, filters: tuple[str, ..
         sources, chain = source_set(vals, target, base)
         nm = noise_model(vals)
         params = nm.apply(filter_params(vals))
-        if vals.get(f"{target}.ang_accel_noise") is not None:   # the target's own motion model (TARGET_PARAMS)
-            params = replace(params, ang_accel_noise=vals[f"{target}.ang_accel_noise"]).validate()
+        params = replace(params, **target_overrides(vals, target)).validate()
         return TargetConfig(name=target, chain=chain, sources=sources, filters=tuple(filters),
                             params=params, omc_model=nm.omc,
                             slop_ns=int(vals["slop"] * 1e9), delay_ns=int(vals["reorder_delay"] * 1e9),

@@ -41,7 +41,9 @@ Services:
 
 Parameters: the table of :mod:`fullperc_fusion.fusion_config` (names, defaults, checks, units; the same
 mapping the offline evaluator uses), documented in config/fusion.yaml; names of nested ones use dots:
-  targets [tool]; <target>.omc_body, <target>.ots_tool (default: the target name)
+  targets [tool]; <target>.omc_body, <target>.ots_tool (default: the target name); <target>.accel_noise,
+  <target>.hop_to_bias, <target>.init_vel_std, <target>.ang_accel_noise (unset: the node-wide noise.accel,
+  hop_to_bias, init.vel_std, fullperc.ang_accel_noise)
   omc_base_body base, omc_rig_body ots_rig, ots_base_tool base
   local_chain static|tracked|direct, init_samples 30, T_rig_ots / T_base_ots [x y z qx qy qz qw] (optional)
   filter cbkf|ckf|bkf|kf|omc (primary), filters [..] (side-by-side extras, optional)
@@ -117,7 +119,7 @@ _PROBLEM_KEYS = ("rejected_nonfinite", "rejected_nonunit", "rejected_pose", "rej
                  "publish_error", "calibration_refused", "timeline_restart")
 # ROS type of a parameter declared without a default value (optional ones, empty lists)
 _ROS_TYPES = {"str_list": Parameter.Type.STRING_ARRAY, "pose7": Parameter.Type.DOUBLE_ARRAY,
-              "str": Parameter.Type.STRING, "float": Parameter.Type.DOUBLE}
+              "str": Parameter.Type.STRING, "float": Parameter.Type.DOUBLE, "bool": Parameter.Type.BOOL}
 
 
 class FusionNode(Node):
@@ -566,8 +568,8 @@ class FusionNode(Node):
             if n and now - when < self._problem_hold:
                 level = max(level, WARN)
                 msgs.append(f"lost samples of the {name}: {loss.samples_lost} poses never arrived (frames of the "
-                            f"driver's TrackingQuality; {loss.frames_lost} quality messages missing: "
-                            "frame-number gaps)")
+                            f"driver's TrackingQuality; {loss.frames_lost} frame-number gaps: quality messages "
+                            "lost on the way, or device frames the driver never read -- its skipped_frames)")
         return level
 
 

@@ -59,7 +59,8 @@ GLOBAL_MODELS = ("omc", "std")
 LOCAL_MODELS = ("vega", "std")
 DEFAULT_NAMES = ("omc", "ots")
 _NAME = re.compile(r"^[a-z][a-z0-9_]*$")
-_RESERVED = {"global", "local", "sources", "base", "omc_body", "ots_tool", "ang_accel_noise"}   # + TARGET_PARAMS
+_RESERVED = {"global", "local", "sources", "base", "omc_body", "ots_tool", "ang_accel_noise", "accel_noise",
+             "hop_to_bias", "init_vel_std"}   # + TARGET_PARAMS
 
 # the keys of a source block: kind (fusion_config's kinds), unit, description (what --help and the README show)
 SOURCE_KEYS: dict[str, tuple[str, str, str]] = {

@@ -11,7 +11,8 @@ older), with and without orientation (a position-only start included), fixed noi
 covariances with position-rotation terms (the lever-arm form of measurement_models.local_covariance), ``sys_var``
 extras (valid and invalid), gaps beyond ``max_gap_s`` (re-initialisation), position hops and rotation jumps, fast
 turns (rotations past 120 deg: the other branch of the quaternion conversion), snapshot/restore, the frame
-changing every 250 items (``express_in``, with and without a local sample in the item).
+changing every 250 items (``express_in``, with and without a local sample in the item), the global rotation-noise
+scale mu (``rot_noise_scale``) learnt both below and above 1.
 """
 
 from __future__ import annotations
@@ -128,7 +129,8 @@ def _frames(seed: int):
 
 def _run(items, params=None):
     fast, ref = FullpercFilter(params), FullpercReference(params)
-    seen = {"hop": 0, "reset": 0, "pair": 0, "lag": 0, "q": 0, "full": 0, "rot_hop": 0, "scaled": 0, "moved": 0}
+    seen = {"hop": 0, "reset": 0, "pair": 0, "lag": 0, "q": 0, "full": 0, "rot_hop": 0, "scaled": 0, "moved": 0,
+            "mu_low": 0, "mu_high": 0}
     frames = _frames(7)
     for ms in items:
         frame, local = next(frames), any(m.source == SOURCE_LOCAL for m in ms)
@@ -144,6 +146,9 @@ def _run(items, params=None):
         assert np.max(np.abs(fast.rot_bias - ref.rot_bias)) <= TOL
         assert abs(fast.state.noise_scale - ref.s.noise_scale) <= 100 * TOL * ref.s.noise_scale
         seen["scaled"] += ref.s.noise_scale > 1.0
+        assert abs(fast.state.rot_scale - ref.s.rot_scale) <= 100 * TOL * ref.s.rot_scale
+        seen["mu_low"] += ref.s.rot_scale < 0.9
+        seen["mu_high"] += ref.s.rot_scale > 1.1
         seen["hop"] += b.hop
         seen["reset"] += b.reset
         seen["pair"] += len(ms) == 2
@@ -162,6 +167,7 @@ def test_fast_form_equals_the_reference(seed):
     assert seen["lag"] >= 400 and seen["full"] >= 1000 and 0 < seen["q"] < 3000
     assert 100 <= seen["scaled"] < 3000      # the global noise scale was above 1 for part of the stream
     assert seen["moved"] >= 8                # the estimate was moved with its frame (11 frame changes)
+    assert seen["mu_low"] >= 100 and seen["mu_high"] >= 100   # the rotation-noise scale went both ways
 
 
 @pytest.mark.parametrize("params", [
@@ -173,8 +179,10 @@ def test_fast_form_equals_the_reference(seed):
     FullpercParams(hop_into="g"),
     FullpercParams(noise_adapt_time=0.0),
     FullpercParams(noise_adapt_time=0.05, noise_adapt_max=4.0),
+    FullpercParams(rot_noise_adapt_time=0.0),
+    FullpercParams(rot_noise_adapt_time=0.1, rot_noise_adapt_min=0.5, rot_noise_adapt_max=2.0, rot_noise_length=0.0),
 ], ids=["no-hop-to-bias", "other-noise", "beta-random-walk", "beta-fast-gauss-markov", "hop-into-g", "no-noise-scale",
-        "fast-noise-scale"])
+        "fast-noise-scale", "no-rot-noise-scale", "fast-rot-noise-scale-held"])
 def test_fast_form_equals_the_reference_for_other_settings(params):
     _run(_items(23, 1500), params)
 

@@ -69,7 +69,10 @@ def test_fusion_yaml_documents_every_parameter_with_its_default():
         leaf = name.rsplit(".", 1)[-1]
         line = next(line for line in text.splitlines() if re.match(rf"\s*{leaf}:", line))
         assert re.search(r"\[(s|m)\]", line), line
-    assert set(flat) <= {p.name for p in fc.PARAMS} | {"tool.omc_body", "tool.ots_tool"}
+    # beside the table: the tool's device names, and the instrument's own motion model (a target not in `targets`:
+    # the node's default run does not read it; test_the_shipped_fusion_yaml_gives_the_instrument_its_own_model)
+    assert set(flat) <= {p.name for p in fc.PARAMS} | {"tool.omc_body", "tool.ots_tool", "instrument.accel_noise",
+                                                        "instrument.hop_to_bias", "instrument.init_vel_std"}
 
 
 def test_values_are_mapped(tmp_path):
@@ -106,6 +109,11 @@ def test_values_are_mapped(tmp_path):
     ({"tool": {"omc_body": ""}}, "tool.omc_body"),
     ({"tool": {"ang_accel_noise": -1.0}}, "tool.ang_accel_noise"),
     ({"tool": {"ang_accel_noise": "fast"}}, "tool.ang_accel_noise"),
+    ({"tool": {"accel_noise": 0.0}}, "tool.accel_noise"),
+    ({"tool": {"accel_noise": float("inf")}}, "tool.accel_noise"),
+    ({"tool": {"hop_to_bias": "no"}}, "tool.hop_to_bias"),
+    ({"tool": {"hop_to_bias": 0}}, "tool.hop_to_bias"),             # 0 is not a bool
+    ({"tool": {"init_vel_std": -0.1}}, "tool.init_vel_std"),
     ({"clock": "wall"}, "clock"),
     ({"alarm": {"hop_window": 0.0}}, "alarm.hop_window"),
     ({"alarm": {"hop_max": 0}}, "alarm.hop_max"),
@@ -153,7 +161,7 @@ def test_the_mapping_is_the_same_for_a_getter_and_for_values():
 
     cfg = fc.target_config(get, "probe")
     assert cfg.params.accel_noise == 0.3 and cfg.chain.ots_target == "p2" and cfg.filters == ("cbkf",)
-    assert set(seen) == {p.name for p in fc.PARAMS} | {"probe.omc_body", "probe.ots_tool", "probe.ang_accel_noise"}
+    assert set(seen) == {p.name for p in fc.PARAMS} | {f"probe.{tp.name}" for tp in fc.TARGET_PARAMS}
     vals = fc.read_values(get, ["probe"])
     _same_config(fc.target_config(vals, "probe"), cfg)
     with pytest.raises(ParameterError, match="'probe.omc_body'"):
@@ -251,6 +259,14 @@ def test_fullperc_block_is_mapped_and_its_layout_loaded_only_when_used(tmp_path)
     for bad in ({"noise_adapt_time": -0.1}, {"noise_adapt_max": 0.5}):
         with pytest.raises(fc.FusionConfigError, match=f"fullperc.{next(iter(bad))}"):
             fc.load_fusion_config(_write(tmp_path, {"fullperc": bad}), filters=None)
+    rot = {"rot_noise_adapt_time": 0.5, "rot_noise_adapt_min": 0.2, "rot_noise_adapt_max": 4.0, "rot_noise_length": 0.1}
+    cfg, _ = fc.load_fusion_config(_write(tmp_path, {"fullperc": rot}), filters=None)
+    assert {k: getattr(cfg.params, k) for k in rot} == rot
+    assert fc.load_fusion_config(_write(tmp_path, {}), filters=None)[0].params.rot_noise_adapt_time == 1.0
+    for bad in ({"rot_noise_adapt_time": -1.0}, {"rot_noise_adapt_min": 0.0}, {"rot_noise_adapt_min": 2.0},
+                {"rot_noise_adapt_max": 0.5}, {"rot_noise_length": -0.1}):
+        with pytest.raises(fc.FusionConfigError, match=f"fullperc.{next(iter(bad))}"):
+            fc.load_fusion_config(_write(tmp_path, {"fullperc": bad}), filters=None)
 
 
 def test_a_float_without_a_dot_is_read_as_rcl_reads_it(tmp_path):
@@ -281,3 +297,43 @@ def test_a_targets_own_angular_acceleration_noise(tmp_path):
     assert plain.params.ang_accel_noise == FullpercParams().ang_accel_noise
     for f in FilterParams.__dataclass_fields__:     # what the paper's four read
         assert getattr(tool.params, f) == getattr(plain.params, f), f
+
+
+def test_a_targets_own_motion_model_and_hop_rule(tmp_path):
+    """``<target>.accel_noise``, ``<target>.hop_to_bias`` and ``<target>.init_vel_std`` replace ``noise.accel``,
+    ``hop_to_bias`` and ``init.vel_std`` for that target only -- every filter's (the paper's four read them too): a
+    hand-held instrument walks where the arm moves the tool slowly, may be walking when first seen, and a jump of its
+    OMC pose is not the sensor's. Unset: the node-wide values; a False is a value."""
+    p = _write(tmp_path, {"targets": ["tool", "instrument"], "noise": {"accel": 0.07}, "hop_to_bias": True,
+                          "init": {"vel_std": 0.2},
+                          "instrument": {"accel_noise": 2.0, "hop_to_bias": False, "init_vel_std": 0.9}})
+    tool = fc.load_fusion_config(p, target="tool").config
+    inst = fc.load_fusion_config(p, target="instrument").config
+    assert (tool.params.accel_noise, tool.params.hop_to_bias, tool.params.init_vel_std) == (0.07, True, 0.2)
+    assert (inst.params.accel_noise, inst.params.hop_to_bias, inst.params.init_vel_std) == (2.0, False, 0.9)
+    changed = {f for f in FullpercParams.__dataclass_fields__
+               if getattr(tool.params, f) != getattr(inst.params, f)}
+    assert changed == {"accel_noise", "hop_to_bias", "init_vel_std"}
+    p2 = _write(tmp_path, {"targets": ["tool"], "hop_to_bias": False, "tool": {"hop_to_bias": True}})
+    assert fc.load_fusion_config(p2).config.params.hop_to_bias is True
+    assert fc.spec("x.hop_to_bias").default is None and fc.spec("x.accel_noise").default is None
+
+
+def test_target_parameter_names_cannot_be_source_names():
+    """sources.py refuses a source named like a per-target parameter (it cannot import this table: the import
+    would be circular), so its reserved names must hold every TARGET_PARAMS name."""
+    from fullperc_fusion import sources
+
+    assert {tp.name for tp in fc.TARGET_PARAMS} <= sources._RESERVED
+
+
+def test_the_shipped_fusion_yaml_gives_the_instrument_its_own_model(tmp_path):
+    """fusion.yaml's `instrument` block (the twin's hand-held target; the demo passes the same with -p) acts for the
+    instrument only; the tool keeps the node-wide values."""
+    from fullperc_fusion.fusion_config import default_fusion_config_path
+
+    inst = fc.load_fusion_config(default_fusion_config_path(), target="instrument").config
+    tool = fc.load_fusion_config(default_fusion_config_path(), target="tool").config
+    assert inst.params.hop_to_bias is False and inst.params.accel_noise > 10 * tool.params.accel_noise
+    assert inst.params.init_vel_std > 5 * tool.params.init_vel_std
+    assert tool.params == fc.load_fusion_config(_write(tmp_path, {"targets": ["tool"]})).config.params
