@@ -26,6 +26,9 @@ TASK = "B-G-P"
 OUTAGE = (6.0, 12.0)   # task seconds during which the Vega is off
 LETTER = {1: "B", 2: "G", 3: "P"}
 SOURCE_GLOBAL, SOURCE_LOCAL = 1, 2
+# samples the node may lose itself and still be compared on MAE with the offline replay of the recording: a
+# quarter second of OMC frames (one run with 1 lost: all five methods of both targets within 0.001 mm)
+FEW_LOST = 30
 
 pytestmark = pytest.mark.system
 
@@ -54,12 +57,15 @@ def _events(run_dir: Path) -> list[dict]:
 
 
 def _node_losses(run_dir: Path, target: str = "tool") -> int:
-    """Samples of ``target`` fusion_node reported lost in the recorded /diagnostics; fails the test when a loss was
+    """Samples of ``target`` fusion_node lost itself, from the recorded /diagnostics; fails the test when a loss was
     never WARNed. The graph's eight processes can be more than a 2-core machine keeps up with: then the node falls
     behind and loses samples from its input queues (seen: 455 of 3,361 OMC samples, the node ten seconds behind at
     the end of the task) -- counted and WARNed, which is what it must do; its estimates are then of other samples
-    than the recording's."""
+    than the recording's. The node counts every frame-number gap of the OTS as lost; the Vega frames ndi_driver
+    never read (its ``skipped_frames``: a late poll gets the newest frame) are in neither the recording nor the node,
+    so they are not counted here (one run: 47 skipped, and the node's 47 lost OTS samples per target were those)."""
     last: dict[str, str] = {}
+    skipped = 0
     warned = []
     for m in _read(run_dir / "bag", ["/diagnostics"])["/diagnostics"]:
         for st in m.status:
@@ -67,9 +73,30 @@ def _node_losses(run_dir: Path, target: str = "tool") -> int:
                 last = {kv.key: kv.value for kv in st.values}
                 if as_level(st.level) >= 1 and "lost samples" in st.message:
                     warned.append(st.message)
-    lost = sum(int(last.get(k) or 0) for k in ("omc_samples_lost", "ots_samples_lost"))
-    assert not lost or warned, f"fusion_node lost {lost} samples without a WARN naming them"
-    return lost
+            elif st.name.startswith("ndi_driver"):
+                skipped = max(skipped, int(next((kv.value for kv in st.values if kv.key == "skipped_frames"), 0)))
+    omc, ots = (int(last.get(k) or 0) for k in ("omc_samples_lost", "ots_samples_lost"))
+    assert not (omc or ots) or warned, f"fusion_node lost {omc + ots} samples without a WARN naming them"
+    return omc + max(0, ots - skipped)
+
+
+def _live_vs_offline(run_dir: Path, target: str) -> dict[str, tuple[int, int, float]]:
+    """Per paper method: (live outputs, outputs at a stamp the offline replay of the recording also has, median
+    distance between the two estimates there [mm]). Holds when the node lost samples too: at a common stamp both
+    ran the same core on nearly the same samples, and they differ by what the lost samples changed (the static
+    links the node averaged, a bias learned from fewer pairs)."""
+    from fullperc_eval.evaluation.config import PAPER_METHODS, replay_config
+    from fullperc_eval.evaluation.replay import live_replay, replay
+
+    config, _ = replay_config(None, target)
+    off = replay(run_dir / "bag", config, progress=False).outputs
+    live = live_replay(run_dir / "bag", target=target).outputs
+    out = {}
+    for m in PAPER_METHODS:
+        _, i, j = np.intersect1d(off[m]["t_ns"], live[m]["t_ns"], assume_unique=True, return_indices=True)
+        d = np.linalg.norm(off[m]["p"][i] - live[m]["p"][j], axis=1) * 1e3
+        out[m] = (len(live[m]["t_ns"]), int(i.size), float(np.median(d)) if i.size else float("nan"))
+    return out
 
 
 def _read(bag: Path, topics: list[str]) -> dict[str, list]:
@@ -180,7 +207,13 @@ def test_recorded_bag_evaluates_like_the_live_outputs(demo):
     for method in PAPER_METHODS:
         assert live[method] is not None, method
     lost = _node_losses(run_dir)
-    if lost:
+    # on the samples both hold, the live estimates are the offline replay's, lost samples or not (seen: medians
+    # 0.03-0.05 mm with 312 and 1,258 samples lost; 0.38 mm on the OMC column from the node's own static link
+    # when it, run under a profiler, kept less than a third of the samples; a node fusing with a wrong link or
+    # chain is millimetres off)
+    for method, (n_live, n_common, diff) in _live_vs_offline(run_dir, "tool").items():
+        assert n_common >= 0.5 * n_live and diff <= 0.5, (method, n_live, n_common, diff, f"lost {lost}")
+    if lost > FEW_LOST:
         # the node fused other samples than the recording holds: equal figures are not to be expected, only the
         # loss said on /diagnostics (_node_losses checks that)
         pytest.skip(f"the live fusion_node lost {lost} samples on this busy machine (WARNed on /diagnostics): "
@@ -212,15 +245,23 @@ def test_fusion_continues_on_omc_alone_and_recovers(demo):
     assert not np.any((ots > off_ns + 200_000_000) & (ots < on_ns)), "OTS poses during the outage"
     after = ots[ots > on_ns]
     assert after.size > 30 and after[0] - on_ns < 5_000_000_000, "the ndi_driver did not recover"
+    # after the Vega comes back the driver has re-loaded both tools: quality of the target tool flows again
+    # (the target itself has left the Vega's volume by then in this task, so visible may be false)
+    q = _read(run_dir / "bag", ["/ots/tool/quality"])["/ots/tool/quality"]
+    assert sum(1 for m in q if _ns(m.header) > on_ns) > 30, "the target tool was not re-loaded after the outage"
     # fused output kept coming during the outage, from the global source only
     st = [m for m in got["/fullperc/tool/status"] if off_ns + 500_000_000 < _ns(m.header) < on_ns]
     lost = _node_losses(run_dir)
-    if not lost:
-        assert len(st) > 0.5 * 120 * (on_ns - off_ns - 500_000_000) / 1e9
-    else:   # a node that lost samples (WARNed) publishes fewer (gaps of up to 1.4 s seen with a second test suite
-        #     running beside this one): the output still covers the outage, never stopping for half of it
-        t_st = np.array([off_ns + 500_000_000, *(_ns(m.header) for m in st), on_ns])
-        assert np.diff(t_st).max() < 0.5 * (on_ns - off_ns), "fused output stopped during the outage"
+    # Every OMC sample of the outage is fused (its status published) or counted lost: a node that falls behind on a
+    # busy machine loses samples from its input queues (counted and WARNed, _node_losses), and those leave holes in
+    # its output as long as the stall (1.4 s seen with a second test suite beside this one, 3.6 s of the 6 s outage
+    # in CI, all of it with two busy loops and a second test worker beside the graph): what it lacks of half the
+    # outage's samples must be counted as lost; with fewer than 30 outputs left there is nothing to check the bias on.
+    assert len(st) + lost > 0.5 * 120 * (on_ns - off_ns - 500_000_000) / 1e9, \
+        f"{len(st)} outputs in the outage and {lost} samples counted lost: the rest went missing uncounted"
+    if len(st) < 30:
+        pytest.skip(f"fusion_node, starved on this busy machine, published {len(st)} outputs in the outage and "
+                    f"counted {lost} samples lost (WARNed): no OMC-alone output to check")
     assert all(m.sources == SOURCE_GLOBAL for m in st)
     assert all(m.filter == "cbkf" for m in st)
     # CBKF keeps compensating with the bias it learned while the OTS saw the target
@@ -238,10 +279,6 @@ def test_fusion_continues_on_omc_alone_and_recovers(demo):
     first_hop = int(np.argmax(hop)) if hop.any() else len(st)
     assert np.all(np.linalg.norm(bias[:first_hop], axis=1) > 0.5 * np.linalg.norm(b0))
     assert np.all(np.linalg.norm(bias, axis=1) > 2e-4)
-    # after the Vega comes back the driver has re-loaded both tools: quality of the target tool flows again
-    # (the target itself has left the Vega's volume by then in this task, so visible may be false)
-    q = _read(run_dir / "bag", ["/ots/tool/quality"])["/ots/tool/quality"]
-    assert sum(1 for m in q if _ns(m.header) > on_ns) > 30, "the target tool was not re-loaded after the outage"
 
 
 # ------------------------------------------------------------------------------- the second target (instrument)
@@ -251,7 +288,8 @@ INSTRUMENT = "instrument"
 def test_the_bag_holds_both_targets(demo):
     _, run_dir = demo
     topics = [f"/omc/{INSTRUMENT}/pose", f"/ots/{INSTRUMENT}/pose", f"/fullperc/{INSTRUMENT}/pose",
-              f"/fullperc/{INSTRUMENT}/ckf/pose", f"/sim/truth/{INSTRUMENT}", "/fullperc/tool/pose"]
+              f"/fullperc/{INSTRUMENT}/ckf/pose", f"/fullperc/{INSTRUMENT}/omc/pose", f"/sim/truth/{INSTRUMENT}",
+              "/fullperc/tool/pose"]
     got = _read(run_dir / "bag", topics)
     for t in topics:
         assert len(got[t]) > 100, t
@@ -259,15 +297,32 @@ def test_the_bag_holds_both_targets(demo):
         assert {m.header.frame_id for m in got[t]} == {"base"}, t
         stamps = np.array([_ns(m.header) for m in got[t]])
         assert np.all(np.diff(stamps) > 0), f"{t}: stamps not strictly increasing"
-    # the fused instrument follows its truth: within the OMC's millimetres wherever the fused pose has truth
+    # the fused instrument follows its truth as closely as the node's OMC pass-through does. With the arm's motion
+    # model and hop rule (before <target>.accel_noise / hop_to_bias) the walk's accelerations were taken for OMC hops
+    # and went into the bias: medians 8-15 mm against the OMC's 2.3-4.8 on the same samples, and 0.25 m for seconds
+    # (CI saw 65 mm) when the node, on a busy machine, lost samples. Compared on the samples both topics hold: when
+    # the node loses samples, each topic keeps other parts of the walk, whose errors differ by millimetres (CI:
+    # medians 4.9 mm for CKF's 1,600-odd outputs against 2.3 mm for the OMC's; on common samples the two agreed)
     from fullperc_eval.evaluation.ground_truth import load_truth_track
 
     track = load_truth_track(run_dir / "bag", INSTRUMENT)
-    fused = got[f"/fullperc/{INSTRUMENT}/ckf/pose"] + got[f"/fullperc/{INSTRUMENT}/pose"]
-    P = np.array([[m.pose.position.x, m.pose.position.y, m.pose.position.z] for m in fused])
-    truth, ok = track.position_base(np.array([_ns(m.header) for m in fused]))
-    assert ok.mean() > 0.95
-    assert np.median(np.linalg.norm(P[ok] - truth[ok], axis=1)) < 0.02
+
+    def errors(topic: str) -> dict[int, float]:
+        P = np.array([[m.pose.position.x, m.pose.position.y, m.pose.position.z] for m in got[topic]])
+        stamps = np.array([_ns(m.header) for m in got[topic]])
+        truth, ok = track.position_base(stamps)
+        assert ok.mean() > 0.95, topic
+        return dict(zip(stamps[ok].tolist(), np.linalg.norm(P[ok] - truth[ok], axis=1).tolist(), strict=True))
+
+    omc = errors(f"/fullperc/{INSTRUMENT}/omc/pose")
+    lost = _node_losses(run_dir, INSTRUMENT)
+    # cbkf is the demo's primary filter: its poses are /fullperc/<target>/pose
+    for method, topic in (("ckf", f"/fullperc/{INSTRUMENT}/ckf/pose"), ("cbkf", f"/fullperc/{INSTRUMENT}/pose")):
+        err = errors(topic)
+        common = sorted(set(err) & set(omc))
+        assert len(common) > 100, (method, len(err), len(omc), lost)
+        e_f, e_o = np.median([err[s] for s in common]), np.median([omc[s] for s in common])
+        assert e_f <= 1.5 * e_o + 1e-3, (method, e_f, e_o, f"{len(common)} common samples, node lost {lost}")
 
 
 def test_the_bag_tf_has_base_to_each_target_in_rosbags_jazzy_types(demo):
@@ -341,10 +396,30 @@ def test_the_instrument_is_labelled_and_evaluated(demo):
     assert off["target"] == INSTRUMENT and f"B-G-P {INSTRUMENT}" in p.stdout
     # the raw OMC and the plain KF, offline and live: millimetres, as the OMC's error; no tight agreement asked for:
     # with two targets fusion_node needs ~0.9 of a core here, and on a loaded machine DDS drops samples the recorder
-    # kept (seen: 0.21 mm on the OMC column at load 7). The compensated filters are not compared: on a walking
-    # target their bias after a hop is not stable against a few dropped samples (README, "Several tracked targets").
+    # kept (seen: 0.21 mm on the OMC column at load 7). The compensated filters' MAE is not compared: on a walking
+    # target their bias after a hop is not stable against a few dropped samples (README, "Several tracked targets");
+    # their estimates are, at the stamps both hold (_live_vs_offline, below).
     for method in ("omc", "kf"):
         assert off["mae_mm"][method] < 5.0 and live["mae_mm"][method] < 5.0, (method, off["mae_mm"], live["mae_mm"])
+    # the recorded Vega poses of the walking instrument are of their stamps' times: the raw Vega chain is off its
+    # truth by the twin's Vega error (0.17-0.21 mm in three runs). When the emulator answered each frame with the
+    # latest simulated sample before it, the poses were up to a period (16.7 ms) older than their stamps, by a phase
+    # that changed from run to run: 0.30-1.46 mm, and the compensated filters learned that as the OMC's bias (CI:
+    # CKF 4.9 mm vs OMC 2.4)
+    assert off["single_sources"]["local"]["mae_mm"] < 0.6, off["single_sources"]["local"]
+    # as for the tool (test_recorded_bag_evaluates_like_the_live_outputs): a node that lost samples of the instrument
+    # (counted and WARNed) fused another part of the walk than the recording holds, whose OMC error differs by region
+    # (1.5-4.3 mm); CI of 97bdc60 saw live 4.17 against offline 3.20 mm on the OMC column
+    lost = _node_losses(run_dir, INSTRUMENT)
+    # as for the tool: the same estimates at the stamps both hold (medians 0-0.37 mm in four runs that lost
+    # 298-1,541 samples, 1.2 mm for CBKF under a profiler; the walking target's bias moves more with a lost pair
+    # than the arm-held tool's; offline with the arm's motion model instead, CKF and CBKF are 9.6-11.5 mm off)
+    for method, (n_live, n_common, diff) in _live_vs_offline(run_dir, INSTRUMENT).items():
+        assert n_common >= 0.5 * n_live and diff <= 2.0, (method, n_live, n_common, diff, f"lost {lost}")
+    if lost > FEW_LOST:
+        pytest.skip(f"the live fusion_node lost {lost} samples of the instrument (WARNed on /diagnostics): its "
+                    "figures are of other samples than the recording's")
+    for method in ("omc", "kf"):
         assert abs(off["mae_mm"][method] - live["mae_mm"][method]) <= max(0.5, 0.25 * off["mae_mm"][method]), method
 
 
