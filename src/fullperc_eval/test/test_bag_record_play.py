@@ -443,15 +443,17 @@ def test_play_loop_and_clock(procs, tmp_path):
 
 
 @pytest.mark.system
-def test_record_all_with_exclude_into_sqlite3(procs, tmp_path):
-    """--all (graph polling) minus --exclude-regex, sqlite3 storage: the played bag, byte for byte."""
+@pytest.mark.parametrize("take", ["poll", "callback", "executor"])
+def test_record_all_with_exclude_into_sqlite3(procs, tmp_path, take):
+    """--all (graph polling) minus --exclude-regex, sqlite3 storage: the played bag, byte for byte, whichever way
+    the recorder takes its messages (``--take``; poll, the default, never runs an executor callback)."""
     import yaml
 
     bag = _small_bag(tmp_path / "gen")
     src = read_all(bag)
     out = tmp_path / "out"
-    rec = procs.start(record_cmd(out, "-s", "sqlite3", "--all", "--exclude-regex", "^/(rosout|parameter_events)$"),
-                      name="record_all")
+    rec = procs.start(record_cmd(out, "-s", "sqlite3", "--all", "--exclude-regex", "^/(rosout|parameter_events)$",
+                                 "--take", take), name="record_all")
     play = procs.start([installed_exe("fullperc_eval", "play"), str(bag), "--wait-for-subscribers", "60"],
                        name="play_all")
     wait_for(lambda: play.poll() is not None, timeout=120, what="play to finish")
@@ -461,6 +463,11 @@ def test_record_all_with_exclude_into_sqlite3(procs, tmp_path):
     assert info["storage_identifier"] == "sqlite3" and info["relative_file_paths"] == ["out_0.db3"]
     got = read_all(out)
     assert sorted(got) == ["/gen/a", "/gen/b"]
+    n = sum(len(v) for v in got.values())
+    m = re.search(r"; (\d+) through executor callbacks \(--take (\w+)\)", Procs.log(rec))
+    assert m and m.group(2) == take, Procs.log(rec)
+    assert (int(m.group(1)) == 0) if take == "poll" else (int(m.group(1)) == n if take == "executor" else
+                                                           0 < int(m.group(1)) <= n)
     for topic in got:
         assert len(got[topic]) == len(src[topic])
         for (_, played, _), (_, orig, _) in zip(got[topic], src[topic], strict=True):

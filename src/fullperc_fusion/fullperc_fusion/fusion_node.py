@@ -114,6 +114,7 @@ from .sources import routes
 
 # Diagnostics.set takes an int level (the diagnostic_msgs constants are bytes in rclpy).
 OK, WARN, ERROR = (diag.as_level(v) for v in (diag.OK, diag.WARN, diag.ERROR))
+DIAG_EVAL_PERIOD_S = 0.5   # [s] the diagnostics' evaluation timer (published every 1 s by diag.Diagnostics)
 _PROBLEM_KEYS = ("rejected_nonfinite", "rejected_nonunit", "rejected_pose", "rejected_stamp", "rejected_future",
                  "late", "duplicate", "rejected_cov", "local_skipped", "filter_error", "nonfinite_output",
                  "publish_error", "calibration_refused", "timeline_restart")
@@ -136,6 +137,7 @@ class FusionNode(Node):
         self._lag_warn = vals["lag_warn"]
         self._load = InputLoad()
         self._diag_sent = 0   # /diagnostics arrays sent before the last evaluation's values were set
+        self._diag_eval_at = time.monotonic()   # the last _update_diagnostics
         self._cal_duration = vals["calibration.duration"]
         self._cal_output = vals["calibration.output"]
         self._cal_timeout = vals["calibration.timeout"]
@@ -223,7 +225,7 @@ class FusionNode(Node):
         self._static_key: tuple | None = None
         self._send_static()
         self.create_timer(0.01, self._on_timer)
-        self.create_timer(0.5, self._update_diagnostics)
+        self.create_timer(DIAG_EVAL_PERIOD_S, self._update_diagnostics)
         self._update_diagnostics()
         links = next(iter(self.pipes.values())).chain.links
         given = "".join(f"{k} from {v}; " for k, v in links.sources.items())
@@ -268,6 +270,7 @@ class FusionNode(Node):
         for d, b, m in ((d, b, m) for _t, d, b, m in batch if (d, b) in self._loss):
             self._loss[(d, b)].pose(stamp_to_ns(m.header.stamp))
             self._loss_rx[(d, b)] = rx
+        self._timers_overdue()
 
     def _on_quality(self, key: tuple[str, str], msg: TrackingQuality) -> None:
         """This quality message and every one queued behind it (one executor round each would fall behind)."""
@@ -484,8 +487,18 @@ class FusionNode(Node):
         if tfs:
             self._tf.send(tfs)
 
+    def _timers_overdue(self) -> None:
+        """The diagnostics' evaluation and publishing, from the input path when their timers are a whole period
+        late. An overloaded node is busy in input callbacks back to back, and rclpy's EventsExecutor (this node's
+        default) then ran neither timer: in a demo run on a 2-core machine no /diagnostics for 22 s, the whole
+        task, so the overload and lost-sample WARNs came out only after it. On time, the timers do the work."""
+        if time.monotonic() - self._diag_eval_at >= 2.0 * DIAG_EVAL_PERIOD_S:
+            self._update_diagnostics()
+        self._diag.publish_if_overdue()
+
     def _update_diagnostics(self) -> None:
         now = time.monotonic()
+        self._diag_eval_at = now
         self._load.begin_report(self._diag.published > self._diag_sent)
         for t, pipe in self.pipes.items():
             s = pipe.stats()

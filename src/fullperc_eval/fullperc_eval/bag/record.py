@@ -12,7 +12,10 @@ SIGTERM drain what DDS already delivered and close the bag cleanly.
 
 Deviations from rosbag2, on purpose: subscriptions use keep_last ``--subscription-depth``
 (1000, rosbag2 uses 10) so a recorder that falls briefly behind a 1 kHz reliable stream drops
-nothing; no services/``--use-sim-time``/snapshot mode; ``--duration`` stops after that many seconds.
+nothing; messages are taken from every subscription's queue every 10 ms instead of through an
+executor callback each (``--take``, :meth:`Recorder.take_all`: a third of the CPU per message);
+no services (the node's parameter services are not served while it polls)/``--use-sim-time``/
+snapshot mode; ``--duration`` stops after that many seconds.
 """
 
 from __future__ import annotations
@@ -35,6 +38,8 @@ from .types import get_message, resolve_definition
 from .writer import DEFAULT_FLUSH_INTERVAL, BagWriter
 
 NODE_NAME = "rosbag2_recorder"
+TAKE_MODES = ("poll", "callback", "executor")   # --take (Recorder)
+POLL_PERIOD_S = 0.01   # --take poll: sleep between rounds that emptied every queue
 RECOVERY_HELP = f"""\
 stopping and recovery:
   SIGINT (Ctrl-C) or SIGTERM: what DDS already delivered is written and the bag is closed cleanly.
@@ -137,6 +142,10 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--flush-interval", type=float, default=DEFAULT_FLUSH_INTERVAL, metavar="SEC",
                     help="write data and metadata.yaml at least this often; bounds loss on a crash (0.5)")
     ap.add_argument("--fsync", action="store_true", help="also fsync at each flush (power-loss safety)")
+    ap.add_argument("--take", choices=TAKE_MODES, default="poll",
+                    help="how messages are taken from DDS: every subscription's queue every 10 ms, no executor "
+                         "(poll, default); an executor callback that takes its topic's queue (callback); one "
+                         "executor round per message, rosbag2's way (executor)")
     ap.add_argument("--subscription-depth", type=int, default=1000, metavar="N",
                     help="keep_last depth of the recording subscriptions (1000)")
     return ap
@@ -159,7 +168,10 @@ class Recorder:
         self.skipped: set[str] = set()
         self.warned: set[str] = set()
         self.received = 0
-        self._no_drain = False
+        mode = getattr(args, "take", "poll")
+        self._no_drain = mode == "executor"   # every message through its own executor callback
+        self.polling = mode == "poll"         # _run takes every queue itself (take_all) and never spins
+        self.callbacks = 0   # messages that came through an executor callback (the rest were taken directly)
 
     def wanted(self, topic: str) -> bool:
         if topic in self.exclude or (self.exclude_regex and self.exclude_regex.search(topic)):
@@ -225,36 +237,68 @@ class Recorder:
         def on_message(data: bytes, info: dict) -> None:
             writer.write(name, info["received_timestamp"], data, info["source_timestamp"])
             self.received += 1
+            self.callbacks += 1
             self._drain(name)
 
         self.subs[name] = self.node.create_subscription(cls, name, on_message, qos, raw=True)
         self.log.info(f"Subscribed to topic '{name}' ({msgtype})")
 
-    DRAIN_MAX = 500  # messages taken per callback; bounds how long one topic holds the loop
+    DRAIN_MAX = 500  # messages taken from one queue at a time; bounds how long one topic holds the loop
 
     def _drain(self, name: str) -> None:
-        """Take what is already queued on this subscription, without an executor round per message.
-
-        rclpy's executor costs ~130 us CPU per callback (measured), the take itself ~4 us, so at
-        several kHz the executor alone would need most of a core. This is the same
-        ``handle.take_message`` call the executor makes (rclpy 7.1 ``_take_subscription``).
-        """
-        sub = self.subs.get(name)
-        if sub is None or self._no_drain:
+        """``--take callback``: after its callback, take what is queued on this topic without an executor round
+        per message (rclpy's executor costs ~130 us CPU per callback, a take ~4 us)."""
+        if self._no_drain or self.polling:
             return
-        handle = sub.handle
         try:
-            for _ in range(self.DRAIN_MAX):
-                with handle:
-                    taken = handle.take_message(sub.msg_type, True)
-                if taken is None:
-                    return
-                data, info = taken
-                self.writer.write(name, info["received_timestamp"], data, info["source_timestamp"])
-                self.received += 1
-        except (AttributeError, TypeError) as err:  # rclpy internals changed: fall back to callbacks
-            self._no_drain = True
-            self.log.warning(f"batch draining unavailable ({err}); one executor round per message")
+            self._take_queued(name)
+        except (AttributeError, TypeError) as err:
+            self._fall_back(err)
+
+    def take_all(self) -> bool:
+        """``--take poll``: take what is queued on every subscription, up to :attr:`DRAIN_MAX` per topic; True when
+        a queue may hold more (a topic reached its budget: take again at once).
+
+        Why no executor: with ~34 topics at ~3,000 messages/s (``bench/bench_record.py``: the committed bag
+        played twice at once, about what the demo graph publishes) rclpy's executor made the recorder spend ~330 us
+        of CPU per message -- a core at that rate -- in building wait sets and dispatching a task per ready
+        subscription, also when a callback took every other queue with its own (~310 us). DDS queues a
+        subscription's messages without an executor (keep_last ``--subscription-depth``: 1000, seconds at these
+        rates), so taking them every :data:`POLL_PERIOD_S` loses nothing and costs a take (~4 us) per topic
+        and round. Each topic's messages are written in the order they arrived, topics one after another (the
+        bag's time is the reception time DDS stamped, not when they were taken; readers sort by it).
+        """
+        more = False
+        try:
+            for name in self.subs:
+                more |= self._take_queued(name) == self.DRAIN_MAX
+        except (AttributeError, TypeError) as err:
+            self._fall_back(err)
+        return more
+
+    def _fall_back(self, err: Exception) -> None:
+        """rclpy's internals changed (``take_message`` is rclpy 7.1's ``_take_subscription`` call): one executor
+        round per message from now on."""
+        self._no_drain, self.polling = True, False
+        self.log.warning(f"taking messages directly unavailable ({err}); one executor round per message")
+
+    def _take_queued(self, name: str) -> int:
+        """Write up to :attr:`DRAIN_MAX` messages queued on ``name``'s subscription; how many."""
+        sub = self.subs.get(name)
+        if sub is None:
+            return 0
+        handle, msg_type, write = sub.handle, sub.msg_type, self.writer.write
+        n = 0
+        while n < self.DRAIN_MAX:
+            with handle:
+                taken = handle.take_message(msg_type, True)
+            if taken is None:
+                break
+            data, info = taken
+            write(name, info["received_timestamp"], data, info["source_timestamp"])
+            n += 1
+        self.received += n
+        return n
 
 
 def default_output() -> str:
@@ -307,6 +351,15 @@ def _run(writer: BagWriter, args: argparse.Namespace, ros_args: list[str]) -> in
     log.info(f"Recording to '{writer.path}' ({writer.storage})")
     t_end = time.monotonic() + args.duration if args.duration > 0 else float("inf")
     poll = args.polling_interval / 1000.0
+
+    def step(timeout: float) -> None:
+        """Take what DDS delivered: every queue then a sleep (``--take poll``), or one executor round."""
+        if rec.polling:
+            if not rec.take_all():
+                time.sleep(min(timeout, POLL_PERIOD_S))
+        else:
+            executor.spin_once(timeout_sec=timeout)
+
     next_poll = 0.0
     rc = 0
     try:
@@ -315,12 +368,12 @@ def _run(writer: BagWriter, args: argparse.Namespace, ros_args: list[str]) -> in
             if now >= next_poll and not rec.discovery_done:
                 rec.discover()
                 next_poll = now + poll
-            executor.spin_once(timeout_sec=min(0.05, poll))
+            step(min(0.05, poll))
             writer.flush_if_due()
-        # Drain what DDS already delivered: spin until nothing arrived for 0.2 s (at most 2 s).
+        # Drain what DDS already delivered: go on until nothing arrived for 0.2 s (at most 2 s).
         quiet_since, last, deadline = time.monotonic(), rec.received, time.monotonic() + 2.0
         while time.monotonic() < deadline and time.monotonic() - quiet_since < 0.2:
-            executor.spin_once(timeout_sec=0.02)
+            step(0.02)
             if rec.received != last:
                 last, quiet_since = rec.received, time.monotonic()
     except (BagError, OSError) as err:
@@ -336,7 +389,8 @@ def _run(writer: BagWriter, args: argparse.Namespace, ros_args: list[str]) -> in
         node.destroy_node()
         rclpy.try_shutdown()
     counts = ", ".join(f"{t.name}: {t.count}" for t in writer.topics.values())
-    print(f"record: wrote {writer.message_count} messages to {writer.path} ({counts or 'no topics'})", flush=True)
+    print(f"record: wrote {writer.message_count} messages to {writer.path} ({counts or 'no topics'}); "
+          f"{rec.callbacks} through executor callbacks (--take {args.take})", flush=True)
     return rc
 
 
