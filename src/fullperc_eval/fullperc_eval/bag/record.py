@@ -13,7 +13,7 @@ SIGTERM drain what DDS already delivered and close the bag cleanly.
 Deviations from rosbag2, on purpose: subscriptions use keep_last ``--subscription-depth``
 (1000, rosbag2 uses 10) so a recorder that falls briefly behind a 1 kHz reliable stream drops
 nothing; messages are taken from every subscription's queue every 10 ms instead of through an
-executor callback each (``--take``, :meth:`Recorder.take_all`: a third of the CPU per message);
+executor callback each (``--take``, :meth:`Recorder.take_all`: a quarter of the CPU per message);
 no services (the node's parameter services are not served while it polls)/``--use-sim-time``/
 snapshot mode; ``--duration`` stops after that many seconds.
 """
