@@ -63,3 +63,38 @@ def test_the_written_file_is_a_noise_model_fusion_node_reads(tmp_path):
     omc, bias = noise_model_from_stats(stats())
     assert all(getattr(nm.omc, k) == pytest.approx(v) for k, v in omc.items()) and nm.bias == pytest.approx(bias)
     assert nm.source == "unit test: 1000 OMC samples against the arm's forward kinematics"
+
+
+def test_each_omc_row_has_the_fit_error_of_its_own_body():
+    """Every body's quality message of an OMC frame has the frame's stamp: a row's fit error must come from the
+    target's own quality topic. (It came from whichever body's quality was read last at that stamp -- the
+    instrument's in the committed bags -- so the rows where the instrument was not tracked were dropped as having
+    no fit error and the model's fit-error terms were regressed on another body's fit.)"""
+    from fullperc_common.testing import workspace_root
+    from fullperc_eval.bag.reader import BagReader
+    from fullperc_eval.evaluation.replay_data import _stamp_ns
+    from fullperc_eval.evaluation.sensor_stats import FIT, T, bag_rows
+    from fullperc_fusion.layout import default_layout_path, load_layout
+
+    bag = workspace_root() / "bags" / "spec" / "G-B-P"
+    reader = BagReader(bag)
+    reader.open()
+    own, instrument_tracked = {}, False
+    try:
+        for m in reader.messages(["/omc/tool/quality", "/omc/instrument/pose"]):
+            msg = reader.deserialize(m.data, m.msgtype)
+            if m.topic == "/omc/tool/quality":
+                own[_stamp_ns(msg.header)] = float(msg.fit_error)
+            else:
+                instrument_tracked = True
+    finally:
+        reader.close()
+    assert instrument_tracked                                # the bag has a second body whose quality interleaves
+    g, _ = bag_rows(bag, load_layout(default_layout_path()))
+    ts = np.array(sorted(own))
+    i = np.clip(np.searchsorted(ts, g[:, T] * 1e9), 1, len(ts) - 1)     # rows hold seconds (float): nearest stamp
+    i -= np.abs(ts[i - 1] - g[:, T] * 1e9) < np.abs(ts[i] - g[:, T] * 1e9)
+    assert np.all(np.abs(ts[i] - g[:, T] * 1e9) < 1e3)
+    expected = np.array([own[int(t)] for t in ts[i]])
+    assert len(g) > 3000 and np.all(expected >= 0)
+    assert np.array_equal(g[:, FIT], expected)

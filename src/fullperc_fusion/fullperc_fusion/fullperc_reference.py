@@ -116,11 +116,11 @@ class FullpercParams(FilterParams):
     rot_global_std   OMC orientation noise per axis [rad] without a covariance (5 mrad: raw OMC, spec bags).
     rot_local_std    Vega orientation noise per axis [rad] without a covariance (2.2 mrad: raw Vega, spec bags).
     init_rot_std, init_angvel_std, init_rot_bias_std  prior stds of theta [rad], w [rad/s], beta [rad].
-    sys_time         correlation time of the OMC's systematic position error [s] (3 s: Gauss-Markov fit of the raw
-                     OMC error's structure function, spec bags, measurement_models).
-    sys_std          its per-axis std [m] for a global sample without ``sys_var`` (0.25 mm: raw OMC, spec bags).
+    sys_time         correlation time of the OMC's systematic position error [s] (3.06 s: Gauss-Markov fit of the
+                     raw OMC error's structure function, spec bags, measurement_models).
+    sys_std          its per-axis std [m] for a global sample without ``sys_var`` (0.21 mm: raw OMC, spec bags).
     rot_sys_time     correlation time of beta's Gauss-Markov part [s]; 0: beta is the random walk alone.
-    rot_bias_length  L [m], beta's decay length once the local source has lost the tool (0: off); 0.0565: the raw
+    rot_bias_length  L [m], beta's decay length once the local source has lost the tool (0: off); 0.0527: the raw
                      OMC rotation error over distance, white + Gauss-Markov (``paper`` bags; ``sensor_stats``).
     local_lost_s     no local sample for this long [s]: it has lost the tool (0.1: the evaluation's split).
     hop_into         "b" (default) or "g": the bias part a position hop goes into (module docstring).
@@ -132,13 +132,13 @@ class FullpercParams(FilterParams):
                      ~60 (OMC, Vega) pairs, a few centimetres of a hand-held tool's path.
     rot_noise_adapt_min, rot_noise_adapt_max  mu's bounds (0.05 and 25: the OMC's rotation std 0.22x to 5x the model's).
     rot_noise_length L [m] over which mu returns to 1 once the local source has lost the tool, by the distance beta
-                     decays over (0.0565: ``rot_bias_length``'s fit; 0: mu kept).
-    rot_sys_std      stationary per-axis std of that part [rad]. 3.8 s and 11.4 mrad: the slow part of the raw
+                     decays over (0.0527: ``rot_bias_length``'s fit; 0: mu kept).
+    rot_sys_std      stationary per-axis std of that part [rad]. 3.38 s and 8.94 mrad: the slow part of the raw
                      OMC rotation error's structure function fitted as white + two Gauss-Markov processes
-                     (``paper`` bags: fast 5.1 mrad / 0.21 s, slow 11.4 mrad / 3.8 s; the fast part reverts within
+                     (``paper`` bags: fast 5.3 mrad / 0.33 s, slow 8.94 mrad / 3.38 s; the fast part reverts within
                      frames and stays noise of the sample, :func:`measurement_models.omc_covariance`). On the
-                     ``spec`` bags the slow part is a random walk (8 mrad at tau >= 200 s, i.e. 2 s^2 / tau ~
-                     6.5e-7 rad^2/s: ``rot_bias_walk``).
+                     ``spec`` bags the slow part is 1.44 mrad / 2.8 s, whose short-lag increments 2 s^2 / tau ~
+                     1.5e-6 rad^2/s are ``rot_bias_walk``'s order.
     """
 
     ang_accel_noise: float = 0.5
@@ -148,11 +148,11 @@ class FullpercParams(FilterParams):
     init_rot_std: float = 0.05
     init_angvel_std: float = 0.5
     init_rot_bias_std: float = 0.02
-    sys_time: float = 3.0
-    sys_std: float = 0.25e-3
-    rot_sys_time: float = 3.8
-    rot_sys_std: float = 11.4e-3
-    rot_bias_length: float = 0.0565
+    sys_time: float = 3.06
+    sys_std: float = 0.210e-3
+    rot_sys_time: float = 3.38
+    rot_sys_std: float = 8.94e-3
+    rot_bias_length: float = 0.0527
     local_lost_s: float = 0.1
     hop_into: str = "b"
     noise_adapt_time: float = 0.4
@@ -160,7 +160,7 @@ class FullpercParams(FilterParams):
     rot_noise_adapt_time: float = 1.0
     rot_noise_adapt_min: float = 0.05
     rot_noise_adapt_max: float = 25.0
-    rot_noise_length: float = 0.0565
+    rot_noise_length: float = 0.0527
 
     def validate(self) -> FullpercParams:
         super().validate()

@@ -14,23 +14,26 @@ Diana forward kinematics; the OMC's view margin from :func:`margin.margin_at` on
 a noise-model file for another installation: :mod:`noise_model_file`). Per-axis variance regressed on
 [1, fit_error^2, 300/margin] (a term printed negative: the data show none):
 
-* OMC total error (white + systematic): sqrt(a) = 0.121 mm (0.120 mm beyond the white floor), k_fit = 0.52,
-  margin term 0.52 mm at 300 deg; rotation: floor 1.65 mrad, k_rot_fit = 5.8 rad/m, margin term 4.35 mrad at
-  300 deg; median fit error 0.051 mm. The ``paper`` profile's bags (worse calibrated cameras): floor 1.19 mm, no
-  fit-error term (-0.70), margin term 5.1 mm, rotation margin term 28.7 mrad, median fit error 0.27 mm -- the
-  margin term grows with the miscalibration, and it differs between installations (seeds);
-* OMC white part (frame-to-frame: consecutive differences / sqrt 2, same regression): floor 0.016 mm, margin term
-  0.116 mm at 300 deg, fit gain 0.08; robust (MAD) white jitter 0.034-0.040 mm per axis in both profiles;
-* time structure of the OMC error (rms per-axis increment over a lag L): spec 0.073 / 0.215 / 0.378 mm at
-  L = 8 ms / 1 s / 10 s, paper 0.100 / 0.99 / 2.50 mm; fitted as white + first-order Gauss-Markov,
-  D(L) = 2 w^2 + 2 s^2 (1 - exp(-L / tau)): position tau = 3.0 s (spec) / 12.5 s (paper), s = 0.25 / 2.35 mm.
-  The rotation error as white + two Gauss-Markov processes: paper 1.2 mrad white, 5.1 mrad / 0.21 s fast (reverts
-  within frames: noise of the sample, here), 11.4 mrad / 3.8 s slow (``FullpercParams.rot_sys_std`` /
-  ``rot_sys_time``); spec 1.2 mrad, 1.6 mrad / 0.37 s, and a slow part that is a random walk. Over the distance
-  between two samples instead of their time lag (white + Gauss-Markov): paper 10.6 mrad with a length of 56.5 mm
-  (``FullpercParams.rot_bias_length``), spec 2.0 mrad / 23 mm. Beyond the white
+* OMC total error (white + systematic): sqrt(a) = 0.121 mm (0.120 mm beyond the white floor), k_fit = 0.96,
+  margin term 0.378 mm at 300 deg; rotation: floor 0.62 mrad, k_rot_fit = 17.2 rad/m, margin term 1.31 mrad at
+  300 deg; median fit error 0.088 mm. The ``paper`` profile's bags (worse calibrated cameras): floor 1.46 mm, fit
+  gain 0.72, margin term 4.4 mm, rotation margin term 13.5 mrad, median fit error 0.29 mm -- the margin term grows
+  with the miscalibration, and it differs between installations (seeds);
+* OMC white part (frame-to-frame: consecutive differences / sqrt 2, same regression): floor 0.020 mm, margin term
+  0.076 mm at 300 deg, fit gain 0.25; robust (MAD) white jitter 0.033-0.038 mm per axis in both profiles;
+* time structure of the OMC error (rms per-axis increment over a lag L): spec 0.071 / 0.175 / 0.301 mm at
+  L = 8 ms / 1 s / 10 s, paper 0.091 / 0.79 / 2.11 mm; fitted as white + first-order Gauss-Markov,
+  D(L) = 2 w^2 + 2 s^2 (1 - exp(-L / tau)): position tau = 3.06 s (spec) / 18 s (paper), s = 0.21 / 2.28 mm.
+  The rotation error as white + two Gauss-Markov processes: paper 1.2 mrad white, 5.3 mrad / 0.33 s fast (reverts
+  within frames: noise of the sample, here), 8.94 mrad / 3.38 s slow (``FullpercParams.rot_sys_std`` /
+  ``rot_sys_time``); spec 1.15 mrad, 1.36 mrad / 0.40 s, 1.44 mrad / 2.8 s. Over the distance between two samples
+  instead of their time lag (white + Gauss-Markov): paper 10.0 mrad with a length of 52.7 mm
+  (``FullpercParams.rot_bias_length``), spec 2.1 mrad / 36 mm. Beyond the white
   jitter the error is systematic and decorrelates within seconds of motion (distortion along the path,
-  camera-set changes);
+  camera-set changes). Each OMC sample's fit error is its own body's (``/omc/tool/quality``): before 2026-12-02 the
+  statistics took, at each stamp, the fit error of whichever body's quality came last -- the instrument's -- and
+  dropped the samples where the instrument was not tracked, so the constants then in force (k_fit 0.52, rotation
+  5.8 rad/m, floor 1.64 mrad, margin term 4.35 mrad) were regressed on another body's fit error;
 * ``test/test_model_constants.py`` recomputes these on the committed bags and fails when a constant below (or one
   of ``FullpercParams``) is no longer what they give;
 * Vega tool (chain included) per axis 0.13 mm mid-volume, 0.17-0.19 mm at the ends of the 0.95-2.4 m volume;
@@ -58,31 +61,31 @@ class OmcModelParams:
     white_fit_gain   [-]      per-axis white std per metre of the device's RMS marker fit error
     white_margin_std [m]      per-axis white std of the view-margin term at ``margin_ref`` degrees
     sys_floor        [m]      per-axis systematic std everywhere (the total's floor beyond the white one:
-                              sqrt(0.121^2 - 0.016^2) mm; the miscalibration every point has)
+                              sqrt(0.121^2 - 0.020^2) mm; the miscalibration every point has)
     fit_gain         [-]      per-axis systematic std per metre of fit error
     margin_std       [m]      per-axis systematic std of the view-margin term at ``margin_ref``
     margin_ref       [deg]    reference margin (the paper's GVV threshold)
     margin_min       [deg]    margins below this count as this (a point one camera pair barely sees)
-    marker_lever     [m]      rotation std = position std / lever: k_fit / k_rot_fit = 0.52 / 5.81 rad/m = 90 mm,
+    marker_lever     [m]      rotation std = position std / lever: k_fit / k_rot_fit = 0.956 / 17.2 rad/m = 56 mm,
                               so the fit-error term of the rotation is the regression's (a ~9 cm tool)
     rot_sys_floor    [rad]    per-axis systematic rotation std everywhere (the rotation total's floor beyond
-                              the white position floor over the lever: 1.64 mrad)
+                              the white position floor over the lever: 0.51 mrad)
     rot_margin_std   [rad]    per-axis systematic rotation std of the margin term at ``margin_ref``
     default_fit      [m]      fit error assumed when the device reports none (-1): the spec bags' median
     """
 
-    white_std: float = 0.0156e-3
-    white_fit_gain: float = 0.0794
-    white_margin_std: float = 0.116e-3
+    white_std: float = 0.0197e-3
+    white_fit_gain: float = 0.248
+    white_margin_std: float = 0.0759e-3
     sys_floor: float = 0.120e-3
-    fit_gain: float = 0.520
-    margin_std: float = 0.518e-3
+    fit_gain: float = 0.956
+    margin_std: float = 0.378e-3
     margin_ref: float = MARGIN_REF_DEG
     margin_min: float = 30.0
-    marker_lever: float = 0.520 / 5.81
-    rot_sys_floor: float = 1.64e-3
-    rot_margin_std: float = 4.35e-3
-    default_fit: float = 0.0515e-3
+    marker_lever: float = 0.956 / 17.2
+    rot_sys_floor: float = 0.506e-3
+    rot_margin_std: float = 1.31e-3
+    default_fit: float = 0.0882e-3
 
 
 @dataclass(frozen=True)

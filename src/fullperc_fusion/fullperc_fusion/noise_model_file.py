@@ -13,15 +13,15 @@ Format (YAML, SI units; every key of ``omc`` and ``omc_bias`` optional: a key no
     fullperc_noise_model: 1          # format version
     source: "raw-sensor statistics of ..."   # free text: where the numbers come from
     omc:                             # measurement_models.OmcModelParams fields
-      white_std: 1.56e-05            # [m]
+      white_std: 1.97e-05            # [m]
       ...
     omc_bias:                        # FullpercParams fields: the OMC's systematic error over time
-      sys_time: 3.0                  # [s]
-      sys_std: 2.5e-04               # [m]
-      rot_sys_time: 3.8              # [s] (0: the orientation bias is a random walk alone)
-      rot_sys_std: 1.14e-02          # [rad]
+      sys_time: 3.06                 # [s]
+      sys_std: 2.1e-04               # [m]
+      rot_sys_time: 3.38             # [s] (0: the orientation bias is a random walk alone)
+      rot_sys_std: 8.94e-03          # [rad]
       rot_bias_walk: 1.0e-06         # [rad^2/s]
-      rot_bias_length: 5.65e-02      # [m] (0: the orientation bias does not decay with distance)
+      rot_bias_length: 5.27e-02      # [m] (0: the orientation bias does not decay with distance)
 
 A file that cannot be read, has another version, an unknown key or a value that is not a finite number in its
 range raises :class:`NoiseModelError` naming the file and the key: a typo must not silently leave a default.

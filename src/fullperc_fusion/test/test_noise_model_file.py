@@ -144,4 +144,4 @@ def test_the_pipeline_gives_fullperc_the_files_covariances():
     np.testing.assert_allclose(a.cov, omc_covariance(1e-3, None), rtol=1e-9, atol=1e-18)
     np.testing.assert_allclose(b.cov, omc_covariance(1e-3, None, model), rtol=1e-9, atol=1e-18)
     assert b.extras["sys_var"] == pytest.approx(omc_systematic_var(1e-3, None, model)[0], rel=1e-12)
-    assert b.extras["sys_var"] > 10 * a.extras["sys_var"]
+    assert b.extras["sys_var"] > 5 * a.extras["sys_var"]          # the file's, not the built-in one

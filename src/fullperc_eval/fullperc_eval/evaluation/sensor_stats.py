@@ -56,18 +56,23 @@ def bag_rows(bag: Path, layout) -> tuple[np.ndarray, np.ndarray]:
     cfg.filters = ("omc",)
     pipe = TargetPipeline(cfg)
     c = cfg.chain
+    # only the chain's bodies (the pipeline ignores the rest) and the target's own quality: every body's quality
+    # message of a frame has the same stamp, so a quality is the target's only by its topic
+    quality = {f"/omc/{c.omc_target}/quality": "omc", f"/ots/{c.ots_target}/quality": "ots"}
+    wanted = {"/diana/joint_states", *quality, *(f"/omc/{b}/pose" for b in (c.omc_target, c.omc_base, c.omc_rig)),
+              *(f"/ots/{b}/pose" for b in (c.ots_target, c.ots_base))}
     reader = BagReader(bag)
     reader.open()
     fit: dict[tuple[str, int], float] = {}
     jt, jq, samples = [], [], []
     try:
-        for m in reader.messages(list(reader.topics)):
+        for m in reader.messages([t for t in reader.topics if t in wanted]):
             msg = reader.deserialize(m.data, m.msgtype)
             if m.topic == "/diana/joint_states":
                 jt.append(_stamp_ns(msg.header))
                 jq.append(np.asarray(msg.position, dtype=float))
-            elif m.topic.endswith("/quality"):
-                fit[(m.topic.split("/")[1], _stamp_ns(msg.header))] = float(msg.fit_error)
+            elif m.topic in quality:
+                fit[(quality[m.topic], _stamp_ns(msg.header))] = float(msg.fit_error)
             elif m.topic.endswith("/pose") and m.topic.split("/")[1] in ("omc", "ots"):
                 dev, body = m.topic.split("/")[1:3]
                 t = _stamp_ns(msg.header)
@@ -89,10 +94,12 @@ def bag_rows(bag: Path, layout) -> tuple[np.ndarray, np.ndarray]:
     gt = GroundTruth(np.array(jt), np.array(jq), load_calibration(bag))
     Ttrue, ok = gt.T_base_tool(np.array([s[1] for s in samples], dtype=np.int64))
     rows: dict[str, list] = {"omc": [], "ots": []}
-    for (dev, t, Td, Tb), T0, k in zip(samples, Ttrue, ok, strict=True):
+    R0 = np.where(ok[:, None, None], Ttrue[:, :3, :3], np.eye(3))          # the truth is NaN where invalid
+    Rb = np.array([s[3][:3, :3] for s in samples]).reshape(-1, 3, 3)
+    rvs = Rotation.from_matrix(Rb @ R0.transpose(0, 2, 1)).as_rotvec() if samples else np.zeros((0, 3))
+    for (dev, t, Td, Tb), T0, k, rv in zip(samples, Ttrue, ok, rvs, strict=True):
         if not k:
             continue
-        rv = Rotation.from_matrix(Tb[:3, :3] @ T0[:3, :3].T).as_rotvec()
         margin = margin_at(layout, Td[:3, 3])[0] if dev == "omc" else np.nan
         rows[dev].append((t * 1e-9, *(Tb[:3, 3] - T0[:3, 3]), fit.get((dev, t), -1.0), margin,
                           float(np.linalg.norm(Td[:3, 3])), *rv, *T0[:3, 3]))
