@@ -30,23 +30,17 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from benchlib import emit, emit_error  # noqa: E402
+from benchlib import cpu_seconds, emit, emit_error  # noqa: E402
 
 ROOT = Path(os.environ.get("FULLPERC_ROOT", HERE.parent))
 BAG = ROOT / "bags/paper/B-G-P"
 SECONDS = 12.0
 REPEATS = 3
 MODES = ("poll", "callback", "executor")
-_TICK = os.sysconf("SC_CLK_TCK")
 
 
 def _exe(name: str) -> str:
     return str(ROOT / "install/fullperc_eval/lib/fullperc_eval" / name)
-
-
-def _cpu_s(pid: int) -> float:
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / _TICK   # utime, stime (fields 14, 15 of proc(5))
 
 
 def _topics() -> list[str]:
@@ -82,11 +76,11 @@ def one_run(mode: str, env: dict[str, str], tmp: Path) -> tuple[float, int, int]
             if time.monotonic() > deadline or rec.poll() is not None:
                 raise RuntimeError(f"record ({mode}) did not subscribe: {(run / 'record.log').read_text()[-500:]}")
             time.sleep(0.02)
-        cpu0 = _cpu_s(rec.pid)
+        cpu0 = cpu_seconds(rec.pid)
         for p in procs[1:]:
             p.wait(timeout=SECONDS * 10 + 60)
         time.sleep(0.5)   # what DDS still holds for the recorder
-        cpu1 = _cpu_s(rec.pid)
+        cpu1 = cpu_seconds(rec.pid)
         rec.send_signal(signal.SIGINT)
         rec.wait(timeout=60)
     finally:

@@ -13,6 +13,16 @@ import statistics
 import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of process ``pid`` [s] (Linux /proc; 0.0 where unavailable)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")   # utime, stime: proc(5) 14, 15
+    except (OSError, IndexError, ValueError):
+        return 0.0
 
 
 def median_time(fn: Callable[[], object], repeats: int = 7, number: int = 1) -> float:

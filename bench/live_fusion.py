@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from benchlib import cpu_seconds  # bench/: on the path of every importer and of a script run from it
 
 HERE = Path(__file__).resolve().parent
 WARMUP_NS = 1_000_000_000
@@ -79,15 +80,6 @@ class LiveResult:
     def all_latency_ms(self) -> np.ndarray:
         parts = [v for v in self.latency_ms.values() if len(v)]
         return np.concatenate(parts) if parts else np.zeros(0)
-
-
-def cpu_seconds(pid: int) -> float:
-    """User + system CPU time of process ``pid`` [s] (Linux /proc; 0.0 where unavailable)."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    except (OSError, IndexError, ValueError):
-        return 0.0
 
 
 def uncovered(sent_ns: np.ndarray, fused_ns: np.ndarray, slop_ns: int) -> int:

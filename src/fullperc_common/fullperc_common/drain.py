@@ -15,16 +15,24 @@ from __future__ import annotations
 from typing import Any
 
 
+def take_one(sub, raw: bool = False) -> tuple[Any, dict] | None:
+    """The oldest message waiting on ``sub`` as (message, message info), or None when its queue is empty; the
+    message serialized (bytes) with ``raw``. The one place that knows rclpy's take (``Subscription.handle``, rclpy
+    7.1's ``_take_subscription``): raises AttributeError or TypeError if that moved, and each caller decides how
+    to go on (:func:`take_queued`; ``fullperc_eval.bag.record``)."""
+    handle = sub.handle
+    with handle:
+        return handle.take_message(sub.msg_type, raw)
+
+
 def take_queued(sub, limit: int = 1000) -> list[Any]:
     """Up to ``limit`` deserialized messages waiting on ``sub`` (oldest first); [] if unsupported."""
     out: list[Any] = []
-    handle = getattr(sub, "handle", None)
-    if handle is None:
+    if getattr(sub, "handle", None) is None:
         return out
     try:
         for _ in range(limit):
-            with handle:
-                taken = handle.take_message(sub.msg_type, False)
+            taken = take_one(sub)
             if taken is None:
                 break
             out.append(taken[0])

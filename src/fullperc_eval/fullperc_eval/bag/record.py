@@ -31,6 +31,8 @@ from typing import Any
 
 import yaml
 
+from fullperc_common.drain import take_one
+
 from .errors import BagError
 from .metadata import REINDEX_HINT, STORAGES
 from .qos import offered_qos_dict, rclpy_qos_from_dict
@@ -277,8 +279,8 @@ class Recorder:
         return more
 
     def _fall_back(self, err: Exception) -> None:
-        """rclpy's internals changed (``take_message`` is rclpy 7.1's ``_take_subscription`` call): one executor
-        round per message from now on."""
+        """rclpy's internals changed (:func:`fullperc_common.drain.take_one` raised): one executor round per
+        message from now on."""
         self._no_drain, self.polling = True, False
         self.log.warning(f"taking messages directly unavailable ({err}); one executor round per message")
 
@@ -287,11 +289,10 @@ class Recorder:
         sub = self.subs.get(name)
         if sub is None:
             return 0
-        handle, msg_type, write = sub.handle, sub.msg_type, self.writer.write
+        write = self.writer.write
         n = 0
         while n < self.DRAIN_MAX:
-            with handle:
-                taken = handle.take_message(msg_type, True)
+            taken = take_one(sub, raw=True)
             if taken is None:
                 break
             data, info = taken
