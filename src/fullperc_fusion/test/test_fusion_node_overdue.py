@@ -12,18 +12,11 @@ import time
 
 import pytest
 
-from fullperc_common.ros_conv import ns_to_stamp
+from fullperc_common.ros_conv import pose_stamped
 
 
 def _omc_pose(t_ns: int):
-    from geometry_msgs.msg import PoseStamped
-
-    m = PoseStamped()
-    m.header.stamp = ns_to_stamp(t_ns)
-    m.header.frame_id = "omc"
-    m.pose.position.x, m.pose.position.y, m.pose.position.z = 0.1, 0.2, 1.0
-    m.pose.orientation.w = 1.0
-    return m
+    return pose_stamped(t_ns, "omc", (0.1, 0.2, 1.0), (0.0, 0.0, 0.0, 1.0))
 
 
 @pytest.fixture
