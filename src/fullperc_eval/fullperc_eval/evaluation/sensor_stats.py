@@ -73,7 +73,7 @@ def bag_rows(bag: Path, layout) -> tuple[np.ndarray, np.ndarray]:
                 jq.append(np.asarray(msg.position, dtype=float))
             elif m.topic in quality:
                 fit[(quality[m.topic], _stamp_ns(msg.header))] = float(msg.fit_error)
-            elif m.topic.endswith("/pose") and m.topic.split("/")[1] in ("omc", "ots"):
+            else:   # a chain body's /omc|/ots pose: ``wanted`` holds nothing else
                 dev, body = m.topic.split("/")[1:3]
                 t = _stamp_ns(msg.header)
                 pp, qq = msg.pose.position, msg.pose.orientation
