@@ -10,8 +10,9 @@ acceleration its difference over the step. Moving: the same for the position. Pe
 the median, 99th percentile and largest |dw/dt| [rad/s^2], the largest speed [m/s] and acceleration [m/s^2], and
 v_max * a_max [m^2/s^3]: the white-acceleration density a constant-velocity model needs for that motion (over a time
 T the model lets the velocity change by ~sqrt(q T) (Bar-Shalom, Li, Kirubarajan 2001, sec. 6.2.2); the target
-reaches v_max from rest at a_max in T = v_max / a_max, so q ~ v_max^2 / T = v_max a_max). At the end: the largest of
-each over all bags.
+reaches v_max from rest at a_max in T = v_max / a_max, so q ~ v_max^2 / T = v_max a_max), and by the same argument
+|w| max * |dw/dt| max [rad^2/s^3] for the constant-angular-velocity model (``<target>.ang_accel_noise``). At the end:
+the largest of each over all bags.
 
 Run: python scripts/truth_motion.py [--target NAME] BAG [BAG ...]
 """
@@ -72,7 +73,8 @@ def motion_figures(bag: str, target: str = "tool") -> dict[str, float]:
     v_max, acc_max = float(np.linalg.norm(vs, axis=1).max()), float(acc.max())
     return {"w_max": float(np.linalg.norm(ws, axis=1).max()), "a_median": float(np.median(a)),
             "a_p99": float(np.percentile(a, 99)), "a_max": float(a.max()),
-            "v_max": v_max, "acc_max": acc_max, "q_cv": v_max * acc_max}
+            "v_max": v_max, "acc_max": acc_max, "q_cv": v_max * acc_max,
+            "q_turn": float(np.linalg.norm(ws, axis=1).max() * a.max())}
 
 
 def turn_figures(bag: str) -> dict[str, float]:
@@ -91,11 +93,11 @@ def main(argv: list[str] | None = None) -> None:
         rows.append(f)
         print(f"{bag}: |w| max {f['w_max']:.3f} rad/s, |dw/dt| median {f['a_median']:.4f}, p99 {f['a_p99']:.4f}, "
               f"max {f['a_max']:.4f} rad/s^2; |v| max {f['v_max']:.3f} m/s, |dv/dt| max {f['acc_max']:.3f} m/s^2, "
-              f"v_max*a_max {f['q_cv']:.4g} m^2/s^3")
+              f"v_max*a_max {f['q_cv']:.4g} m^2/s^3, w_max*(dw/dt)_max {f['q_turn']:.4g} rad^2/s^3")
     top = {k: max(r[k] for r in rows) for k in rows[0]}
     print(f"over {len(rows)} bags ({args.target}): |w| max {top['w_max']:.3f} rad/s, |dw/dt| max {top['a_max']:.4f} "
           f"rad/s^2, |v| max {top['v_max']:.3f} m/s, |dv/dt| max {top['acc_max']:.3f} m/s^2, v_max*a_max "
-          f"{top['q_cv']:.4g} m^2/s^3")
+          f"{top['q_cv']:.4g} m^2/s^3, w_max*(dw/dt)_max {top['q_turn']:.4g} rad^2/s^3")
 
 
 if __name__ == "__main__":

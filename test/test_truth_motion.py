@@ -42,3 +42,19 @@ def test_the_hand_held_instrument_needs_a_motion_model_of_its_own(load_script, c
     assert block["init_vel_std"] == float(f"{inst['v_max']:.1g}"), (block, inst["v_max"])   # its top speed
     mod.main(["--target", "instrument", str(ROOT / "bags" / "spec" / "G-B-P")])
     assert "over 1 bags (instrument)" in capsys.readouterr().out
+
+
+def test_the_arm_held_tools_turn_model_is_its_truth_motion(load_script):
+    """fusion.yaml's `tool.ang_accel_noise` (fullperc's constant-angular-velocity model for the arm-held tool) is the
+    largest |w| max * |dw/dt| max of the committed bags' truth, to one significant digit, as the instrument's
+    `accel_noise` is its v_max * a_max; and far below the node-wide default, which is a hand-held instrument's."""
+    import yaml
+
+    from fullperc_fusion.fullperc_filter import FullpercParams
+
+    mod = load_script("truth_motion")
+    q = max(mod.motion_figures(str(bag), "tool")["q_turn"] for bag in sorted((ROOT / "bags" / "paper").iterdir())
+            if bag.is_dir())
+    doc = yaml.safe_load((ROOT / "src/fullperc_fusion/config/fusion.yaml").read_text())
+    assert doc["fusion_node"]["ros__parameters"]["tool"]["ang_accel_noise"] == float(f"{q:.1g}"), q
+    assert q < FullpercParams().ang_accel_noise / 50

@@ -45,11 +45,15 @@ def _fusion_yaml_target(target: str) -> dict:
     return doc["fusion_node"]["ros__parameters"][target]
 
 
-def test_the_instruments_fusion_parameters_are_fusion_yamls_in_graph_and_launch_file():
+def test_the_targets_fusion_parameters_are_fusion_yamls_in_graph_and_launch_file():
     """The demo's live fusion_node and its offline evaluation (which reads fusion.yaml) must fuse the hand-held
-    instrument with the same motion model and hop rule, or live and offline differ for it."""
+    instrument with the same motion model and hop rule, and the arm-held tool with the same turn model, or live and
+    offline differ for them."""
     want = {f"instrument.{k}": v for k, v in _fusion_yaml_target("instrument").items()}
     assert want.keys() == {"instrument.accel_noise", "instrument.hop_to_bias", "instrument.init_vel_std"}
+    tool = _fusion_yaml_target("tool")
+    assert tool.keys() == {"omc_body", "ots_tool", "ang_accel_noise"}     # the device names are the target's name
+    want["tool.ang_accel_noise"] = tool["ang_accel_noise"]
     cmd = next(p for p in yaml.safe_load((PKG / "config" / "demo_graph.yaml").read_text())["processes"]
                if p["name"] == "fusion")["cmd"]
     given = dict(cmd[i + 1].split(":=", 1) for i, w in enumerate(cmd) if w == "-p")
@@ -59,5 +63,5 @@ def test_the_instruments_fusion_parameters_are_fusion_yamls_in_graph_and_launch_
                   and any(k.arg == "executable" and k.value.value == "fusion_node" for k in n.keywords))
     params = next(k.value for k in fusion.keywords if k.arg == "parameters").elts[0]
     launch = {k.value: v.value for k, v in zip(params.keys, params.values, strict=True)
-              if isinstance(k, ast.Constant) and k.value.startswith("instrument.")}
+              if isinstance(k, ast.Constant) and k.value.startswith(("instrument.", "tool."))}
     assert launch == want

@@ -35,9 +35,13 @@ def _write(tmp_path, params: dict, top: str = "fusion_node"):
 
 
 def test_shipped_file_gives_the_built_in_defaults():
-    """fusion.yaml says every value equals the node's built-in default."""
+    """fusion.yaml says every value equals the node's built-in default, but for the targets' motion models: the
+    simulated OR's tool is held by the arm (``tool.ang_accel_noise``, fullperc's alone: the paper's filters get
+    exactly the defaults)."""
     cfg, values = fc.load_fusion_config()
-    _same_config(cfg, TargetConfig(name="tool", chain=ChainConfig(), filters=fc.PAPER_ORDER, params=FullpercParams()))
+    arm_held = dataclasses.replace(FullpercParams(), ang_accel_noise=0.005)
+    _same_config(cfg, TargetConfig(name="tool", chain=ChainConfig(), filters=fc.PAPER_ORDER, params=arm_held))
+    assert FullpercParams().ang_accel_noise == 0.5          # the node-wide default stays the hand-held one
     assert values["_source"].endswith("fusion.yaml")
     for p in fc.PARAMS:
         assert values[p.name] == fc.convert(p, None), p.name
@@ -47,7 +51,8 @@ def test_shipped_file_gives_the_built_in_defaults():
 def test_empty_file_and_defaults_agree(tmp_path):
     a, _ = fc.load_fusion_config(_write(tmp_path, {}))
     b, _ = fc.load_fusion_config()
-    _same_config(a, b)
+    assert (a.params.ang_accel_noise, b.params.ang_accel_noise) == (0.5, 0.005)   # the shipped arm-held tool's
+    _same_config(a, dataclasses.replace(b, params=dataclasses.replace(b.params, ang_accel_noise=0.5)))
     # a ROS wildcard params file works too
     c, _ = fc.load_fusion_config(_write(tmp_path, {"noise": {"accel": 0.2}}, top="/**"))
     assert c.params.accel_noise == 0.2
@@ -69,10 +74,12 @@ def test_fusion_yaml_documents_every_parameter_with_its_default():
         leaf = name.rsplit(".", 1)[-1]
         line = next(line for line in text.splitlines() if re.match(rf"\s*{leaf}:", line))
         assert re.search(r"\[(s|m)\]", line), line
-    # beside the table: the tool's device names, and the instrument's own motion model (a target not in `targets`:
-    # the node's default run does not read it; test_the_shipped_fusion_yaml_gives_the_instrument_its_own_model)
-    assert set(flat) <= {p.name for p in fc.PARAMS} | {"tool.omc_body", "tool.ots_tool", "instrument.accel_noise",
-                                                        "instrument.hop_to_bias", "instrument.init_vel_std"}
+    # beside the table: the tool's device names and turn model, and the instrument's own motion model (a target
+    # not in `targets`: the node's default run does not read it;
+    # test_the_shipped_fusion_yaml_gives_the_instrument_its_own_model)
+    assert set(flat) <= {p.name for p in fc.PARAMS} | {"tool.omc_body", "tool.ots_tool", "tool.ang_accel_noise",
+                                                        "instrument.accel_noise", "instrument.hop_to_bias",
+                                                        "instrument.init_vel_std"}
 
 
 def test_values_are_mapped(tmp_path):
@@ -329,11 +336,14 @@ def test_target_parameter_names_cannot_be_source_names():
 
 def test_the_shipped_fusion_yaml_gives_the_instrument_its_own_model(tmp_path):
     """fusion.yaml's `instrument` block (the twin's hand-held target; the demo passes the same with -p) acts for the
-    instrument only; the tool keeps the node-wide values."""
+    instrument only; the tool keeps the node-wide values but its own turn model, and the instrument the node-wide
+    turn model."""
     from fullperc_fusion.fusion_config import default_fusion_config_path
 
     inst = fc.load_fusion_config(default_fusion_config_path(), target="instrument").config
     tool = fc.load_fusion_config(default_fusion_config_path(), target="tool").config
     assert inst.params.hop_to_bias is False and inst.params.accel_noise > 10 * tool.params.accel_noise
     assert inst.params.init_vel_std > 5 * tool.params.init_vel_std
-    assert tool.params == fc.load_fusion_config(_write(tmp_path, {"targets": ["tool"]})).config.params
+    plain = fc.load_fusion_config(_write(tmp_path, {"targets": ["tool"]})).config.params
+    assert tool.params == dataclasses.replace(plain, ang_accel_noise=0.005)
+    assert inst.params.ang_accel_noise == plain.ang_accel_noise
