@@ -71,10 +71,9 @@ def motion_figures(bag: str, target: str = "tool") -> dict[str, float]:
     vs = _smooth(np.diff(T[ok, :3, 3], axis=0) / DT)
     acc = np.linalg.norm(np.diff(vs, axis=0), axis=1) / DT
     v_max, acc_max = float(np.linalg.norm(vs, axis=1).max()), float(acc.max())
-    return {"w_max": float(np.linalg.norm(ws, axis=1).max()), "a_median": float(np.median(a)),
-            "a_p99": float(np.percentile(a, 99)), "a_max": float(a.max()),
-            "v_max": v_max, "acc_max": acc_max, "q_cv": v_max * acc_max,
-            "q_turn": float(np.linalg.norm(ws, axis=1).max() * a.max())}
+    w_max, a_max = float(np.linalg.norm(ws, axis=1).max()), float(a.max())
+    return {"w_max": w_max, "a_median": float(np.median(a)), "a_p99": float(np.percentile(a, 99)), "a_max": a_max,
+            "v_max": v_max, "acc_max": acc_max, "q_cv": v_max * acc_max, "q_turn": w_max * a_max}
 
 
 def turn_figures(bag: str) -> dict[str, float]:
