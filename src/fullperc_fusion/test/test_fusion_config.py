@@ -18,6 +18,10 @@ from fullperc_fusion.fusion_health import HealthParams
 from fullperc_fusion.link_monitor import MonitorParams
 from fullperc_fusion.pipeline import TargetConfig
 
+# fusion.yaml's `tool.ang_accel_noise`: the simulated OR's tool is held by the arm (test_truth_motion.py ties the
+# value to its truth motion); the node-wide default is a hand-held target's
+TOOL_TURN = 0.005
+
 
 def _same_config(a: TargetConfig, b: TargetConfig) -> None:
     assert (a.name, a.filters, a.params, a.slop_ns, a.delay_ns) == (b.name, b.filters, b.params, b.slop_ns, b.delay_ns)
@@ -39,7 +43,7 @@ def test_shipped_file_gives_the_built_in_defaults():
     simulated OR's tool is held by the arm (``tool.ang_accel_noise``, fullperc's alone: the paper's filters get
     exactly the defaults)."""
     cfg, values = fc.load_fusion_config()
-    arm_held = dataclasses.replace(FullpercParams(), ang_accel_noise=0.005)
+    arm_held = dataclasses.replace(FullpercParams(), ang_accel_noise=TOOL_TURN)
     _same_config(cfg, TargetConfig(name="tool", chain=ChainConfig(), filters=fc.PAPER_ORDER, params=arm_held))
     assert FullpercParams().ang_accel_noise == 0.5          # the node-wide default stays the hand-held one
     assert values["_source"].endswith("fusion.yaml")
@@ -51,8 +55,9 @@ def test_shipped_file_gives_the_built_in_defaults():
 def test_empty_file_and_defaults_agree(tmp_path):
     a, _ = fc.load_fusion_config(_write(tmp_path, {}))
     b, _ = fc.load_fusion_config()
-    assert (a.params.ang_accel_noise, b.params.ang_accel_noise) == (0.5, 0.005)   # the shipped arm-held tool's
-    _same_config(a, dataclasses.replace(b, params=dataclasses.replace(b.params, ang_accel_noise=0.5)))
+    assert (a.params.ang_accel_noise, b.params.ang_accel_noise) == (0.5, TOOL_TURN)
+    b_plain = dataclasses.replace(b.params, ang_accel_noise=a.params.ang_accel_noise)
+    _same_config(a, dataclasses.replace(b, params=b_plain))
     # a ROS wildcard params file works too
     c, _ = fc.load_fusion_config(_write(tmp_path, {"noise": {"accel": 0.2}}, top="/**"))
     assert c.params.accel_noise == 0.2
@@ -345,5 +350,5 @@ def test_the_shipped_fusion_yaml_gives_the_instrument_its_own_model(tmp_path):
     assert inst.params.hop_to_bias is False and inst.params.accel_noise > 10 * tool.params.accel_noise
     assert inst.params.init_vel_std > 5 * tool.params.init_vel_std
     plain = fc.load_fusion_config(_write(tmp_path, {"targets": ["tool"]})).config.params
-    assert tool.params == dataclasses.replace(plain, ang_accel_noise=0.005)
+    assert tool.params == dataclasses.replace(plain, ang_accel_noise=TOOL_TURN)
     assert inst.params.ang_accel_noise == plain.ang_accel_noise
