@@ -26,9 +26,10 @@ TASK = "B-G-P"
 OUTAGE = (6.0, 12.0)   # task seconds during which the Vega is off
 LETTER = {1: "B", 2: "G", 3: "P"}
 SOURCE_GLOBAL, SOURCE_LOCAL = 1, 2
-# samples the node may lose itself and still be compared on MAE with the offline replay of the recording: a
-# quarter second of OMC frames (one run with 1 lost: all five methods of both targets within 0.001 mm)
-FEW_LOST = 30
+# share of a target's input samples (its OMC and Vega poses in the recording) the live node may lose itself: the
+# node's input queues hold seconds (qos_depth) and it drains them at shutdown, so on a busy machine it falls behind
+# and catches up instead of dropping; what it still loses it counts on /diagnostics (_node_losses)
+MAX_LOSS = 0.02
 
 pytestmark = pytest.mark.system
 
@@ -80,11 +81,26 @@ def _node_losses(run_dir: Path, target: str = "tool") -> int:
     return omc + max(0, ots - skipped)
 
 
-def _live_vs_offline(run_dir: Path, target: str) -> dict[str, tuple[int, int, float]]:
-    """Per paper method: (live outputs, outputs at a stamp the offline replay of the recording also has, median
-    distance between the two estimates there [mm]). Holds when the node lost samples too: at a common stamp both
-    ran the same core on nearly the same samples, and they differ by what the lost samples changed (the static
-    links the node averaged, a bias learned from fewer pairs)."""
+def _truth(run_dir: Path, target: str, stamps_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The target's true position in ``base`` at ``stamps_ns`` and the validity mask: the Diana forward kinematics
+    for the arm-held tool, the simulator's truth track for the instrument."""
+    from fullperc_eval.bag.calibration import load_calibration
+    from fullperc_eval.evaluation.ground_truth import GroundTruth, target_truth
+
+    track = target_truth(run_dir / "bag", target)
+    if track is None:
+        js = _read(run_dir / "bag", ["/diana/joint_states"])["/diana/joint_states"]
+        track = GroundTruth([_ns(m.header) for m in js], [list(m.position) for m in js],
+                            load_calibration(run_dir / "calibration.yaml"))
+    return track.position_base(stamps_ns)
+
+
+def _live_vs_offline(run_dir: Path, target: str) -> dict[str, dict[str, float]]:
+    """Per paper method, live (the node's recorded outputs) against offline (the evaluator's replay of the
+    recording): ``n_live`` outputs, ``n_common`` at a stamp both have, ``median_mm`` distance between the two
+    estimates there, and the MAE against the truth over those common stamps, ``mae_live_mm`` and ``mae_offline_mm``.
+    At a common stamp both ran the same core on the same samples; what the node lost changes the estimates after
+    it (the static links it averaged, a bias learned from fewer pairs)."""
     from fullperc_eval.evaluation.config import PAPER_METHODS, replay_config
     from fullperc_eval.evaluation.replay import live_replay, replay
 
@@ -93,10 +109,39 @@ def _live_vs_offline(run_dir: Path, target: str) -> dict[str, tuple[int, int, fl
     live = live_replay(run_dir / "bag", target=target).outputs
     out = {}
     for m in PAPER_METHODS:
-        _, i, j = np.intersect1d(off[m]["t_ns"], live[m]["t_ns"], assume_unique=True, return_indices=True)
+        common, i, j = np.intersect1d(off[m]["t_ns"], live[m]["t_ns"], assume_unique=True, return_indices=True)
         d = np.linalg.norm(off[m]["p"][i] - live[m]["p"][j], axis=1) * 1e3
-        out[m] = (len(live[m]["t_ns"]), int(i.size), float(np.median(d)) if i.size else float("nan"))
+        truth, ok = _truth(run_dir, target, common)
+        e_off = np.linalg.norm(off[m]["p"][i][ok] - truth[ok], axis=1) * 1e3
+        e_live = np.linalg.norm(live[m]["p"][j][ok] - truth[ok], axis=1) * 1e3
+        out[m] = {"n_live": len(live[m]["t_ns"]), "n_common": int(i.size), "n_truth": int(ok.sum()),
+                  "median_mm": float(np.median(d)) if i.size else float("nan"),
+                  "mae_live_mm": float(e_live.mean()) if ok.any() else float("nan"),
+                  "mae_offline_mm": float(e_off.mean()) if ok.any() else float("nan")}
     return out
+
+
+def _input_samples(run_dir: Path, target: str) -> int:
+    """The target's input samples in the recording: its OMC and Vega poses."""
+    got = _read(run_dir / "bag", [f"/omc/{target}/pose", f"/ots/{target}/pose"])
+    return sum(len(v) for v in got.values())
+
+
+def _check_live_against_offline(run_dir: Path, target: str, diff_mm: float, record_property) -> None:
+    """The node lost at most MAX_LOSS of the target's input (the figure goes to the test report), and on the stamps
+    both hold its estimates are the offline replay's: median distance <= ``diff_mm``, and the same MAE against the
+    truth to 0.05 mm (or 2 %)."""
+    lost, n_in = _node_losses(run_dir, target), _input_samples(run_dir, target)
+    cmp = _live_vs_offline(run_dir, target)
+    record_property("demo", f"{target}: node lost {lost} of {n_in} input samples ({lost / n_in:.2%}); live vs "
+                    "offline on common stamps: " + ", ".join(
+                        f"{m} {c['n_common']}/{c['n_live']} MAE {c['mae_live_mm']:.3f}/{c['mae_offline_mm']:.3f} mm "
+                        f"median diff {c['median_mm']:.3f} mm" for m, c in cmp.items()))
+    assert lost <= MAX_LOSS * n_in, f"the live node lost {lost} of {n_in} input samples of {target}"
+    for method, c in cmp.items():
+        assert c["n_common"] >= 0.5 * c["n_live"] and c["n_truth"] >= 0.9 * c["n_common"], (method, c)
+        assert c["median_mm"] <= diff_mm, (method, c)
+        assert abs(c["mae_live_mm"] - c["mae_offline_mm"]) <= max(0.05, 0.02 * c["mae_offline_mm"]), (method, c)
 
 
 def _read(bag: Path, topics: list[str]) -> dict[str, list]:
@@ -196,7 +241,7 @@ def test_region_labels_follow_the_task_order(demo):
     assert "-".join(order) == TASK
 
 
-def test_recorded_bag_evaluates_like_the_live_outputs(demo):
+def test_recorded_bag_evaluates_like_the_live_outputs(demo, record_property):
     _, run_dir = demo
     off = json.loads((run_dir / "report" / "eval.json").read_text())["mae_mm"]
     live = json.loads((run_dir / "report" / "eval_live.json").read_text())["mae_mm"]
@@ -206,21 +251,11 @@ def test_recorded_bag_evaluates_like_the_live_outputs(demo):
     assert all(off[m] is not None for m in METHODS), off
     for method in PAPER_METHODS:
         assert live[method] is not None, method
-    lost = _node_losses(run_dir)
-    # on the samples both hold, the live estimates are the offline replay's, lost samples or not (seen: medians
-    # 0.03-0.05 mm with 312 and 1,258 samples lost; 0.38 mm on the OMC column from the node's own static link
-    # when it, run under a profiler, kept less than a third of the samples; a node fusing with a wrong link or
-    # chain is millimetres off)
-    for method, (n_live, n_common, diff) in _live_vs_offline(run_dir, "tool").items():
-        assert n_common >= 0.5 * n_live and diff <= 0.5, (method, n_live, n_common, diff, f"lost {lost}")
-    if lost > FEW_LOST:
-        # the node fused other samples than the recording holds: equal figures are not to be expected, only the
-        # loss said on /diagnostics (_node_losses checks that)
-        pytest.skip(f"the live fusion_node lost {lost} samples on this busy machine (WARNed on /diagnostics): "
-                    "its figures are of other samples than the recording's")
+    # on the stamps both hold, the live estimates are the offline replay's (seen: medians 0.03-0.05 mm; a node
+    # fusing with a wrong link or chain is millimetres off)
+    _check_live_against_offline(run_dir, "tool", 0.5, record_property)
     for method in PAPER_METHODS:
-        # same core, same config, same first samples (test below). Under load the live node drops a few late
-        # samples the recorder kept (seen: 0.06 mm on the OMC column with two busy loops running alongside)
+        # the whole outputs too: the same core, config and first samples (test below), nearly the same samples
         assert abs(off[method] - live[method]) <= max(0.15, 0.05 * off[method]), (method, off, live)
 
 
@@ -252,16 +287,12 @@ def test_fusion_continues_on_omc_alone_and_recovers(demo):
     # fused output kept coming during the outage, from the global source only
     st = [m for m in got["/fullperc/tool/status"] if off_ns + 500_000_000 < _ns(m.header) < on_ns]
     lost = _node_losses(run_dir)
-    # Every OMC sample of the outage is fused (its status published) or counted lost: a node that falls behind on a
-    # busy machine loses samples from its input queues (counted and WARNed, _node_losses), and those leave holes in
-    # its output as long as the stall (1.4 s seen with a second test suite beside this one, 3.6 s of the 6 s outage
-    # in CI, all of it with two busy loops and a second test worker beside the graph): what it lacks of half the
-    # outage's samples must be counted as lost; with fewer than 30 outputs left there is nothing to check the bias on.
-    assert len(st) + lost > 0.5 * 120 * (on_ns - off_ns - 500_000_000) / 1e9, \
+    # Every OMC sample of the outage is fused (its status published) or counted lost: a node behind its inputs on a
+    # busy machine catches up from its input queues (qos_depth), and what it still loses it counts and WARNs
+    # (_node_losses; at most MAX_LOSS of the task, test_recorded_bag_evaluates_like_the_live_outputs)
+    assert len(st) + lost > 0.9 * 120 * (on_ns - off_ns - 500_000_000) / 1e9, \
         f"{len(st)} outputs in the outage and {lost} samples counted lost: the rest went missing uncounted"
-    if len(st) < 30:
-        pytest.skip(f"fusion_node, starved on this busy machine, published {len(st)} outputs in the outage and "
-                    f"counted {lost} samples lost (WARNed): no OMC-alone output to check")
+    assert len(st) >= 30, f"{len(st)} outputs in the outage ({lost} samples counted lost): nothing to check"
     assert all(m.sources == SOURCE_GLOBAL for m in st)
     assert all(m.filter == "cbkf" for m in st)
     # CBKF keeps compensating with the bias it learned while the OTS saw the target
@@ -373,7 +404,7 @@ def test_the_arm_hangs_under_base_with_the_simulators_transform(demo):
         assert np.allclose(R, T[:3, :3], atol=1e-9)
 
 
-def test_the_instrument_is_labelled_and_evaluated(demo):
+def test_the_instrument_is_labelled_and_evaluated(demo, record_property):
     p, run_dir = demo
     from fullperc_eval.evaluation.ground_truth import load_truth_track
     from fullperc_fusion.layout import default_layout_path, load_layout
@@ -407,21 +438,12 @@ def test_the_instrument_is_labelled_and_evaluated(demo):
     # that changed from run to run: 0.30-1.46 mm, and the compensated filters learned that as the OMC's bias (CI:
     # CKF 4.9 mm vs OMC 2.4)
     assert off["single_sources"]["local"]["mae_mm"] < 0.6, off["single_sources"]["local"]
-    # as for the tool (test_recorded_bag_evaluates_like_the_live_outputs): a node that lost samples of the instrument
-    # (counted and WARNed) fused another part of the walk than the recording holds, whose OMC error differs by region
-    # (1.5-4.3 mm); CI of 97bdc60 saw live 4.17 against offline 3.20 mm on the OMC column
-    lost = _node_losses(run_dir, INSTRUMENT)
-    # as for the tool: the same estimates at the stamps both hold (medians 0-0.37 mm in four runs that lost
-    # 298-1,541 samples, 1.2 mm for CBKF under a profiler; the walking target's bias moves more with a lost pair
+    # as for the tool (test_recorded_bag_evaluates_like_the_live_outputs): the node lost at most MAX_LOSS, and at the
+    # stamps both hold its estimates are the offline replay's (the walking target's bias moves more with a lost pair
     # than the arm-held tool's; offline with the arm's motion model instead, CKF and CBKF are 9.6-11.5 mm off)
-    for method, (n_live, n_common, diff) in _live_vs_offline(run_dir, INSTRUMENT).items():
-        assert n_common >= 0.5 * n_live and diff <= 2.0, (method, n_live, n_common, diff, f"lost {lost}")
-    if lost > FEW_LOST:
-        pytest.skip(f"the live fusion_node lost {lost} samples of the instrument (WARNed on /diagnostics): its "
-                    "figures are of other samples than the recording's")
+    _check_live_against_offline(run_dir, INSTRUMENT, 2.0, record_property)
     for method in ("omc", "kf"):
         assert abs(off["mae_mm"][method] - live["mae_mm"][method]) <= max(0.5, 0.25 * off["mae_mm"][method]), method
-
 
 if __name__ == "__main__":
     sys.exit(pytest.main([__file__, "-v"]))

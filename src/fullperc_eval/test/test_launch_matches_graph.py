@@ -65,3 +65,15 @@ def test_the_targets_fusion_parameters_are_fusion_yamls_in_graph_and_launch_file
     launch = {k.value: v.value for k, v in zip(params.keys, params.values, strict=True)
               if isinstance(k, ast.Constant) and k.value.startswith(("instrument.", "tool."))}
     assert launch == want
+
+
+def test_fusion_node_gets_the_same_shutdown_grace_in_graph_and_launch_file():
+    """fusion_node fuses what its input queues hold at SIGINT (seconds of samples on a busy machine): the graph's
+    per-process grace and the launch file's sigterm_timeout give it the same time before SIGTERM."""
+    fusion = next(p for p in yaml.safe_load((PKG / "config" / "demo_graph.yaml").read_text())["processes"]
+                  if p["name"] == "fusion")
+    tree = ast.parse((PKG / "launch" / "demo.launch.py").read_text())
+    node = next(n for n in ast.walk(tree) if isinstance(n, ast.Call) and getattr(n.func, "id", "") == "Node"
+                and any(k.arg == "executable" and k.value.value == "fusion_node" for k in n.keywords))
+    timeout = next(k.value.value for k in node.keywords if k.arg == "sigterm_timeout")
+    assert float(timeout) == float(fusion["grace"]) >= 10

@@ -136,6 +136,8 @@ def test_ready_when_every_listed_regex_matched(tmp_path):
     ("processes:\n  - name: a\n", "'name' and 'cmd'"),
     ("processes:\n  - {name: a, cmd: [x], after: [b]}\n", "not an earlier process"),
     ("processes:\n  - {name: a, cmd: ['{nope}']}\n", "placeholder {nope}"),
+    ("processes:\n  - {name: a, cmd: [x], grace: 0}\n", "grace: must be a number"),
+    ("processes:\n  - {name: a, cmd: [x], grace: soon}\n", "grace: must be a number"),
 ])
 def test_bad_graph_names_file_and_field(tmp_path, body, msg):
     g = tmp_path / "bad.yaml"
@@ -143,3 +145,40 @@ def test_bad_graph_names_file_and_field(tmp_path, body, msg):
     with pytest.raises(GraphError) as e:
         load_graph(g, {})
     assert str(g) in str(e.value) and msg in str(e.value)
+
+
+def test_a_process_gets_its_own_grace_to_finish_its_work(tmp_path):
+    """``grace`` on a process: SIGINT, then that long before SIGTERM (a node that drains its input queues at
+    shutdown); the others keep the graph's. The process below needs ~1.5 s after SIGINT, the graph's grace is
+    0.2 s: with its own 30 s it finishes (exit 0, its last file written); with the graph's it would be killed."""
+    done = tmp_path / "done"
+    script = tmp_path / "slow.py"
+    script.write_text(textwrap.dedent(f"""
+        import signal, sys, time
+        def stop(*_a):
+            signal.signal(signal.SIGTERM, signal.SIG_IGN)
+            time.sleep(1.5)
+            open({str(done)!r}, "w").close()
+            sys.exit(0)
+        signal.signal(signal.SIGINT, stop)
+        print("ready", flush=True)
+        time.sleep(600)
+        """))
+    g = _graph(tmp_path, f"""
+        processes:
+          - name: slow
+            cmd: [PY, {script}]
+            ready: {{log: ready}}
+            grace: 30
+          - name: end
+            cmd: [PY, -c, "pass"]
+            ends_graph: true
+        grace: 0.2
+        """)
+    graph = load_graph(g, {})
+    assert [p.grace for p in graph.processes] == [30.0, None]
+    sup = Supervisor(graph, tmp_path / "logs", tmp_path, out=io.StringIO())
+    assert sup.start()
+    sup.wait(timeout=60)
+    codes = sup.shutdown()
+    assert done.exists() and codes["slow"] == 0, codes

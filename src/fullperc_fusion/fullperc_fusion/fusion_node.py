@@ -40,26 +40,7 @@ Services:
                answers success=false + the reason and keeps the old links. The node keeps fusing meanwhile.
 
 Parameters: the table of :mod:`fullperc_fusion.fusion_config` (names, defaults, checks, units; the same
-mapping the offline evaluator uses), documented in config/fusion.yaml; names of nested ones use dots:
-  targets [tool]; <target>.omc_body, <target>.ots_tool (default: the target name); <target>.accel_noise,
-  <target>.hop_to_bias, <target>.init_vel_std, <target>.ang_accel_noise (unset: the node-wide noise.accel,
-  hop_to_bias, init.vel_std, fullperc.ang_accel_noise)
-  omc_base_body base, omc_rig_body ots_rig, ots_base_tool base
-  local_chain static|tracked|direct, init_samples 30, T_rig_ots / T_base_ots [x y z qx qy qz qw] (optional)
-  filter cbkf|ckf|bkf|kf|omc (primary), filters [..] (side-by-side extras, optional)
-  noise.accel, noise.bias_walk, noise.global_std, noise.local_std, init.pos_std, init.vel_std,
-  init.bias_std, hop_gate, hop_to_bias, max_gap (see filters.FilterParams)
-  slop [s], reorder_delay [s], clock stamps|host, max_future [s] 0.1, idle_flush [s], stale_timeout [s],
-  problem_hold [s], processing arrival|ordered, history [s] 0.2, lag_warn [s] 0.2, publish_final true,
-  status_rate [Hz] 0 (0 = every output)
-  qos_reliability reliable|best_effort, qos_depth
-  alarm.hop_window [s] 2.0, alarm.hop_max 5, alarm.bias_max [m] 0.02, alarm.reject_timeout [s] 1.0
-  calibration_file '' (calibration YAML loaded at start; a bad file stops the node naming file and field),
-  static_links average|calibrate, calibration.duration [s] 10, calibration.min_samples 30, calibration.max_drift
-  [m] 0.001, calibration.max_rot_drift [rad] 0.003, calibration.output '', calibration.timeout [s] 10,
-  link_monitor.enabled true, link_monitor.trans_max [m] 0.002, link_monitor.rot_max [rad] 0.005,
-  link_monitor.window [s] 1.0, link_monitor.recalibrate false
-  tf.enabled true, tf.diana_base [x y z qx qy qz qw] (optional)
+mapping the offline evaluator uses); config/fusion.yaml lists every one with its unit and default (``--help``).
 
 ``processing``: with ``arrival`` (default, :mod:`arrival`) every sample is fused and published when it arrives
 (pose, pose_cov, status, /tf: the newest estimate, stamps strictly increasing); a late sample rewinds and replays
@@ -115,6 +96,9 @@ from .sources import routes
 # Diagnostics.set takes an int level (the diagnostic_msgs constants are bytes in rclpy).
 OK, WARN, ERROR = (diag.as_level(v) for v in (diag.OK, diag.WARN, diag.ERROR))
 DIAG_EVAL_PERIOD_S = 0.5   # [s] the diagnostics' evaluation timer (published every 1 s by diag.Diagnostics)
+# [s] silence after which frames still waiting for their pose count as lost: > Fast DDS's 3 s heartbeat, after which
+# a reliable reader gets a sample repaired (a demo: 166 OMC samples came 1-3 s late, each fused; 1 s counted them lost)
+LOSS_SILENCE_S = 4.0
 _PROBLEM_KEYS = ("rejected_nonfinite", "rejected_nonunit", "rejected_pose", "rejected_stamp", "rejected_future",
                  "late", "duplicate", "rejected_cov", "local_skipped", "filter_error", "nonfinite_output",
                  "publish_error", "calibration_refused", "timeline_restart")
@@ -136,6 +120,7 @@ class FusionNode(Node):
         self._problem_hold = vals["problem_hold"]
         self._lag_warn = vals["lag_warn"]
         self._load = InputLoad()
+        self._behind_ns = 0   # node clock - newest stamp, at the end of the last input callback
         self._diag_sent = 0   # /diagnostics arrays sent before the last evaluation's values were set
         self._diag_eval_at = time.monotonic()   # the last _update_diagnostics
         self._cal_duration = vals["calibration.duration"]
@@ -266,11 +251,30 @@ class FusionNode(Node):
         clock = self.get_clock().now().nanoseconds   # 0: sim time not started, no lag known
         self._load.callback(len(batch) - 1, None if not received else wall - int(received),
                             clock - batch[-1][0] if clock else None)
+        self._behind_ns = clock - batch[-1][0] if clock else 0
         rx = time.monotonic()
         for d, b, m in ((d, b, m) for _t, d, b, m in batch if (d, b) in self._loss):
             self._loss[(d, b)].pose(stamp_to_ns(m.header.stamp))
             self._loss_rx[(d, b)] = rx
         self._timers_overdue()
+
+    def close(self) -> None:
+        """Shutdown (run_node, before it waits for the readers' acks): fuse and publish what the inputs still queue
+        -- a node behind its inputs at SIGINT dropped that tail --, flush every history as final, and publish the
+        final /diagnostics (lost samples settled)."""
+        while first := next(((d, b, m[0]) for d, b, s in self._input_subs if (m := take_queued(s, 1))), None):
+            self._on_input(*first, None)
+        for t, pipe in self.pipes.items():
+            if pipe.pending if isinstance(pipe, ArrivalPipeline) else pipe.sync.pending:
+                self._publish(t, pipe.flush())
+                self._publish_final(t)
+        for key, sub in self._quality_subs.items():
+            if m := take_queued(sub, 1):
+                self._on_quality(key, m[0])
+        for loss in self._loss.values():   # nothing more comes: the last /diagnostics settles every count
+            loss.end_of_stream()
+        self._update_diagnostics()
+        self._diag.publish()
 
     def _on_quality(self, key: tuple[str, str], msg: TrackingQuality) -> None:
         """This quality message and every one queued behind it (one executor round each would fall behind)."""
@@ -488,10 +492,8 @@ class FusionNode(Node):
             self._tf.send(tfs)
 
     def _timers_overdue(self) -> None:
-        """The diagnostics' evaluation and publishing, from the input path when their timers are a whole period
-        late. An overloaded node is busy in input callbacks back to back, and rclpy's EventsExecutor (this node's
-        default) then ran neither timer: in a demo run on a 2-core machine no /diagnostics for 22 s, the whole
-        task, so the overload and lost-sample WARNs came out only after it. On time, the timers do the work."""
+        """The diagnostics' evaluation and publishing from the input path when their timers are a period late: an
+        overloaded node runs input callbacks back to back, and rclpy's EventsExecutor then ran neither timer."""
         if time.monotonic() - self._diag_eval_at >= 2.0 * DIAG_EVAL_PERIOD_S:
             self._update_diagnostics()
         self._diag.publish_if_overdue()
@@ -570,8 +572,11 @@ class FusionNode(Node):
             loss = self._loss.get((dev, body))
             if loss is None:
                 continue
-            if loss.pending and now - self._loss_rx.get((dev, body), now) > self._stale:
-                loss.end_of_stream()   # silent for stale_timeout: what still waits for its pose will not get it
+            # silent for LOSS_SILENCE_S while the node kept up (behind, its quality callbacks starve and the poses
+            # still queue): what still waits for its pose will not get it
+            if loss.pending and now - self._loss_rx.get((dev, body), now) > max(self._stale, LOSS_SILENCE_S) \
+                    and self._behind_ns * 1e-9 <= self._stale:
+                loss.end_of_stream()
             values[f"{dev}_frames_lost"] = loss.frames_lost
             values[f"{dev}_samples_lost"] = loss.samples_lost
             n, when = self._loss_seen.get((dev, body), (0, -1e9))

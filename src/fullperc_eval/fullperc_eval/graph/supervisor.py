@@ -16,10 +16,11 @@ that nothing outlives the supervisor. The graph format (see config/demo_graph.ya
         output: show | quiet | "filter:<regex>"      # what reaches the console (all goes to the log file)
         ends_graph: true                 # when it exits, the whole graph is shut down (task done)
         required: true                   # a non-zero exit of a required process fails the run
+        grace: 30                        # its own shutdown grace [s] (default: the graph's ``grace``)
 
 `{name}` placeholders in cmd and env are filled from ``--set name=value`` and the graph's ``vars``.
-Shutdown: SIGINT to each process group in reverse start order, SIGTERM after ``grace`` seconds,
-SIGKILL after another ``grace``.
+Shutdown: SIGINT to each process group in reverse start order, SIGTERM after ``grace`` seconds (the
+process's own, else the graph's), SIGKILL after another ``grace``.
 """
 
 from __future__ import annotations
@@ -53,6 +54,7 @@ class ProcSpec:
     ends_graph: bool = False
     required: bool = True
     env: dict = field(default_factory=dict)
+    grace: float | None = None   # this process's own shutdown grace [s] (None: the graph's)
 
 
 @dataclass
@@ -120,10 +122,23 @@ def load_graph(path: str | Path, values: dict[str, str]) -> Graph:
             name=p["name"], cmd=[fill(c, f"{where}.cmd") for c in p["cmd"]], ready=ready,
             after=after, output=str(p.get("output", "show")), ends_graph=bool(p.get("ends_graph", False)),
             required=bool(p.get("required", True)),
-            env={k: fill(v, f"{where}.env.{k}") for k, v in (p.get("env") or {}).items()}))
+            env={k: fill(v, f"{where}.env.{k}") for k, v in (p.get("env") or {}).items()},
+            grace=_grace(p.get("grace"), f"{path}: {where}.grace")))
     return Graph(name=str(doc.get("name", path.stem)), processes=procs,
                  env={k: fill(v, f"env.{k}") for k, v in (doc.get("env") or {}).items()},
                  grace=float(doc.get("grace", 5.0)), ready_timeout=float(doc.get("ready_timeout", 60.0)))
+
+
+def _grace(v, where: str) -> float | None:
+    if v is None:
+        return None
+    try:
+        g = float(v)
+    except (TypeError, ValueError):
+        g = float("nan")
+    if not g > 0 or g == float("inf"):
+        raise GraphError(f"{where}: must be a number of seconds > 0, got {v!r}")
+    return g
 
 
 def _log_patterns(ready: dict) -> list[str]:
@@ -261,7 +276,7 @@ class Supervisor:
             self._stop_because(f"interrupted ({signal.Signals(self.interrupted).name})")
         codes: dict[str, int | None] = {}
         for r in reversed(self.running):
-            codes[r.spec.name] = stop_group(r.popen, self.graph.grace)
+            codes[r.spec.name] = stop_group(r.popen, r.spec.grace or self.graph.grace)
         return codes
 
 

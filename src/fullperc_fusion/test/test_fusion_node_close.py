@@ -1,0 +1,88 @@
+"""fusion_node's shutdown fuses what its input queues still hold (``FusionNode.close``, called by run_node).
+
+A node behind its inputs at SIGINT -- the demo's seven processes on a busy 2-core machine, seconds of samples in
+the queues (``qos_depth``) -- used to exit with that tail unfused: the recording then held samples the live node
+never fused, and the live-against-offline comparison of the demo could not be made. Here the node is built in this
+process and never spun: every sample is still in its subscriptions' queues when close() runs.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from fullperc_common.ros_conv import ns_to_stamp, pose_stamped
+
+N = 200
+
+
+@pytest.fixture
+def node_and_feeder(rclpy_context):
+    import rclpy
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    from fullperc_fusion.fusion_node import FusionNode
+    from fullperc_msgs.msg import TrackingQuality
+
+    node = FusionNode(context=rclpy_context)
+    feeder = rclpy.create_node("feeder", context=rclpy_context)
+    qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+    pubs = (feeder.create_publisher(PoseStamped, "/omc/tool/pose", qos),
+            feeder.create_publisher(TrackingQuality, "/omc/tool/quality", qos))
+    yield node, pubs
+    feeder.destroy_node()
+    node.destroy_node()
+
+
+def _send(pubs, n: int) -> None:
+    from rclpy.duration import Duration
+
+    from fullperc_common.testing import wait_for
+    from fullperc_msgs.msg import TrackingQuality
+
+    pose_pub, quality_pub = pubs
+    wait_for(lambda: pose_pub.get_subscription_count() >= 1 and quality_pub.get_subscription_count() >= 1, 60,
+             what="fusion_node's subscriptions")
+    t0 = 1_700_000_000_000_000_000
+    for k in range(n):
+        t = t0 + k * 8_333_333
+        q = TrackingQuality()
+        q.header.stamp, q.header.frame_id = ns_to_stamp(t), "omc"
+        q.visible, q.frame_number = True, k + 1
+        quality_pub.publish(q)
+        pose_pub.publish(pose_stamped(t, "omc", (0.1, 0.2, 1.0), (0.0, 0.0, 0.0, 1.0)))
+    for p in pubs:   # reliable: acknowledged = in the node's reader history
+        assert p.wait_for_all_acked(Duration(seconds=60))
+
+
+def test_close_fuses_every_sample_still_queued_and_counts_none_lost(node_and_feeder):
+    node, pubs = node_and_feeder
+    _send(pubs, N)
+    pipe = node.pipes["tool"]
+    assert pipe.counts["global_in"] == 0, "never spun: nothing taken yet"
+    node.close()
+    assert pipe.counts["global_in"] == N
+    loss = node._loss[("omc", "tool")]
+    assert (loss.samples_lost, loss.frames_lost, loss.pending) == (0, 0, 0)
+
+
+def test_close_settles_and_publishes_the_final_diagnostics(node_and_feeder):
+    """A visible frame whose pose never came is counted at shutdown (nothing more comes), and the last /diagnostics
+    the node sends says so."""
+    node, pubs = node_and_feeder
+    from rclpy.duration import Duration
+
+    from fullperc_msgs.msg import TrackingQuality
+
+    _send(pubs, N)
+    q = TrackingQuality()   # the quality of a frame after the last pose, visible: its pose never comes
+    q.header.stamp, q.header.frame_id = ns_to_stamp(1_700_000_000_000_000_000 + N * 8_333_333), "omc"
+    q.visible, q.frame_number = True, N + 1
+    pubs[1].publish(q)
+    assert pubs[1].wait_for_all_acked(Duration(seconds=60))
+    sent = node._diag.published
+    node.close()
+    assert node._diag.published == sent + 1
+    values = {kv.key: kv.value for kv in node._diag._status["target tool"].values}
+    assert node._loss[("omc", "tool")].samples_lost == 1
+    assert values["omc_samples_lost"] == "1", values
