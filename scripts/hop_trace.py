@@ -1,4 +1,4 @@
-"""What crosses ``fullperc``'s hop gate in one bag, and what it does to the bias (issue 18, README "Where a hop goes").
+"""What crosses ``fullperc``'s hop gate in one bag, and what it does to the bias (docs/fullperc_filter.md).
 
 Replays the bag the way the evaluation does (:func:`fullperc_eval.evaluation.metrics.evaluate_bag`, the fusion
 config given or the default) with every ``fullperc`` update logged, and prints

@@ -1,5 +1,5 @@
-"""Is the static link's covariance the size of the link's error? (issue 18, README "The link's covariance and the
-bridge link"). Raw sensor data only: no filter output is looked at.
+"""Is the static link's covariance the size of the link's error? (issue 18, docs/fullperc_filter.md "The link's
+covariance and the bridge link"). Raw sensor data only: no filter output is looked at.
 
 Replays each bag the way the evaluation does (:func:`fullperc_eval.evaluation.metrics.evaluate_bag`, default fusion
 config) and records, for every Vega sample, the link T_base_ots it was mapped through and that link's 6x6 covariance

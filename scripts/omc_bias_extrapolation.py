@@ -2,7 +2,8 @@
 
 ``fullperc`` and CBKF learn the OMC's error while the Vega sees the tool (BVV) and carry it out of BVV as a constant
 (CBKF) or fading (fullperc) bias. On the ``paper`` twin the OMC's error is a smooth function of position (the lens
-residual, README "The twin's two profiles"), so a bias that is linear in position might carry further. This script
+residual, docs/evaluation.md "The twin's two profiles"), so a bias that is linear in position might carry further.
+This script
 asks the sensor data, not a filter: per bag, the raw OMC position error (the node's own frame chain against the Diana
 forward kinematics: ``scripts/raw_sensor_stats.py``'s rows) on the samples stamped within the Vega's sightings is fitted
 two ways -- a constant b, and b + J (x - x_mean) by least squares -- and each is used to predict the error of the OMC

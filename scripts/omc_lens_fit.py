@@ -1,8 +1,8 @@
 """Can the OMC's lens residual be learnt while the Vega sees the tool and carried outside? Raw-sensor check, issue 18.
 
-The ``paper`` twin's OMC error is mostly a lens residual common to all cameras (README "The twin's two profiles":
-a focal-length error ``s`` and a radial term ``k1``). Its effect on a triangulated point is not a free field but a
-fixed function of the camera geometry, linear in (s, k1) to first order:
+The ``paper`` twin's OMC error is mostly a lens residual common to all cameras (docs/evaluation.md "The twin's two
+profiles": a focal-length error ``s`` and a radial term ``k1``). Its effect on a triangulated point is not a free
+field but a fixed function of the camera geometry, linear in (s, k1) to first order:
 
     e_omc(P) ~ s a(P) + k1 c(P),
 

@@ -1,5 +1,6 @@
 """Source-checkout entry of ``fit_noise_model`` (:mod:`fullperc_eval.evaluation.sensor_stats`), kept for the
-README's commands and for the scripts beside it that use its rows (``from raw_sensor_stats import bag_rows``).
+commands of docs/fullperc_filter.md and for the scripts beside it that use its rows
+(``from raw_sensor_stats import bag_rows``).
 
 Run: python scripts/raw_sensor_stats.py bags/spec bags/paper [--write noise.yaml]
 """

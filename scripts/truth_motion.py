@@ -1,5 +1,5 @@
-"""How fast a tracked target moves and turns, and how fast that changes, from the ground truth of bags (README
-"The `fullperc` filter" for ``<target>.ang_accel_noise``, "Several tracked targets" for ``<target>.accel_noise``).
+"""How fast a tracked target moves and turns, and how fast that changes, from the ground truth of bags (docs/targets.md
+"A hand-held target needs its own motion model": ``<target>.accel_noise`` and ``<target>.ang_accel_noise``).
 No sensor and no filter is looked at.
 
 The truth -- the Diana's forward kinematics for the arm-held ``tool`` (:class:`GroundTruth`, with each bag's
