@@ -26,10 +26,16 @@ REL = 0.02
 
 
 @pytest.fixture(scope="module")
-def stats():
+def stats(cached_bag_rows):
+    """fit_noise_model's statistics of each profile's bags; each bag's rows are sensor_stats.bag_rows', computed once
+    per test session (root conftest: the other tests of the committed bags' raw rows read the same)."""
     layout = load_layout(default_layout_path())
-    return {p: sensor_stats.fitted(*sensor_stats.profile_rows(ROOT / "bags" / p, layout))
-            for p in ("spec", "paper")}
+    cached_bag_rows.prefetch(sorted(b for p in ("spec", "paper") for b in (ROOT / "bags" / p).iterdir() if b.is_dir()),
+                             layout)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(sensor_stats, "bag_rows", cached_bag_rows)
+        return {p: sensor_stats.fitted(*sensor_stats.profile_rows(ROOT / "bags" / p, layout))
+                for p in ("spec", "paper")}
 
 
 def test_omc_model_constants_are_the_spec_bags_statistics(stats):

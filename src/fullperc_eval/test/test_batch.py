@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from fullperc_common.transforms import T_to_pq
+from fullperc_eval.evaluation import metrics
 from fullperc_eval.evaluation.batch import _matrices, _to_pq, unsupported_reason
 from fullperc_eval.evaluation.metrics import evaluate_bag
 from fullperc_eval.evaluation.replay import replay
@@ -101,14 +102,21 @@ def test_synthetic_batched_equals_per_sample(synth):
     assert (np.diff(o["t_ns"]) > 500_000_000).any()
 
 
-def test_sample_bag_evaluation_identical():
+def test_sample_bag_evaluation_identical(monkeypatch):
     if not (SAMPLE / "metadata.yaml").is_file():
         pytest.skip("sample bag not present")
     cfg = TargetConfig(filters=FIVE)
+    replays = []   # the replay each evaluation ran (the evaluation only reads it): compared below as well
+
+    def recorded(*args, **kw):
+        replays.append(replay(*args, **kw))
+        return replays[-1]
+    monkeypatch.setattr(metrics, "replay", recorded)
     a = evaluate_bag(SAMPLE, progress=False, config=cfg)
     b = evaluate_bag(SAMPLE, progress=False, config=cfg, per_sample=True)
     assert json.dumps(a.result) == json.dumps(b.result)   # every figure, in the same order
-    _assert_same(replay(SAMPLE, cfg, progress=False), replay(SAMPLE, cfg, progress=False, per_sample=True))
+    assert [r.path for r in replays] == ["batched", "per-sample"]
+    _assert_same(*replays)
 
 
 def test_late_samples_fall_back_with_the_per_sample_result(tmp_path):

@@ -240,19 +240,24 @@ def test_a_given_noise_model_file_is_used_for_every_profile(tmp_path):
         noise_model_configs(str(tmp_path / "missing.yaml"), ("spec",), {"spec": "b"}, str(tmp_path), None, [0], [1])
 
 
-def test_calibrated_noise_model_of_the_committed_spec_bags_is_the_built_in_one(tmp_path):
+def test_calibrated_noise_model_of_the_committed_spec_bags_is_the_built_in_one(tmp_path, monkeypatch, cached_bag_rows):
     """The real path, no simulation: the committed spec bags stand in for calibration seed 100 (links to them
     in the cache). The config written reads the file, and the file's model is the built-in one (which is the
     spec bags' statistics, test/test_model_constants.py): what fusion_node runs by default is what the
-    calibration gives for the installation it was fitted on."""
+    calibration gives for the installation it was fitted on. Each bag's raw rows are sensor_stats.bag_rows' of its
+    content, computed once per test session (root conftest; test_model_constants reads the same)."""
     import dataclasses
     from pathlib import Path
 
+    from fullperc_eval.evaluation import sensor_stats
     from fullperc_eval.evaluation.accuracy import calibrated_fusion_config
     from fullperc_fusion.fusion_config import load_fusion_config
+    from fullperc_fusion.layout import default_layout_path, load_layout
     from fullperc_fusion.measurement_models import OmcModelParams
 
     bags = Path(__file__).resolve().parents[3] / "bags" / "spec"
+    monkeypatch.setattr(sensor_stats, "bag_rows", cached_bag_rows)
+    cached_bag_rows.prefetch([bags / t for t in TASK_ORDER], load_layout(default_layout_path()))
     d = tmp_path / "spec-k" / "seed100"
     d.mkdir(parents=True)
     for t in TASK_ORDER:

@@ -65,7 +65,7 @@ def test_the_written_file_is_a_noise_model_fusion_node_reads(tmp_path):
     assert nm.source == "unit test: 1000 OMC samples against the arm's forward kinematics"
 
 
-def test_each_omc_row_has_the_fit_error_of_its_own_body():
+def test_each_omc_row_has_the_fit_error_of_its_own_body(cached_bag_rows):
     """Every body's quality message of an OMC frame has the frame's stamp: a row's fit error must come from the
     target's own quality topic. (It came from whichever body's quality was read last at that stamp -- the
     instrument's in the committed bags -- so the rows where the instrument was not tracked were dropped as having
@@ -73,7 +73,7 @@ def test_each_omc_row_has_the_fit_error_of_its_own_body():
     from fullperc_common.testing import workspace_root
     from fullperc_eval.bag.reader import BagReader
     from fullperc_eval.evaluation.replay_data import _stamp_ns
-    from fullperc_eval.evaluation.sensor_stats import FIT, T, bag_rows
+    from fullperc_eval.evaluation.sensor_stats import FIT, T
     from fullperc_fusion.layout import default_layout_path, load_layout
 
     bag = workspace_root() / "bags" / "spec" / "G-B-P"
@@ -90,7 +90,7 @@ def test_each_omc_row_has_the_fit_error_of_its_own_body():
     finally:
         reader.close()
     assert instrument_tracked                                # the bag has a second body whose quality interleaves
-    g, _ = bag_rows(bag, load_layout(default_layout_path()))
+    g, _ = cached_bag_rows(bag, load_layout(default_layout_path()))   # bag_rows', once per session (root conftest)
     ts = np.array(sorted(own))
     i = np.clip(np.searchsorted(ts, g[:, T] * 1e9), 1, len(ts) - 1)     # rows hold seconds (float): nearest stamp
     i -= np.abs(ts[i - 1] - g[:, T] * 1e9) < np.abs(ts[i] - g[:, T] * 1e9)

@@ -21,6 +21,14 @@ from fullperc_eval.sim.scene import DEFAULT_PROFILE
 TASK, SEED = "P-G-B", 2
 
 
+@pytest.fixture(scope="module")
+def offline():
+    """The task as the ``sim`` executable runs it by default (its default twin profile), offline: computed before
+    any sim starts, so a test is free to drain its sockets. The run is deterministic and only read (by the tests and
+    by LiveServer): one simulation serves every test of the module."""
+    return run_task(TASK, seed=SEED, profile=DEFAULT_PROFILE)
+
+
 def _udp() -> socket.socket:
     s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
@@ -30,9 +38,7 @@ def _udp() -> socket.socket:
 
 
 @pytest.mark.slow
-def test_sim_serves_the_offline_measurements(procs, tmp_path):
-    # the `sim` executable's default twin profile, offline: before the sim starts, so this test drains its sockets
-    offline = run_task(TASK, seed=SEED, profile=DEFAULT_PROFILE)
+def test_sim_serves_the_offline_measurements(procs, tmp_path, offline):
     so, sd = _udp(), _udp()
     port_file = tmp_path / "vega.port"
     offset = 7_000_000_000  # device clocks 7 s ahead of the host clock
@@ -96,10 +102,10 @@ def test_sim_serves_the_offline_measurements(procs, tmp_path):
 
 
 
-def test_task_waits_until_a_driver_tracks():
+def test_task_waits_until_a_driver_tracks(offline):
     """``serve(wait_for_tracking_s=…)``: no device data and no task clock before a driver sent TSTART to the
     Vega emulator, so a recorder that starts with the drivers sees the task from its first sample."""
-    run = run_task(TASK, seed=SEED)
+    run = offline
     so = _udp()
     events: list[dict] = []
     server = LiveServer(run, speed=8.0, omc_addr=("127.0.0.1", so.getsockname()[1]),
@@ -150,9 +156,9 @@ def _assert_frames_carry_their_own_sample(server: LiveServer, n: int = 120) -> N
     assert served > 0
 
 
-def test_vega_restarted_during_the_task_is_on_the_task_s_frame_grid():
+def test_vega_restarted_during_the_task_is_on_the_task_s_frame_grid(offline):
     """A Vega emulator started while the task plays (the demo's ``vega_outage``: a fresh one after a kill)."""
-    run = run_task(TASK, seed=SEED)
+    run = offline
     server = LiveServer(run, speed=1.0, vega_port=0, log=lambda rec: None,
                         omc_addr=("127.0.0.1", 9), diana_addr=("127.0.0.1", 9))
     try:
@@ -163,9 +169,9 @@ def test_vega_restarted_during_the_task_is_on_the_task_s_frame_grid():
         server.close()
 
 
-def test_task_starts_anyway_when_nobody_tracks():
+def test_task_starts_anyway_when_nobody_tracks(offline):
     """A demo without a Vega driver is not stuck: after the timeout the task starts and says why."""
-    run = run_task(TASK, seed=SEED)
+    run = offline
     events: list[dict] = []
     server = LiveServer(run, speed=50.0, vega_port=0, log=events.append,
                         omc_addr=("127.0.0.1", 9), diana_addr=("127.0.0.1", 9))
