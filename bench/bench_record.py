@@ -1,7 +1,7 @@
 """CPU the recorder spends per message, by ``--take`` mode (``fullperc_eval.bag.record``).
 
-In the demo graph the recorder was the biggest CPU consumer of eight processes on two cores (README "The demo graph
-on this machine"), and every core-second it takes is one ``fusion_node`` does not get. Here: the installed ``play``
+In the demo graph the recorder was the biggest CPU consumer of eight processes on two cores (docs/bags.md "What
+recording costs"), and every core-second it takes is one ``fusion_node`` does not get. Here: the installed ``play``
 replays the committed ``bags/paper/B-G-P`` bag twice at once (the second copy remapped under ``/copy``: 34 topics,
 ~3,000 messages/s, about what the demo graph publishes) to the installed ``record`` subscribed to all of them, for
 ``SECONDS`` of bag time. The figure is the recorder's CPU time (utime + stime from ``/proc``) between the moment its

@@ -428,7 +428,7 @@ def test_the_instrument_is_labelled_and_evaluated(demo, record_property):
     # the raw OMC and the plain KF, offline and live: millimetres, as the OMC's error; no tight agreement asked for:
     # with two targets fusion_node needs ~0.9 of a core here, and on a loaded machine DDS drops samples the recorder
     # kept (seen: 0.21 mm on the OMC column at load 7). The compensated filters' MAE is not compared: on a walking
-    # target their bias after a hop is not stable against a few dropped samples (README, "Several tracked targets");
+    # target their bias after a hop is not stable against a few dropped samples (docs/targets.md);
     # their estimates are, at the stamps both hold (_live_vs_offline, below).
     for method in ("omc", "kf"):
         assert off["mae_mm"][method] < 5.0 and live["mae_mm"][method] < 5.0, (method, off["mae_mm"], live["mae_mm"])

@@ -1,5 +1,5 @@
-"""``scripts/hop_trace.py`` (README "Where a hop goes") on a committed bag: it prints the hops it finds with the
-filter's own figures, and leaves the filter as it was."""
+"""``scripts/hop_trace.py`` (docs/fullperc_filter.md "Where a hop goes") on a committed bag: it prints the hops it
+finds with the filter's own figures, and leaves the filter as it was."""
 
 from __future__ import annotations
 

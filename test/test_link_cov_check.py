@@ -1,6 +1,6 @@
-"""``scripts/link_cov_check.py`` (README "The link's covariance and the bridge link") on a committed bag: one line
-per link with the raw Vega chain's mean error against what the link's covariance predicts, and the pipeline's
-covariance function put back."""
+"""``scripts/link_cov_check.py`` (docs/fullperc_filter.md "The link's covariance and the bridge link") on a committed
+bag: one line per link with the raw Vega chain's mean error against what the link's covariance predicts, and the
+pipeline's covariance function put back."""
 
 from __future__ import annotations
 

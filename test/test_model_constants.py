@@ -1,5 +1,5 @@
 """The noise-model constants are the raw-sensor statistics of the committed bags (issue 18: "calibrated on
-raw-sensor statistics"; README "The fullperc filter").
+raw-sensor statistics"; docs/fullperc_filter.md).
 
 ``fit_noise_model`` (``fullperc_eval.evaluation.sensor_stats``) computes them from every tracked OMC and Vega
 sample of ``bags/spec`` (and, for the orientation bias's slow part, ``bags/paper``) against the Diana forward

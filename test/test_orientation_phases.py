@@ -1,5 +1,5 @@
-"""``scripts/orientation_phases.py`` (README "The orientation bias after the Vega lost the tool") on a committed bag:
-the three phases partition the outputs, the seen / unseen figures are the evaluation's own
+"""``scripts/orientation_phases.py`` (docs/fullperc_filter.md "The orientation bias after the Vega lost the tool") on
+a committed bag: the three phases partition the outputs, the seen / unseen figures are the evaluation's own
 (``orientation_by_local_deg``), and the raw figures are the sensors' error where the Vega sees the tool."""
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
-"""``scripts/truth_motion.py`` (README "The `fullperc` filter", ``<target>.ang_accel_noise``; "Several tracked
-targets", ``<target>.accel_noise``) on committed bags: how the arm-held tool and the hand-held instrument move and
+"""``scripts/truth_motion.py`` (docs/fullperc_filter.md: ``<target>.ang_accel_noise``; docs/targets.md:
+``<target>.accel_noise``) on committed bags: how the arm-held tool and the hand-held instrument move and
 turn, from their ground truth."""
 
 from __future__ import annotations

@@ -36,7 +36,7 @@ from collections.abc import Callable, Iterator
 ENV = "FULLPERC_EXECUTOR"
 CHOICES = ("events", "single")
 # Nodes that spin on ``events`` unless FULLPERC_EXECUTOR says otherwise: their system tests pass on it and the
-# gain is measured (README "Measured speed"). Every other node: ``single``.
+# gain is measured (docs/performance.md "The executor"). Every other node: ``single``.
 DEFAULT_EVENTS = frozenset({"fusion_node"})
 TASK_PERIOD_S = 0.02   # how often a pending ``async`` service callback is resumed on ``events``
 

@@ -79,7 +79,7 @@ def help_text(name: str, package: str, params_file: tuple[str, str] | None) -> s
     """Usage line plus the node's parameter file (the commented YAML is the parameter reference)."""
     usage = f"usage: ros2 run {package} {name} [--ros-args -p name:=value | --params-file FILE]\n"
     if params_file is None:
-        return usage + "\nNo parameter file is registered for this node; see README 'Nodes, topics and parameters'.\n"
+        return usage + "\nNo parameter file is registered for this node; see docs/nodes.md.\n"
     try:
         path = share_path(params_file[0], "config", params_file[1])
         text = path.read_text()

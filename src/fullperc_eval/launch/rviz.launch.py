@@ -1,4 +1,4 @@
-"""RViz2 with the fullperc view (config/fullperc.rviz; README "Seeing it"), when rviz2 is installed.
+"""RViz2 with the fullperc view (config/fullperc.rviz; docs/nodes.md "TF and RViz2"), when rviz2 is installed.
 
     ros2 launch fullperc_eval rviz.launch.py            # next to `make demo` or demo.launch.py
 

@@ -1,4 +1,4 @@
-"""The hand-held instrument of the committed bags, evaluated with fusion.yaml (README "Several tracked targets").
+"""The hand-held instrument of the committed bags, evaluated with fusion.yaml (docs/targets.md).
 
 Its own motion model, velocity prior and hop rule (fusion.yaml's `instrument` block: `accel_noise` from its truth's
 v_max * a_max, `init_vel_std` its v_max, `hop_to_bias: false`) keep the compensated filters at the OMC's level on
@@ -37,7 +37,7 @@ def test_with_the_spec_omc_ckf_and_fullperc_stay_near_it():
     """The `spec` OMC (0.2 mm) leaves little room: CKF and fullperc within 1.5x of it (with the arm's values: 39x and
     42x). CBKF is not held to it: its biased estimator (paper eq. 4-8) shrinks a coordinate that crosses a plane of
     `base` while the position's variance is large (13 mm^2 before the Vega first sees the instrument) towards 0, by up
-    to 1.5 mm, kept until the Vega sees it (README)."""
+    to 1.5 mm, kept until the Vega sees it (docs/targets.md)."""
     spec = evaluate_bag(ROOT / "bags" / "spec" / "G-B-P", target="instrument", progress=False).result["mae_mm"]
     for m in ("ckf", "fullperc"):
         assert spec[m] <= 1.5 * spec["omc"], (m, spec)

@@ -30,7 +30,7 @@ from fullperc_eval.sim.tasks import (
 )
 from fullperc_fusion.margin import BVV, label_points
 
-CHEAPEST = "P-B-G"  # the task whose cold search is shortest (a few seconds; see README "Evaluation")
+CHEAPEST = "P-B-G"  # the task whose cold search is shortest (a few seconds)
 
 
 def assert_same_plan(got, want, path: str = "plan") -> None:

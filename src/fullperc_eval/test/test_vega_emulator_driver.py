@@ -215,7 +215,8 @@ def test_garbage_before_replies_costs_no_read_timeout(transport, prob):
     """Random bytes (1-16) before the device's replies, bring-up included (TCP: before every one): each reply is
     still read (the noise skipped and counted), so no command waits out its read timeout (before, every garbled BX
     did: 0.5 s each, the ``make soak`` figure of 73 Hz instead of 120 Hz with 1 % garbage); the poses that arrive
-    are exact. Serial at 20 % (noise before every serial reply: `soak/soak_ndi_noise.py --prob 1.0`, README)."""
+    are exact. Serial at 20 % (noise before every serial reply: `soak/soak_ndi_noise.py --prob 1.0`,
+    docs/performance.md)."""
     names = ["tool", "base"]
     emu = VegaEmulator(moving_source(names), {n: ROMS[n] for n in names},
                        faults=FaultConfig(garbage_prob=prob, seed=11))

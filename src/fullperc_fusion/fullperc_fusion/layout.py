@@ -4,7 +4,7 @@ The layout is the static geometry that the view-margin model (paper §4, Algorit
 It is one YAML file (metres and degrees) shared by ``margin_node`` and the simulator, so the region
 labels the node publishes and the camera geometry the simulated OMC triangulates with agree.
 
-Frames (the README's "Frames" paragraph; ARCHITECTURE.md "Frames and units"):
+Frames (docs/nodes.md "Frames, stamps and units"):
   * ``omc``: the mocap world, z up; every position and orientation in the file is expressed in it.
     "Ground" in eq. (17) is the omc x-y plane.
   * OMC camera frames follow OpenCV: z = optical axis (forward), x right, y down. ``orientation`` is the

@@ -6,7 +6,7 @@ time of the labelled pose, frame_id) and the position of that pose. ``/fullperc/
 (visualization_msgs/MarkerArray, reliable + transient local, so late RViz instances get it) is published at start
 and again whenever a parameter changes. ``/fullperc/<target>/region_marker`` (visualization_msgs/Marker, a sphere at
 the labelled position in the pose's frame, coloured by the published label: BVV green, GVV blue, PVV red, UNKNOWN
-grey; the colours of the margin map) goes out with every Region, for RViz (README "Seeing it").
+grey; the colours of the margin map) goes out with every Region, for RViz (docs/nodes.md "TF and RViz2").
 ``/diagnostics`` reports the layout and, per target, the last label.
 
 Frames. The layout (cameras, OTS volume) is in ``omc``; fused poses are in ``base``. A pose whose frame_id is the

@@ -66,8 +66,8 @@ with C_link the covariance of the link in use (a calibrated link, or the average
 ``direct`` chains and for a link given as a parameter (no covariance). The estimate itself is unchanged. Why: on
 the twin's ``paper`` bags the raw Vega chain's error has a per-run mean of up to 0.45 mm (the 30-sample bridge link
 of a run that starts in BVV) and the filter, averaging hundreds of Vega samples, reported 0.035 mm per axis: 88 % of
-its outputs were inside their 95 % bound on that profile's ten seeds, 93 % with the link's covariance (README "The
-link's covariance and the bridge link").
+its outputs were inside their 95 % bound on that profile's ten seeds, 93 % with the link's covariance
+(docs/fullperc_filter.md "The link's covariance and the bridge link").
 """
 
 from __future__ import annotations

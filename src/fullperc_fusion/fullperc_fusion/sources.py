@@ -62,7 +62,7 @@ _NAME = re.compile(r"^[a-z][a-z0-9_]*$")
 _RESERVED = {"global", "local", "sources", "base", "omc_body", "ots_tool", "ang_accel_noise", "accel_noise",
              "hop_to_bias", "init_vel_std"}   # + TARGET_PARAMS
 
-# the keys of a source block: kind (fusion_config's kinds), unit, description (what --help and the README show)
+# the keys of a source block: kind (fusion_config's kinds), unit, description (what --help and docs/nodes.md show)
 SOURCE_KEYS: dict[str, tuple[str, str, str]] = {
     "role": ("str", "", "global (exactly one) | local (one or more)"),
     "topic_prefix": ("str", "", "pose topic <prefix>/<device>/pose, quality .../quality; default /<name>"),

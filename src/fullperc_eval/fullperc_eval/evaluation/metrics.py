@@ -5,7 +5,7 @@
 |p_method - p_true| in ``base`` at every pose it output; the true path is labelled with the view-margin model
 (:func:`fullperc_fusion.margin.label_points`, layout in the ``omc`` frame) on the joint-state time grid.
 
-Definitions (documented in the README, pinned by tests):
+Definitions (documented in docs/evaluation.md, pinned by tests):
 
 * **MAE** of a method = mean Euclidean position error [mm] over *every pose the method outputs* (what
   ``/fullperc/<target>/<filter>/pose`` would carry). The pass-through only outputs when the OMC sees the

@@ -24,7 +24,7 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
     r.add_argument("--logs", default="log/supervisor")
     r.add_argument("--timeout", type=float, default=None, help="shut down after S seconds")
-    d = sub.add_parser("demo", help="the simulated-OR demo (see README)")
+    d = sub.add_parser("demo", help="the simulated-OR demo (see docs/demo.md)")
     d.add_argument("--task", default="P-B-G-P")
     d.add_argument("--seed", default="0")
     d.add_argument("--out", default="demo_out")

@@ -37,8 +37,8 @@ from .ots_model import OtsModel
 
 PROFILES = ("paper", "spec")  # twin profiles (config/profile_<name>.yaml); "base" = scene.yaml alone
 DEFAULT_PROFILE = "paper"  # what the command-line tools use when no --profile is given
-OMC_BODIES = ("base", "ots_rig", "tool")  # bodies the OMC tracks (README: default OMC bodies)
-OTS_TOOLS = ("tool", "base")  # NDI tools the Vega tracks (README: default NDI tools)
+OMC_BODIES = ("base", "ots_rig", "tool")  # bodies the OMC tracks (docs/nodes.md "Frames, stamps and units")
+OTS_TOOLS = ("tool", "base")  # NDI tools the Vega tracks (docs/nodes.md "Frames, stamps and units")
 
 
 class SceneError(ValueError):
