@@ -10,7 +10,7 @@ lines, the exit status -- with liveness bounds only (``wait_for``), never a wall
 
 from __future__ import annotations
 
-import math
+import re
 import signal
 import socket
 import threading
@@ -21,13 +21,14 @@ import numpy as np
 import pytest
 
 from fullperc_common.diagnostics import as_level
-from fullperc_common.testing import SpunNode, installed_exe, wait_for
+from fullperc_common.testing import SpunNode, installed_exe, side_by_side_fixture, wait_for
 from fullperc_drivers.ndi import replies as R
 from fullperc_drivers.ndi.protocol import FrameReader, decode_command, encode_ascii_reply, encode_binary_reply
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "src" / "fullperc_drivers" / "config"
 OK, WARN, ERROR = 0, 1, 2
+GARBAGE_STATUSES = 3  # link statuses (1 s period, and at level changes) watched during garbage: none may be OK
 
 
 class FaultProxy:
@@ -39,6 +40,7 @@ class FaultProxy:
         self.delay_s = delay_s
         self.mode = "pass"  # pass | freeze | garbage | nan
         self.refused_pinit = 0
+        self.commands: list[str] = []  # every command forwarded or answered, by name, in order
         self._last_bx: bytes | None = None
         self._srv = socket.create_server(("127.0.0.1", 0))
         self._srv.settimeout(0.2)
@@ -106,6 +108,7 @@ class FaultProxy:
 
     def _handle(self, line: bytes, up: socket.socket, reader: FrameReader, roms: dict[str, bytearray]) -> bytes:
         cmd = decode_command(line)
+        self.commands.append(cmd.name)
         if cmd.name == "PVWR":  # remember what each handle was given
             h, addr = cmd.params[:2].upper(), int(cmd.params[2:6], 16)
             rom = roms.setdefault(h, bytearray(1024))
@@ -167,6 +170,14 @@ class Listener(SpunNode):
         with self.lock:
             return self.poses[tool]
 
+    def n_statuses(self) -> int:
+        with self.lock:
+            return len(self.history)
+
+    def statuses(self) -> list[tuple[int, str, dict]]:
+        with self.lock:
+            return list(self.history)
+
     def status(self) -> tuple[int | None, str, dict]:
         with self.lock:
             return self.history[-1] if self.history else (None, "", {})
@@ -205,9 +216,10 @@ def free_tcp_port() -> int:
         return s.getsockname()[1]
 
 
-def test_health_leaves_ok_on_frozen_nan_and_garbage_replies_and_recovers(procs, tmp_path, rclpy_context):
+def _health_leaves_ok_on_frozen_nan_and_garbage_replies_and_recovers(procs, tmp_path, rclpy_context):
     proxy = FaultProxy(start_emulator(procs, tmp_path))
-    drv = start_driver(procs, proxy.port, "health.reconnect_window_s:=3.0")
+    # stale_after_s 1 s (default 2 s): each fault phase lasts until the level left OK, which takes that long
+    drv = start_driver(procs, proxy.port, "health.reconnect_window_s:=3.0", "health.stale_after_s:=1.0")
     lis = Listener(rclpy_context)
     try:
         wait_for(lambda: lis.n_poses("tool") > 30 and lis.n_poses("base") > 30, timeout=40, what="poses")
@@ -229,11 +241,17 @@ def test_health_leaves_ok_on_frozen_nan_and_garbage_replies_and_recovers(procs, 
 
         proxy.mode = "garbage"  # every BX body garbage behind a valid CRC: reconnects, never OK
         msg = lis.wait_level(ERROR, "no new frames for", what="ERROR for garbage replies")
-        t_end = time.monotonic() + 3.0
-        while time.monotonic() < t_end:  # it stays out of OK while the garbage lasts
-            assert lis.status()[0] != OK, lis.status()[1]
-            time.sleep(0.1)
-        assert int(lis.status()[2]["reconnects_recent"]) >= 1 or "not connected" in lis.status()[1]
+        since = lis.n_statuses() - 1  # from that ERROR on
+        # it reconnects (or says it is not connected) ...
+        wait_for(lambda: int(lis.status()[2].get("reconnects_recent", 0)) >= 1 or "not connected" in lis.status()[1],
+                 timeout=40, what=f"a reconnect on garbage replies (last: {lis.status()[:2]})")
+        # ... and stays out of OK while the garbage lasts: through GARBAGE_STATUSES more evaluations (a count of the
+        # driver's own health periods, not a length of time a busy machine would fill with fewer of them)
+        n = lis.n_statuses()
+        wait_for(lambda: lis.n_statuses() >= n + GARBAGE_STATUSES, timeout=40,
+                 what=f"{GARBAGE_STATUSES} more link statuses during the garbage")
+        levels = [(lvl, m) for lvl, m, _ in lis.statuses()[since:]]
+        assert all(lvl != OK for lvl, _ in levels), [m for lvl, m in levels if lvl == OK]
         proxy.mode = "pass"
         lis.wait_level(OK, timeout=40, what="OK after the garbage phase")
         assert drv.poll() is None
@@ -246,7 +264,7 @@ def test_health_leaves_ok_on_frozen_nan_and_garbage_replies_and_recovers(procs, 
     assert "frame number frozen" in log  # the level changes reached the console too
 
 
-def test_a_rom_the_device_refuses_is_named_and_the_other_tool_keeps_tracking(procs, tmp_path, rclpy_context):
+def _a_rom_the_device_refuses_is_named_and_the_other_tool_keeps_tracking(procs, tmp_path, rclpy_context):
     base_rom = CONFIG / "base.rom"
     proxy = FaultProxy(start_emulator(procs, tmp_path), refuse_rom=base_rom.read_bytes())
     drv = start_driver(procs, proxy.port, f"tool_roms:=[{CONFIG / 'tool.rom'}, {base_rom}]")
@@ -266,8 +284,7 @@ def test_a_rom_the_device_refuses_is_named_and_the_other_tool_keeps_tracking(pro
     assert str(base_rom) in line and "PINIT" in line, log[-2000:]
 
 
-@pytest.mark.parametrize("content", [b"", b"this is not a tool definition\n" * 40])
-def test_a_garbage_rom_file_stops_the_driver_naming_the_file(procs, tmp_path, content):
+def _a_garbage_rom_file_stops_the_driver_naming_the_file(procs, tmp_path, content):
     bad = tmp_path / "broken.rom"
     bad.write_bytes(content)
     p = start_driver(procs, free_tcp_port(), f"tool_roms:=[{bad}, base.rom]")
@@ -280,7 +297,21 @@ def test_a_garbage_rom_file_stops_the_driver_naming_the_file(procs, tmp_path, co
     assert "Traceback" not in log
 
 
-def test_an_unreachable_device_is_explained_on_the_console(procs, tmp_path):
+LOG_TIME = re.compile(r"^\[(?:WARN|INFO|ERROR)\] \[(\d+\.\d+)\]")
+
+
+def _refused_lines(log: str) -> list[tuple[float, str]]:
+    """(log time [s], line) of the console lines with the TCP reason the driver gives for each failed attempt (not
+    the health ladder's level changes), in order."""
+    out = []
+    for ln in log.splitlines():
+        m = LOG_TIME.match(ln)
+        if m and "cannot bring up the NDI device at" in ln and "Connection refused" in ln:
+            out.append((float(m[1]), ln))
+    return out
+
+
+def _an_unreachable_device_is_explained_on_the_console(procs, tmp_path):
     port = free_tcp_port()  # nothing listens there
     shipped = ROOT / "install/fullperc_drivers/share/fullperc_drivers/config/ndi_vega.yaml"  # also: it parses
     tcp = start_driver(procs, port, name="ndi_tcp", params_file=shipped)
@@ -291,14 +322,41 @@ def test_an_unreachable_device_is_explained_on_the_console(procs, tmp_path):
              what="the serial reason on the console")
     line = next(ln for ln in procs.log(tcp).splitlines() if "Connection refused" in ln)
     assert f"127.0.0.1:{port}" in line and "ndi_driver" in line
-    time.sleep(3.0)  # throttled: a retry every couple of seconds must not flood the console
-    assert procs.log(tcp).count("Connection refused") <= 3
+    # Throttled, not flooding: the driver retries with back-off (0, then 0.05 s doubling up to backoff_max_s), and
+    # the console repeats the reason at most every THROTTLE_S with the count of the retries it held back. Wait for
+    # the second line (a condition, not a length of time) and check both from the log's own stamps: the lines are
+    # THROTTLE_S or more apart, and the count is at least one retry (it does retry) and at most what the back-off
+    # allows in that time -- a driver retrying without back-off would make thousands.
+    wait_for(lambda: len(_refused_lines(procs.log(tcp))) >= 2, timeout=60, what="the repeated TCP reason",
+             detail=lambda: procs.log(tcp)[-2000:])
+    (t1, _), (t2, second) = _refused_lines(procs.log(tcp))[:2]
+    assert t2 - t1 >= THROTTLE_S - 0.05, (t1, t2, second)
+    m = re.search(r"\((\d+) more times? in the last (\d+) s\)", second)
+    assert m, second
+    held_back = int(m[1])
+    # (the executor logs an attempt when it gets to it: a late first line shortens t2 - t1 by its delay, the slack)
+    assert 1 <= held_back <= _max_attempts(t2 - t1 + THROTTLE_S), (held_back, t2 - t1, second)
     for p in (tcp, ser):
         assert p.poll() is None
         assert procs.stop(p) == 0
 
 
-def test_ctrl_c_over_a_slow_link_exits_0_without_a_traceback(procs, tmp_path, rclpy_context):
+THROTTLE_S = 5.0        # ndi_driver's ConsoleThrottle period for the link reason
+BACKOFF = (0.05, 0.5)   # DriverConfig backoff_initial_s, backoff_max_s
+
+
+def _max_attempts(seconds: float) -> int:
+    """Most connection attempts the back-off schedule allows within ``seconds`` after a failed one (each attempt
+    failing at once: nothing listens)."""
+    n, t, wait = 0, 0.0, BACKOFF[0]
+    while t + wait <= seconds:
+        t += wait
+        n += 1
+        wait = min(BACKOFF[1], wait * 2)
+    return n + 1
+
+
+def _ctrl_c_over_a_slow_link_exits_0_without_a_traceback(procs, tmp_path, rclpy_context):
     proxy = FaultProxy(start_emulator(procs, tmp_path), delay_s=0.02)
     lis = Listener(rclpy_context)
     try:
@@ -309,7 +367,43 @@ def test_ctrl_c_over_a_slow_link_exits_0_without_a_traceback(procs, tmp_path, rc
             assert procs.stop(drv, signal.SIGINT) == 0, procs.log(drv)
             log = procs.log(drv)
             assert "Traceback" not in log and "callback failed" not in log, log[-3000:]
+            # the stop took the clean path over the slow link: TSTOP went to the device before the exit
+            assert proxy.commands.count("TSTOP") == i + 1, proxy.commands[-10:]
     finally:
         lis.close()
         proxy.close()
-    assert math.isfinite(lis.n_poses("tool"))
+
+
+GARBAGE_ROMS = {"empty": b"", "text": b"this is not a tool definition\n" * 40}
+
+# the selected tests' scenarios at once, side by side, each with its own emulator, driver and domain: most of a
+# scenario is waiting (processes starting, the driver's health periods, its back-off)
+scenarios = side_by_side_fixture(
+    _health_leaves_ok_on_frozen_nan_and_garbage_replies_and_recovers,
+    _a_rom_the_device_refuses_is_named_and_the_other_tool_keeps_tracking,
+    _an_unreachable_device_is_explained_on_the_console,
+    _ctrl_c_over_a_slow_link_exits_0_without_a_traceback,
+    **{f"test_a_garbage_rom_file_stops_the_driver_naming_the_file[{k}]":
+       (_a_garbage_rom_file_stops_the_driver_naming_the_file, {"content": content})
+       for k, content in GARBAGE_ROMS.items()})
+
+
+def test_health_leaves_ok_on_frozen_nan_and_garbage_replies_and_recovers(scenarios, request):
+    scenarios.result(request.node.name)
+
+
+def test_a_rom_the_device_refuses_is_named_and_the_other_tool_keeps_tracking(scenarios, request):
+    scenarios.result(request.node.name)
+
+
+@pytest.mark.parametrize("content", list(GARBAGE_ROMS))
+def test_a_garbage_rom_file_stops_the_driver_naming_the_file(scenarios, request, content):
+    scenarios.result(request.node.name)
+
+
+def test_an_unreachable_device_is_explained_on_the_console(scenarios, request):
+    scenarios.result(request.node.name)
+
+
+def test_ctrl_c_over_a_slow_link_exits_0_without_a_traceback(scenarios, request):
+    scenarios.result(request.node.name)

@@ -18,12 +18,12 @@ import numpy as np
 import pytest
 
 from fullperc_common.diagnostics import as_level
-from fullperc_common.testing import SpunNode, installed_exe, wait_for
+from fullperc_common.testing import RosSession, SideBySide, SpunNode, installed_exe, selected_cases, wait_for
 
 ROOT = Path(__file__).resolve().parents[1]
 BAG = ROOT / "bags" / "paper" / "G-B-P"
 PUB = Path(__file__).resolve().parent / "realtime_pub.py"
-PLAY_S = 12.0          # seconds of the bag played (the calibrate-mode links need 10 s; we give them from a file)
+PLAY_S = 6.0           # seconds of the bag played (~700 items; the links come from a calibration file)
 POSE_TOPICS = ["/omc/tool/pose", "/omc/base/pose", "/omc/ots_rig/pose", "/ots/tool/pose", "/ots/base/pose"]
 pytestmark = pytest.mark.system
 
@@ -65,16 +65,27 @@ class Outputs(SpunNode):
         return all(self.node.count_publishers(t) > 0 for t in ("/fullperc/tool/pose", "/fullperc/tool/final"))
 
 
-def _settled(out: Outputs):
-    """A predicate true once the outputs stopped growing between two polls (after the idle flush)."""
-    last = [None]
-
+def _flushed(out: Outputs, sent: dict[str, list[int]] | None = None):
+    """A predicate true once the node has flushed everything (what its idle flush ends with): its last /diagnostics
+    show an empty history (``pending`` 0) and, given ``sent``, every sample sent taken in or dropped as late or
+    duplicate; and the newest final estimate is the newest live output (``last_stamp_ns``), so every final estimate
+    was published before those /diagnostics. A condition, where a fixed pause ("the counts stopped growing for
+    2 s") is what a lagging node breaks."""
     def check():
-        c = out.counts()[:2]
-        done = c == last[0] and c[0] > 0
-        last[0] = c
-        return done
+        with out.lock:
+            v = out.diag[-1][2] if out.diag else None
+            last_final = out.final[-1][0] if out.final else None
+        if v is None or last_final is None or v.get("pending") != "0" or v.get("last_stamp_ns") != str(last_final):
+            return False
+        if sent is None:
+            return True
+        n = {src: sum(int(v.get(f"{src}_{k}", 0)) for k in ("in", "late", "duplicate")) for src in ("global", "local")}
+        return n["global"] >= len(sent["omc"]) and n["local"] >= len(sent["ots"])
     return check
+
+
+def _last_diag(out: Outputs):
+    return lambda: f"the node's last /diagnostics values: {out.diag[-1][2] if out.diag else None}"
 
 
 def _bag_messages(reader, stop_ns: int | None = None):
@@ -101,10 +112,7 @@ def _ordered(config, messages):
     return outs + pipe.flush(), pipe
 
 
-def test_live_final_estimates_equal_the_offline_result_on_a_committed_bag(procs, rclpy_context, tmp_path):
-    """12 s of bags/paper/G-B-P played into the installed fusion_node: its /final estimates are the offline
-    (ordered, evaluator) estimates of the same samples -- same stamps, same positions to rounding -- and its live
-    pose was published per arrival with strictly increasing stamps."""
+def _live_and_offline(tmp: Path) -> dict:
     from fullperc_eval.bag.reader import BagReader
     from fullperc_fusion.calibration import Calibration
     from fullperc_fusion.calibration_io import save_calibration
@@ -119,30 +127,41 @@ def test_live_final_estimates_equal_the_offline_result_on_a_committed_bag(procs,
         _, cal_pipe = _ordered(load_fusion_config(None, "tool", ("cbkf",)).config, _bag_messages(reader))
         est = cal_pipe.chain.links.estimates
         assert {"T_omc_base", "T_base_ots"} <= set(est), est.keys()
-        cal_file = tmp_path / "calibration.yaml"
+        cal_file = tmp / "calibration.yaml"
         save_calibration(cal_file, Calibration(links=dict(est), stamp_ns=stop_ns, duration_s=10.0, source="test"))
-        params = tmp_path / "fusion.yaml"
+        params = tmp / "fusion.yaml"
         params.write_text(f"fusion_node:\n  ros__parameters:\n    calibration_file: '{cal_file}'\n"
                           "    filter: cbkf\n    history: 1.0\n")
         offline, _ = _ordered(load_fusion_config(params, "tool", ("cbkf",)).config, _bag_messages(reader, stop_ns))
     finally:
         reader.close()
-    assert len(offline) > 1000
+    assert len(offline) > 500
 
-    out = Outputs(rclpy_context)
-    try:
-        node = procs.start([installed_exe("fullperc_fusion", "fusion_node"), "--ros-args", "--params-file",
-                            str(params)], name="fusion_node")
-        wait_for(out.matched, 60, what="the node's publishers")
-        play = procs.start([installed_exe("fullperc_eval", "play"), str(BAG), "--topics", *POSE_TOPICS,
-                            "--playback-duration", str(PLAY_S), "--wait-for-subscribers", "60"], name="play")
-        wait_for(lambda: play.poll() is not None, 60 + PLAY_S * 10, what="the bag to be played")
-        assert play.returncode == 0, procs.log(play)
-        wait_for(lambda: out.counts()[1] >= len(offline), 120, what=f"{len(offline)} final estimates")
-        wait_for(_settled(out), 60, interval=2.0, what="the outputs to settle")
-        assert node.poll() is None, procs.log(node)
-    finally:
-        out.close()
+    with RosSession(tmp) as s:
+        procs = s.procs
+        out = Outputs(s.context)
+        try:
+            node = procs.start([installed_exe("fullperc_fusion", "fusion_node"), "--ros-args", "--params-file",
+                                str(params)], name="fusion_node")
+            wait_for(out.matched, 60, what="the node's publishers")
+            play = procs.start([installed_exe("fullperc_eval", "play"), str(BAG), "--topics", *POSE_TOPICS,
+                                "--playback-duration", str(PLAY_S), "--wait-for-subscribers", "60"], name="play")
+            wait_for(lambda: play.poll() is not None, 60 + PLAY_S * 10, what="the bag to be played")
+            assert play.returncode == 0, procs.log(play)
+            wait_for(lambda: out.counts()[1] >= len(offline), 120, what=f"{len(offline)} final estimates")
+            wait_for(_flushed(out), 60, what="the node's idle flush", detail=_last_diag(out))
+            assert node.poll() is None, procs.log(node)
+        finally:
+            out.close()
+    return {"out": out, "offline": offline}
+
+
+def test_live_final_estimates_equal_the_offline_result_on_a_committed_bag(scenarios, request):
+    """6 s of bags/paper/G-B-P played into the installed fusion_node: its /final estimates are the offline
+    (ordered, evaluator) estimates of the same samples -- same stamps, same positions to rounding -- and its live
+    pose was published per arrival with strictly increasing stamps."""
+    r = scenarios.result(request.node.name)
+    out, offline = r["out"], r["offline"]
     live = [t for t, _ in out.pose]
     assert live == sorted(set(live)), "live stamps strictly increase"
     want = [(o.t_ns, o.p) for o in offline]
@@ -170,18 +189,25 @@ def _fusion_node(procs, *params):
                         "-p", "static_links:=average", *params], name="fusion_node")
 
 
-def test_output_resumes_after_ten_minutes_of_silence(procs, rclpy_context, tmp_path):
-    """2 s of data stamped 10 min in the past, then 2 s stamped now: the stamps jump 10 min ahead (as after a
+def _resume(tmp: Path) -> dict:
+    with RosSession(tmp) as s:
+        out = Outputs(s.context)
+        try:
+            node = _fusion_node(s.procs)
+            wait_for(out.matched, 60, what="the node's publishers")
+            sent = _run_pub(s.procs, ["--phase", "1:-600", "--phase", "1:0"], tmp)
+            wait_for(_flushed(out, sent), 60, what="the node's idle flush", detail=_last_diag(out))
+            assert node.poll() is None, s.procs.log(node)
+        finally:
+            out.close()
+    return {"out": out, "sent": sent}
+
+
+def test_output_resumes_after_ten_minutes_of_silence(scenarios, request):
+    """1 s of data stamped 10 min in the past, then 1 s stamped now: the stamps jump 10 min ahead (as after a
     10 min silence, without waiting for it) and the fused output resumes with the new stamps."""
-    out = Outputs(rclpy_context)
-    try:
-        node = _fusion_node(procs)
-        wait_for(out.matched, 60, what="the node's publishers")
-        sent = _run_pub(procs, ["--phase", "2:-600", "--phase", "2:0"], tmp_path)
-        wait_for(_settled(out), 60, interval=2.0, what="the outputs to settle")
-        assert node.poll() is None, procs.log(node)
-    finally:
-        out.close()
+    r = scenarios.result(request.node.name)
+    out, sent = r["out"], r["sent"]
     jump = max(b - a for a, b in zip(sent["omc"], sent["omc"][1:], strict=False))
     assert jump > 590e9, "the publisher's stamps jumped ten minutes"
     t_jump = min(t for t in sent["omc"] if t > sent["omc"][0] + 590e9)
@@ -194,24 +220,30 @@ def test_output_resumes_after_ten_minutes_of_silence(procs, rclpy_context, tmp_p
     assert final_after and set(final_after) <= sent_after, "and they became final (history, then idle flush)"
 
 
-def test_a_pose_lost_at_the_end_of_a_stream_is_counted_once_the_source_is_silent(procs, rclpy_context, tmp_path):
+def _lost_at_end(tmp: Path) -> dict:
+    with RosSession(tmp) as s:
+        out = Outputs(s.context)
+        try:
+            node = _fusion_node(s.procs, "-p", "qos_depth:=1000")
+            wait_for(out.matched, 60, what="the node's publishers")
+            sent = _run_pub(s.procs, ["--omc-hz", "50", "--ots-hz", "50", "--phase", "1.5:0", "--drop-last"], tmp)
+
+            def counted():
+                v = out.diag[-1][2] if out.diag else {}
+                return int(v.get("omc_samples_lost", 0)) >= 1 and int(v.get("ots_samples_lost", 0)) >= 1
+            wait_for(counted, 60, interval=0.5, what="the two lost poses on /diagnostics", detail=_last_diag(out))
+            assert node.poll() is None, s.procs.log(node)
+        finally:
+            out.close()
+    return {"out": out, "sent": sent}
+
+
+def test_a_pose_lost_at_the_end_of_a_stream_is_counted_once_the_source_is_silent(scenarios, request):
     """The last frame of each device comes with its TrackingQuality (visible) but without its pose: no later sample
     shows it overdue, so the node counts it when the source has been silent for stale_timeout (1 s) -- one lost
     sample per device, WARNed -- instead of never."""
-    out = Outputs(rclpy_context)
-    try:
-        node = _fusion_node(procs, "-p", "qos_depth:=1000")
-        wait_for(out.matched, 60, what="the node's publishers")
-        sent = _run_pub(procs, ["--omc-hz", "50", "--ots-hz", "50", "--phase", "2:0", "--drop-last"], tmp_path)
-
-        def counted():
-            v = out.diag[-1][2] if out.diag else {}
-            return int(v.get("omc_samples_lost", 0)) >= 1 and int(v.get("ots_samples_lost", 0)) >= 1
-        wait_for(counted, 60, interval=0.5, what="the two lost poses on /diagnostics",
-                 detail=lambda: f"last /diagnostics values: {out.diag[-1][2] if out.diag else None}")
-        assert node.poll() is None, procs.log(node)
-    finally:
-        out.close()
+    r = scenarios.result(request.node.name)
+    out, sent = r["out"], r["sent"]
     v = out.diag[-1][2]
     assert (int(v["omc_samples_lost"]), int(v["ots_samples_lost"])) == (1, 1), v
     assert (int(v["omc_frames_lost"]), int(v["ots_frames_lost"])) == (0, 0), v
@@ -219,31 +251,43 @@ def test_a_pose_lost_at_the_end_of_a_stream_is_counted_once_the_source_is_silent
     assert any(lvl >= 1 and "lost samples" in m for lvl, m, _ in out.diag), "WARNed"
 
 
-def test_1khz_omc_and_1khz_ots_every_sample_fused_or_its_loss_counted_and_warned(procs, rclpy_context, tmp_path):
-    """OMC 1 kHz + OTS 1 kHz for 5 s. Every tool sample the publisher sent is accounted for on /diagnostics:
+def _khz(tmp: Path) -> dict:
+    with RosSession(tmp) as s:
+        out = Outputs(s.context)
+        try:
+            node = _fusion_node(s.procs, "-p", "qos_depth:=1000")
+            wait_for(out.matched, 60, what="the node's publishers")
+            sent = _run_pub(s.procs, ["--omc-hz", "1000", "--ots-hz", "1000", "--base-every", "10", "--phase",
+                                      f"{KHZ_S:g}:0"], tmp)
+
+            def accounted():
+                if not out.diag:
+                    return False
+                v = out.diag[-1][2]
+                n = {src: sum(int(v.get(f"{src}_{k}", 0)) for k in ("in", "late", "duplicate"))
+                     for src in ("global", "local")}
+                lost = {src: int(v.get(f"{d}_samples_lost", 0)) for src, d in (("global", "omc"), ("local", "ots"))}
+                return (n["global"] + lost["global"] >= len(sent["omc"])
+                        and n["local"] + lost["local"] >= len(sent["ots"]))
+            wait_for(accounted, 120, interval=0.5, what="every published sample to show up on /diagnostics",
+                     detail=lambda: f"sent omc {len(sent['omc'])}, ots {len(sent['ots'])}; the node's last "
+                                    f"/diagnostics values: {out.diag[-1][2] if out.diag else None}; messages: "
+                                    f"{sorted({m for _, m, _ in out.diag})}")
+            assert node.poll() is None, s.procs.log(node)
+        finally:
+            out.close()
+    return {"out": out, "sent": sent}
+
+
+KHZ_S = 3.0   # [s] of 1 kHz + 1 kHz
+
+
+def test_1khz_omc_and_1khz_ots_every_sample_fused_or_its_loss_counted_and_warned(scenarios, request):
+    """OMC 1 kHz + OTS 1 kHz for 3 s. Every tool sample the publisher sent is accounted for on /diagnostics:
     taken in (global_in / local_in), dropped as late or duplicate, or lost (TrackingQuality frame gaps / visible
     frames whose pose never came); whenever something was dropped or lost, /diagnostics said WARN."""
-    out = Outputs(rclpy_context)
-    try:
-        node = _fusion_node(procs, "-p", "qos_depth:=1000")
-        wait_for(out.matched, 60, what="the node's publishers")
-        sent = _run_pub(procs, ["--omc-hz", "1000", "--ots-hz", "1000", "--base-every", "10", "--phase", "5:0"],
-                        tmp_path)
-
-        def accounted():
-            if not out.diag:
-                return False
-            v = out.diag[-1][2]
-            n = {s: sum(int(v.get(f"{s}_{k}", 0)) for k in ("in", "late", "duplicate")) for s in ("global", "local")}
-            lost = {s: int(v.get(f"{d}_samples_lost", 0)) for s, d in (("global", "omc"), ("local", "ots"))}
-            return n["global"] + lost["global"] >= len(sent["omc"]) and n["local"] + lost["local"] >= len(sent["ots"])
-        wait_for(accounted, 120, interval=0.5, what="every published sample to show up on /diagnostics",
-                 detail=lambda: f"sent omc {len(sent['omc'])}, ots {len(sent['ots'])}; the node's last /diagnostics "
-                                f"values: {out.diag[-1][2] if out.diag else None}; messages: "
-                                f"{sorted({m for _, m, _ in out.diag})}")
-        assert node.poll() is None, procs.log(node)
-    finally:
-        out.close()
+    r = scenarios.result(request.node.name)
+    out, sent = r["out"], r["sent"]
     v = out.diag[-1][2]
     dropped = sum(int(v.get(f"{s}_{k}", 0)) for s in ("global", "local") for k in ("late", "duplicate"))
     lost = sum(int(v.get(k, 0)) for k in ("omc_samples_lost", "ots_samples_lost"))
@@ -261,3 +305,20 @@ def test_1khz_omc_and_1khz_ots_every_sample_fused_or_its_loss_counted_and_warned
         assert warned, f"{dropped} dropped, {lost} lost, but no WARN naming them"
     else:
         assert int(v["global_in"]) == len(sent["omc"]) and int(v["local_in"]) == len(sent["ots"])
+
+
+@pytest.fixture(scope="module")
+def scenarios(request, tmp_path_factory):
+    """The selected tests' scenarios at once, side by side, each in a domain of its own: most of a scenario is
+    waiting (a node starting, data sent in real time, the idle flush)."""
+    fns = {"test_live_final_estimates_equal_the_offline_result_on_a_committed_bag": _live_and_offline,
+           "test_output_resumes_after_ten_minutes_of_silence": _resume,
+           "test_a_pose_lost_at_the_end_of_a_stream_is_counted_once_the_source_is_silent": _lost_at_end,
+           "test_1khz_omc_and_1khz_ots_every_sample_fused_or_its_loss_counted_and_warned": _khz}
+    jobs = {}
+    for name, fn in fns.items():
+        tmp = tmp_path_factory.mktemp(name[5:25])   # here: mktemp is not thread-safe
+        jobs[name] = (lambda fn=fn, tmp=tmp: fn(tmp))
+    sbs = SideBySide(jobs).start(selected_cases(request, jobs))
+    yield sbs
+    sbs.join()

@@ -12,7 +12,9 @@
   in the parameter file that ``--help`` prints. soak/soak_signals.py repeats the SIGINT run 20 times per node.
 
 Timeouts are liveness bounds only. Data sources: test/lifecycle_nodes.py (UDP for the OMC and Diana drivers,
-synthetic poses for fusion and margin) and the installed vega_emulator for ndi_driver.
+synthetic poses for fusion and margin) and the installed vega_emulator for ndi_driver. The ten tests' runs start
+together, side by side (each test's in a ROS domain of its own; a node's four signal runs one after another): most
+of a run is a process starting, discovering its peers or shutting down, and these waits overlap.
 """
 
 from __future__ import annotations
@@ -24,7 +26,16 @@ from pathlib import Path
 
 import pytest
 
-from fullperc_common.testing import Procs, TopicCounter, installed_exe, poll_until, workspace_root
+from fullperc_common.testing import (
+    Procs,
+    RosSession,
+    SideBySide,
+    TopicCounter,
+    installed_exe,
+    poll_until,
+    selected_cases,
+    workspace_root,
+)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from lifecycle_nodes import NODES, msg_type, signal_cycle, start_feed  # noqa: E402
@@ -49,76 +60,106 @@ def _finish(procs: Procs, p) -> tuple[int | None, str, str]:
     return p.returncode, procs.out(p), procs.err(p)
 
 
-@pytest.mark.parametrize("name", NAMES)
-def test_help_and_bad_configuration(name, procs, ros_env, tmp_path):
+def _help_and_bad_configuration(tmp: Path, name: str) -> list[str]:
+    """Start the seven cases of ``name`` at once; the problems found (none: as expected)."""
     spec = NODES[name]
     exe = installed_exe(spec.pkg, spec.name)
     fp = spec.float_param
-    broken = tmp_path / "broken.yaml"
+    broken = tmp / "broken.yaml"
     broken.write_text(f"{name}:\n  ros__parameters:\n    {fp}: [1.0, 2.0\n")
-    missing = str(tmp_path / "no_such_dir" / "params.yaml")
-    no_init = {**ros_env, "ROS_DOMAIN_ID": "not-a-number"}
-    cases = {
-        "help": ([exe, "--help"], no_init),
-        "h": ([exe, "-h", "--ros-args", "-p", f"{fp}:=0"], no_init),
-        "control": ([exe], no_init),
-        "int_for_float": ([exe, "--ros-args", "-p", f"{fp}:=0"], ros_env),
-        "string_for_float": ([exe, "--ros-args", "-p", f"{fp}:=abc"], ros_env),
-        "missing_file": ([exe, "--ros-args", "--params-file", missing], ros_env),
-        "broken_yaml": ([exe, "--ros-args", "--params-file", str(broken)], ros_env),
-    }
-    started = {case: procs.start_split(args, name=case, env=env) for case, (args, env) in cases.items()}
-    reference = reference_text(name)
-    problems = []
+    missing = str(tmp / "no_such_dir" / "params.yaml")
+    with RosSession(tmp) as s:
+        procs, ros_env = s.procs, s.env
+        no_init = {**ros_env, "ROS_DOMAIN_ID": "not-a-number"}
+        cases = {
+            "help": ([exe, "--help"], no_init),
+            "h": ([exe, "-h", "--ros-args", "-p", f"{fp}:=0"], no_init),
+            "control": ([exe], no_init),
+            "int_for_float": ([exe, "--ros-args", "-p", f"{fp}:=0"], ros_env),
+            "string_for_float": ([exe, "--ros-args", "-p", f"{fp}:=abc"], ros_env),
+            "missing_file": ([exe, "--ros-args", "--params-file", missing], ros_env),
+            "broken_yaml": ([exe, "--ros-args", "--params-file", str(broken)], ros_env),
+        }
+        started = {case: procs.start_split(args, name=case, env=env) for case, (args, env) in cases.items()}
+        reference = reference_text(name)
+        problems: list[str] = []
 
-    def expect_fatal(case: str, rc, out: str, err: str, *words: str) -> None:
-        lines = [ln for ln in err.splitlines() if ln.strip()]
-        ok = (rc == 2 and len(lines) == 1 and lines[0].startswith(f"[{name}] fatal: ")
-              and all(w in lines[0] for w in words) and "Traceback" not in out + err)
-        if not ok:
-            problems.append(f"{case}: exit {rc}, expected 2 and one stderr line with {words}; "
-                            f"stderr:\n{err[-2000:]}\nstdout:\n{out[-1000:]}")
+        def expect_fatal(case: str, rc, out: str, err: str, *words: str) -> None:
+            lines = [ln for ln in err.splitlines() if ln.strip()]
+            ok = (rc == 2 and len(lines) == 1 and lines[0].startswith(f"[{name}] fatal: ")
+                  and all(w in lines[0] for w in words) and "Traceback" not in out + err)
+            if not ok:
+                problems.append(f"{case}: exit {rc}, expected 2 and one stderr line with {words}; "
+                                f"stderr:\n{err[-2000:]}\nstdout:\n{out[-1000:]}")
 
-    for case, p in started.items():
-        rc, out, err = _finish(procs, p)
-        if case in ("help", "h"):
-            if not (rc == 0 and out.startswith(f"usage: ros2 run {spec.pkg} {name} ") and reference in out
-                    and re.search(rf"^\s*{re.escape(fp)}:", out, re.M) and "Traceback" not in out + err):
-                problems.append(f"{case}: exit {rc}, expected 0 with usage and {spec.params_file}; "
-                                f"stdout:\n{out[-2000:]}\nstderr:\n{err[-2000:]}")
-        elif case == "control":
-            expect_fatal(case, rc, out, err, "ROS_DOMAIN_ID")
-        elif case == "int_for_float":
-            expect_fatal(case, rc, out, err, f"'{fp}'", "float", "0.0")
-        elif case == "string_for_float":
-            expect_fatal(case, rc, out, err, f"'{fp}'", "float", "abc")
-        elif case == "missing_file":
-            expect_fatal(case, rc, out, err, missing)
-        else:
-            expect_fatal(case, rc, out, err, str(broken))
-    assert not problems, "\n\n".join(problems)
+        for case, p in started.items():
+            rc, out, err = _finish(procs, p)
+            if case in ("help", "h"):
+                if not (rc == 0 and out.startswith(f"usage: ros2 run {spec.pkg} {name} ") and reference in out
+                        and re.search(rf"^\s*{re.escape(fp)}:", out, re.M) and "Traceback" not in out + err):
+                    problems.append(f"{case}: exit {rc}, expected 0 with usage and {spec.params_file}; "
+                                    f"stdout:\n{out[-2000:]}\nstderr:\n{err[-2000:]}")
+            elif case == "control":
+                expect_fatal(case, rc, out, err, "ROS_DOMAIN_ID")
+            elif case == "int_for_float":
+                expect_fatal(case, rc, out, err, f"'{fp}'", "float", "0.0")
+            elif case == "string_for_float":
+                expect_fatal(case, rc, out, err, f"'{fp}'", "float", "abc")
+            elif case == "missing_file":
+                expect_fatal(case, rc, out, err, missing)
+            else:
+                expect_fatal(case, rc, out, err, str(broken))
+        return problems
 
 
-@pytest.mark.parametrize("name", NAMES)
-def test_signals_with_data_flowing(name, procs, rclpy_context, tmp_path):
+def _signals(tmp: Path, name: str) -> tuple[list, list[str]]:
+    """The four signal runs of ``name``, one after another on one feed; (their results, the declared parameters)."""
     from rcl_interfaces.srv import ListParameters
 
     spec = NODES[name]
     installed_exe(spec.pkg, spec.name)
-    ros_args = start_feed(procs, spec, tmp_path)
-    counter = TopicCounter(rclpy_context, {spec.output: msg_type(spec.output_type)})
-    declared: list[str] = []
+    with RosSession(tmp) as s:
+        ros_args = start_feed(s.procs, spec, tmp)
+        counter = TopicCounter(s.context, {spec.output: msg_type(spec.output_type)})
+        declared: list[str] = []
 
-    def list_parameters(_p) -> None:
-        resp = counter.call(ListParameters, f"/{name}/list_parameters", ListParameters.Request(), LIVENESS_S)
-        declared.extend(resp.result.names if resp is not None else ["<list_parameters did not answer>"])
+        def list_parameters(_p) -> None:
+            resp = counter.call(ListParameters, f"/{name}/list_parameters", ListParameters.Request(), LIVENESS_S)
+            declared.extend(resp.result.names if resp is not None else ["<list_parameters did not answer>"])
 
-    try:
-        results = [signal_cycle(procs, spec, ros_args, counter, sig, k, liveness_s=LIVENESS_S,
-                                on_flowing=list_parameters if k == 0 else None, again_after_s=again)
-                   for k, (sig, again) in enumerate(SIGNALS)]
-    finally:
-        counter.close()
+        try:
+            results = [signal_cycle(s.procs, spec, ros_args, counter, sig, k, liveness_s=LIVENESS_S,
+                                    on_flowing=list_parameters if k == 0 else None, again_after_s=again)
+                       for k, (sig, again) in enumerate(SIGNALS)]
+        finally:
+            counter.close()
+        return results, declared
+
+
+@pytest.fixture(scope="module")
+def scenarios(request, tmp_path_factory):
+    """Every selected test's runs started at once, side by side, each node's in a domain of its own: a test waits
+    mostly for processes (starting, shutting down, discovering each other), and these waits overlap."""
+    jobs = {}
+    for name in NAMES:
+        for test, fn in (("test_help_and_bad_configuration", _help_and_bad_configuration),
+                         ("test_signals_with_data_flowing", _signals)):
+            tmp = tmp_path_factory.mktemp(f"{test[5:9]}_{name}")   # here: mktemp is not thread-safe
+            jobs[f"{test}[{name}]"] = (lambda fn=fn, tmp=tmp, name=name: fn(tmp, name))
+    sbs = SideBySide(jobs).start(selected_cases(request, jobs))
+    yield sbs
+    sbs.join()
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_help_and_bad_configuration(name, scenarios, request):
+    problems = scenarios.result(request.node.name)
+    assert not problems, "\n\n".join(problems)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_signals_with_data_flowing(name, scenarios, request):
+    results, declared = scenarios.result(request.node.name)
     bad = [f"run {k + 1} ({r.sig}, {r.flowed} messages flowed): {r.problem}\n{r.log[-3000:]}"
            for k, r in enumerate(results) if not r.clean]
     assert not bad, "\n\n".join(bad)
@@ -126,5 +167,5 @@ def test_signals_with_data_flowing(name, procs, rclpy_context, tmp_path):
     reference = reference_text(name)
     unlisted = [n for n in declared if n not in RCLPY_BUILTIN and not n.startswith("qos_overrides.")
                 and not re.search(rf"^[\s#]*{re.escape(n.rsplit('.', 1)[-1])}\s*:", reference, re.M)]
-    assert declared and not unlisted, (f"parameters of {name} missing from config/{spec.params_file} "
+    assert declared and not unlisted, (f"parameters of {name} missing from config/{NODES[name].params_file} "
                                        f"(what --help prints): {unlisted}")

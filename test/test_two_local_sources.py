@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from fullperc_common.diagnostics import as_level
-from fullperc_common.testing import SpunNode, installed_exe, wait_for
+from fullperc_common.testing import SpunNode, installed_exe, side_by_side_fixture, wait_for
 
 pytestmark = pytest.mark.system
 
@@ -120,7 +120,7 @@ def _describe(outs, t0_ns: int, t_from: int, t_to: int) -> str:
             f"at {t_s[k]:.3f} s (window {(t_from - t0_ns) * 1e-9:.2f}-{(t_to - t0_ns) * 1e-9:.2f} s)")
 
 
-def test_two_local_sources_fused_and_the_second_keeps_accuracy_when_the_first_goes_silent(
+def _two_local_sources_fused_and_the_second_keeps_accuracy_when_the_first_goes_silent(
         procs, rclpy_context, tmp_path):
     import rclpy
     from geometry_msgs.msg import PoseStamped
@@ -200,17 +200,37 @@ def test_two_local_sources_fused_and_the_second_keeps_accuracy_when_the_first_go
     print(f"mean error: both locals {err_a:.3f} mm, Atracsys only {err_b:.3f} mm, OMC only {err_omc:.3f} mm")
 
 
-@pytest.mark.parametrize("bad, match", [
-    ("    sources: [omc, ots, atracsys]\n    omc: {role: global}\n    ots: {role: local}\n"
-     "    atracsys: {role: global}\n", "exactly one source needs role global"),
-    ("    sources: [omc, ots, atracsys]\n    omc: {role: global}\n    ots: {role: local}\n",
-     "source 'atracsys' (parameter 'sources') has no block"),
-    ("    sources: [omc, atracsys]\n    omc: {role: global}\n    atracsys: {role: remote}\n", "'atracsys.role'"),
-])
-def test_a_bad_sources_configuration_stops_the_node_with_exit_2(procs, tmp_path, bad, match):
+BAD_SOURCES = {
+    "two_global": ("    sources: [omc, ots, atracsys]\n    omc: {role: global}\n    ots: {role: local}\n"
+                   "    atracsys: {role: global}\n", "exactly one source needs role global"),
+    "no_block": ("    sources: [omc, ots, atracsys]\n    omc: {role: global}\n    ots: {role: local}\n",
+                 "source 'atracsys' (parameter 'sources') has no block"),
+    "bad_role": ("    sources: [omc, atracsys]\n    omc: {role: global}\n    atracsys: {role: remote}\n",
+                 "'atracsys.role'"),
+}
+
+
+def _a_bad_sources_configuration_stops_the_node_with_exit_2(procs, tmp_path, bad, match):
     params = tmp_path / "bad.yaml"
     params.write_text("fusion_node:\n  ros__parameters:\n" + bad)
     node = procs.start([installed_exe("fullperc_fusion", "fusion_node"), "--ros-args", "--params-file", str(params)],
                        name="fusion_node")
     wait_for(lambda: node.poll() is not None, 120, what="the node to exit")
     assert node.returncode == 2 and match in procs.log(node), procs.log(node)
+
+
+# every test's processes at once, side by side (each in a domain of its own)
+scenarios = side_by_side_fixture(
+    _two_local_sources_fused_and_the_second_keeps_accuracy_when_the_first_goes_silent,
+    **{f"test_a_bad_sources_configuration_stops_the_node_with_exit_2[{k}]":
+       (_a_bad_sources_configuration_stops_the_node_with_exit_2, {"bad": bad, "match": match})
+       for k, (bad, match) in BAD_SOURCES.items()})
+
+
+def test_two_local_sources_fused_and_the_second_keeps_accuracy_when_the_first_goes_silent(scenarios, request):
+    scenarios.result(request.node.name)
+
+
+@pytest.mark.parametrize("case", list(BAD_SOURCES))
+def test_a_bad_sources_configuration_stops_the_node_with_exit_2(scenarios, request, case):
+    scenarios.result(request.node.name)

@@ -11,7 +11,8 @@ busy machine only makes the run slower, never different -- provided nothing is d
 depth and play's publisher depth (``DEPTH``) hold a whole task per topic. With the node's default depth (100, a
 quarter of a second of the Vega's samples) a node that stalled on a busy machine lost samples and with them the
 evaluations right after the bump (seen once, with a second test suite running beside this one). The time limits
-below are liveness bounds only.
+below are liveness bounds only. For the same reason the bag is played at twice its speed, and only as far as the
+checks need (re-calibration done and 500 statuses after it); the twin simulates the task while the nodes start.
 """
 
 from __future__ import annotations
@@ -32,6 +33,9 @@ CAL_S = 3.0        # calibration.duration of the nodes: short, so re-calibration
 POSE_TOPICS = ["/omc/base/pose", "/omc/ots_rig/pose", "/omc/tool/pose", "/ots/base/pose", "/ots/tool/pose"]
 NODES = ("keep", "recal")   # link_monitor.recalibrate false / true
 DEPTH = 20000               # > samples per topic of the task (28 s at <= 400 Hz): nothing dropped on a busy machine
+PLAY_S = 23.0               # [s] of the task played: the bump at 10 s, re-calibration done by 16.5 s, then > 4.2 s of
+                            # 120 Hz statuses (> 500) to show it cleared
+RATE = 2.0                  # play's rate: the nodes fuse on stamps (calibration and link monitor windows included)
 
 
 class Listener(SpunNode):
@@ -66,27 +70,28 @@ class Listener(SpunNode):
             return {n: list(v) for n, v in self.status.items()}, list(self.diag)
 
 
-@pytest.fixture(scope="module")
-def bumped_bag(tmp_path_factory):
+def bumped_bag(out):
+    """The twin's task with the Vega bumped at BUMP_AT_S, as a bag; (bag, bump stamp, stamp where the play stops)."""
     from fullperc_eval.sim import run_task
     from fullperc_eval.sim.dataset import EPOCH_NS, content_from_sim, write_bag
     from fullperc_eval.sim.scene import VegaBump
 
     run = run_task(TASK, seed=SEED, vega_bump=VegaBump(BUMP_AT_S, BUMP_DX_M, BUMP_TILT_DEG))
-    bag = write_bag(tmp_path_factory.mktemp("bump") / "bag", content_from_sim(run))
-    return bag, EPOCH_NS + round(BUMP_AT_S * 1e9), EPOCH_NS + int(run.omc.t_ns[-1])
+    bag = write_bag(out / "bag", content_from_sim(run))
+    return bag, EPOCH_NS + round(BUMP_AT_S * 1e9), EPOCH_NS + min(int(run.omc.t_ns[-1]), round(PLAY_S * 1e9))
 
 
-def test_fusion_node_reports_the_bump_and_recovers_by_recalibrating(bumped_bag, procs, rclpy_context):
-    bag, bump_ns, end_ns = bumped_bag
+def test_fusion_node_reports_the_bump_and_recovers_by_recalibrating(procs, rclpy_context, tmp_path):
     listener = Listener(rclpy_context)
     try:
         for n, recal in zip(NODES, ("false", "true"), strict=True):
             procs.start([installed_exe("fullperc_fusion", "fusion_node"), "--ros-args", "-r", f"__node:={n}",
                          "-r", f"/fullperc/tool/status:=/{n}/status", "-p", f"calibration.duration:={CAL_S}",
                          "-p", f"link_monitor.recalibrate:={recal}", "-p", f"qos_depth:={DEPTH}"], name=n)
+        bag, bump_ns, end_ns = bumped_bag(tmp_path)   # while the nodes start
         play = procs.start([installed_exe("fullperc_eval", "play"), str(bag), "--topics", *POSE_TOPICS,
-                            "--publisher-depth", str(DEPTH), "--wait-for-subscribers", "120"], name="play")
+                            "--publisher-depth", str(DEPTH), "--wait-for-subscribers", "120", "--rate", str(RATE),
+                            "--playback-duration", str(PLAY_S)], name="play")
         wait_for(lambda: play.poll() is not None, timeout=600, what="play to finish")
         assert play.returncode == 0, procs.log(play)[-2000:]
         # the last outputs come after the idle flush (0.5 s of no target samples)

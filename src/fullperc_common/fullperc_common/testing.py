@@ -139,6 +139,154 @@ class Procs:
         return Path(p.log_path).read_text(errors="replace")  # type: ignore[attr-defined]
 
 
+class RosSession:
+    """A DDS domain of its own, its environment, a :class:`Procs` and (on first use) an rclpy context.
+
+    The module-scoped counterpart of the root conftest's ``ros_env`` / ``procs`` / ``rclpy_context`` fixtures: a
+    module that starts one node (or one scenario) and checks it in several tests builds a session in a
+    ``scope="module"`` fixture, and scenarios that must not see each other run side by side in sessions of their own.
+    The context is initialised with the session's domain id (``rclpy.init(domain_id=...)``), so this process's
+    environment is left alone; :meth:`close` stops the processes, shuts the context down and releases the id.
+    """
+
+    def __init__(self, tmp: Path, lease: DomainLease | None = None) -> None:
+        self.lease = lease or claim_domain()
+        self.domain = self.lease.domain
+        self.tmp = tmp
+        self.env = {**os.environ, "ROS_DOMAIN_ID": str(self.domain), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+                    "PYTHONUNBUFFERED": "1"}
+        self.procs = Procs(self.env, tmp)
+        self._context = None
+
+    @property
+    def context(self):
+        if self._context is None:
+            import rclpy
+            from rclpy.context import Context
+
+            # the range is read from the environment when the participant is made: the repository's (env.sh) one
+            os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+            ctx = Context()
+            rclpy.init(context=ctx, domain_id=self.domain)
+            self._context = ctx
+        return self._context
+
+    def close(self) -> None:
+        try:
+            self.procs.stop_all()
+        finally:
+            if self._context is not None and self._context.ok():
+                import rclpy
+
+                rclpy.shutdown(context=self._context)
+            self.lease.release()
+
+    def __enter__(self) -> RosSession:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class SideBySide:
+    """Scenarios that wait on other processes most of the time (a node starting, data sent in real time), run at
+    once, each in a thread of its own: their waits overlap instead of adding up.
+
+    ``jobs`` maps a name to a callable; :meth:`start` starts the named ones (all by default; a job starts once),
+    :meth:`result` starts its job if need be, waits for it and returns its result or raises its exception (a
+    ``pytest.fail`` of a ``wait_for`` included) -- in the test that asked for it. Give each job a
+    :class:`RosSession` of its own, so the scenarios share nothing but this process.
+    """
+
+    def __init__(self, jobs: dict[str, Callable[[], object]]) -> None:
+        self.jobs = dict(jobs)
+        self._threads: dict[str, object] = {}
+        self._results: dict[str, object] = {}
+        self._errors: dict[str, BaseException] = {}
+
+    def start(self, names=None) -> SideBySide:
+        import threading
+
+        for name in self.jobs if names is None else names:
+            if name in self._threads:
+                continue
+            t = threading.Thread(target=self._run, args=(name,), daemon=True, name=f"side-by-side {name}")
+            self._threads[name] = t
+            t.start()
+        return self
+
+    def _run(self, name: str) -> None:
+        try:
+            self._results[name] = self.jobs[name]()
+        except BaseException as e:  # noqa: BLE001 - raised in the test that asks for the result
+            self._errors[name] = e
+
+    def result(self, name: str):
+        self.start([name])
+        self._threads[name].join()  # type: ignore[attr-defined]
+        if name in self._errors:
+            raise self._errors[name]
+        return self._results[name]
+
+    def join(self) -> None:
+        """Wait for every started job (a module fixture's teardown: no scenario outlives its module)."""
+        for t in self._threads.values():
+            t.join()  # type: ignore[attr-defined]
+
+
+def selected_cases(request, names) -> list[str]:
+    """Of ``names`` (test names as pytest shows them, ``test_x[param]``), those of the selected tests of the requesting
+    module, in order: a module fixture starts only these scenarios (a test picked with ``-k`` runs its own scenario,
+    not the whole module's); each test then asks for ``request.node.name``."""
+    picked = []
+    for item in request.session.items:
+        if getattr(item, "module", None) is request.module and item.name in names and item.name not in picked:
+            picked.append(item.name)
+    return picked
+
+
+def call_in_session(fn: Callable, session: RosSession, **kwargs):
+    """Call ``fn``, a test body written against the root conftest's fixtures, with the session's counterparts of the
+    ones it names (``procs``, ``ros_env``, ``rclpy_context``, ``tmp_path``, ``python_exe``) and ``kwargs``."""
+    import inspect
+    import sys
+
+    supply = {"procs": lambda: session.procs, "ros_env": lambda: session.env, "rclpy_context": lambda: session.context,
+              "tmp_path": lambda: session.tmp, "python_exe": lambda: sys.executable}
+    args = {n: supply[n]() for n in inspect.signature(fn).parameters if n in supply and n not in kwargs}
+    return fn(**args, **kwargs)
+
+
+def side_by_side_fixture(*bodies: Callable, **named: Callable | tuple[Callable, dict]):
+    """A module-scoped fixture ``scenarios``: a :class:`SideBySide` of test bodies, each run by
+    :func:`call_in_session` in a :class:`RosSession` and a directory of its own, started at once for the module's
+    selected tests. ``bodies`` are functions named ``_<x>``, the body of the test ``test_<x>``; ``named`` maps a test
+    name as pytest shows it (``test_y[param]``: pass it with ``**{...}``) to a body or ``(body, kwargs)``. Each test
+    then calls ``scenarios.result(request.node.name)``, which returns its body's result or raises what it raised.
+
+    Usage (module level): ``scenarios = side_by_side_fixture(_a, _b, **{"test_c[x]": (_c, {"x": 1})})``.
+    """
+    import re
+
+    jobs = {f"test{fn.__name__}": fn for fn in bodies} | named
+
+    def run(fn, kwargs, tmp):
+        with RosSession(tmp) as s:
+            return call_in_session(fn, s, **kwargs)
+
+    @pytest.fixture(scope="module", name="scenarios")
+    def scenarios(request, tmp_path_factory):
+        prepared = {}
+        for name, job in jobs.items():
+            fn, kwargs = job if isinstance(job, tuple) else (job, {})
+            tmp = tmp_path_factory.mktemp(re.sub(r"\W", "_", name)[:40])   # here, not in the jobs: not thread-safe
+            prepared[name] = (lambda fn=fn, kwargs=kwargs, tmp=tmp: run(fn, kwargs, tmp))
+        sbs = SideBySide(prepared).start(selected_cases(request, prepared))
+        yield sbs
+        sbs.join()
+    return scenarios
+
+
 def wait_for(pred, timeout: float = 20.0, interval: float = 0.05, what: str = "condition",
              detail: Callable[[], object] | None = None):
     """Poll ``pred`` until truthy (returned) or fail the test after ``timeout`` seconds.

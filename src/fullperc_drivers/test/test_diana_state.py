@@ -21,6 +21,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from fullperc_common.testing import side_by_side_fixture
+
 sys.path.insert(0, str(Path(__file__).parent))
 from test_diana_kinematics import _DOC_TABLE, _mdh_product  # noqa: E402
 from test_omc_driver import Listener as _OmcListener  # noqa: E402  (same spin helpers)
@@ -96,7 +98,7 @@ def _T(pose) -> np.ndarray:
     return T
 
 
-def test_stream_backend_across_processes(procs, rclpy_context, tmp_path, python_exe):
+def _stream_backend_across_processes(procs, rclpy_context, tmp_path, python_exe):
     from fullperc_common.testing import installed_exe, wait_for
 
     port = free_udp_port()
@@ -110,7 +112,12 @@ def test_stream_backend_across_processes(procs, rclpy_context, tmp_path, python_
         wait_for(lambda: (lis.spin(), all(lis.node.count_publishers(t) >= 1 for t in
                                           ("/diana/joint_states", "/diana/flange_pose", "/diana/tool_pose")))[1],
                  timeout=30, what="diana_state topics")
-        lis.spin(0.5)  # discovery is two-sided: give the driver's publishers time to match us as well
+        # discovery is two-sided: this listener's subscriptions matched (a condition), then a moment for the driver's
+        # publishers to match it as well (diana_state does not say when: no SubscriberLog)
+        wait_for(lambda: (lis.spin(), all(s.get_publisher_count() >= 1 for s in lis.node.subscriptions
+                                          if s.topic_name.startswith("/diana/")))[1], timeout=30,
+                 what="listener matched")
+        lis.spin(0.5)
         truth_file = tmp_path / "truth.txt"
         sender = procs.start([python_exe, __file__, "--port", str(port), "--samples", str(n), "--rate", str(rate),
                               "--truth", str(truth_file)], name="sender")
@@ -159,7 +166,7 @@ def test_stream_backend_across_processes(procs, rclpy_context, tmp_path, python_
     assert np.all(np.abs(errors) < 1_000_000)
 
 
-def test_api_backend_across_processes_with_c_double(procs, rclpy_context, tmp_path):
+def _api_backend_across_processes_with_c_double(procs, rclpy_context, tmp_path):
     from test_diana_api import C_DIR, compile_double
 
     from fullperc_common.testing import installed_exe, wait_for
@@ -184,7 +191,7 @@ def test_api_backend_across_processes_with_c_double(procs, rclpy_context, tmp_pa
     assert "receiving" in st.message
 
 
-def test_wrong_api_library_path_exits_with_clear_error(procs, tmp_path):
+def _wrong_api_library_path_exits_with_clear_error(procs, tmp_path):
     from fullperc_common.testing import installed_exe, wait_for
 
     bad = tmp_path / "nope" / "libDianaApi.so"
@@ -194,9 +201,10 @@ def test_wrong_api_library_path_exits_with_clear_error(procs, tmp_path):
     assert p.returncode == 2 and str(bad) in procs.log(p)
 
 
-@pytest.mark.parametrize("args, needle", [(["-p", "dh_source:=controller"], "dh_source"),
-                                          (["-p", "dh_d:=[1.0, 2.0]"], "dh_d")])
-def test_bad_parameters_exit_naming_the_parameter(procs, args, needle):
+BAD_PARAMETERS = [(["-p", "dh_source:=controller"], "dh_source"), (["-p", "dh_d:=[1.0, 2.0]"], "dh_d")]
+
+
+def _bad_parameters_exit_naming_the_parameter(procs, args, needle):
     from fullperc_common.testing import installed_exe, wait_for
 
     p = procs.start([installed_exe("fullperc_drivers", "diana_state"), "--ros-args", *args])
@@ -204,7 +212,7 @@ def test_bad_parameters_exit_naming_the_parameter(procs, args, needle):
     assert p.returncode == 2 and needle in procs.log(p)
 
 
-def test_shipped_params_file_matches_reference_table_and_starts(procs, rclpy_context):
+def _shipped_params_file_matches_reference_table_and_starts(procs, rclpy_context):
     import yaml
 
     from fullperc_common.testing import installed_exe, wait_for, workspace_root
@@ -233,3 +241,34 @@ if __name__ == "__main__":
     ap.add_argument("--truth", type=Path, required=True)
     a = ap.parse_args()
     run_sender(a.port, a.samples, a.rate, a.truth)
+
+
+scenarios = side_by_side_fixture(
+    _stream_backend_across_processes,
+    _api_backend_across_processes_with_c_double,
+    _wrong_api_library_path_exits_with_clear_error,
+    _shipped_params_file_matches_reference_table_and_starts,
+    **{f"test_bad_parameters_exit_naming_the_parameter[args{k}-{needle}]":
+       (_bad_parameters_exit_naming_the_parameter, {"args": args, "needle": needle})
+       for k, (args, needle) in enumerate(BAD_PARAMETERS)})
+
+
+def test_stream_backend_across_processes(scenarios, request):
+    scenarios.result(request.node.name)
+
+
+def test_api_backend_across_processes_with_c_double(scenarios, request):
+    scenarios.result(request.node.name)
+
+
+def test_wrong_api_library_path_exits_with_clear_error(scenarios, request):
+    scenarios.result(request.node.name)
+
+
+@pytest.mark.parametrize("args, needle", BAD_PARAMETERS)
+def test_bad_parameters_exit_naming_the_parameter(scenarios, request, args, needle):
+    scenarios.result(request.node.name)
+
+
+def test_shipped_params_file_matches_reference_table_and_starts(scenarios, request):
+    scenarios.result(request.node.name)

@@ -22,6 +22,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fullperc_common.testing import side_by_side_fixture
+
 FIRST_FRAME, GAP_AT, GAP = 5000, 150, 4
 FLAG_LOST = (60, 80)  # tool: tracked flag cleared
 SENTINEL_LOST = (100, 115)  # tool: UNDEFINED coordinates with the flag still set
@@ -126,11 +128,23 @@ class Listener:
         self.node.destroy_node()
 
 
+def wait_matched(lis: Listener, procs, node) -> None:
+    """Both sides of discovery, as conditions: this listener's subscriptions matched the driver's publishers, and the
+    driver says its pose publishers matched this listener (``subscribers on <topic>: 1``, its SubscriberLog) --
+    samples it sent before would not reach us (a fixed 0.5 s for the second half was short on a busy machine)."""
+    from fullperc_common.testing import wait_for
+
+    wait_for(lambda: (lis.spin(), all(s.get_publisher_count() >= 1 for s in lis.node.subscriptions
+                                      if s.topic_name.startswith("/omc/")))[1], timeout=30, what="listener matched")
+    wait_for(lambda: (lis.spin(), all(f"subscribers on /omc/{b}/pose: 1" in procs.log(node) for b in lis.poses))[1],
+             timeout=30, what="the driver matched this listener", detail=lambda: procs.log(node)[-1500:])
+
+
 def _stamp_ns(msg) -> int:
     return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
 
 
-def test_stream_backend_across_processes(procs, rclpy_context, tmp_path, python_exe):
+def _stream_backend_across_processes(procs, rclpy_context, tmp_path, python_exe):
     from fullperc_common.testing import installed_exe, wait_for
 
     port = free_udp_port()
@@ -145,7 +159,7 @@ def test_stream_backend_across_processes(procs, rclpy_context, tmp_path, python_
             return all(lis.node.count_publishers(f"/omc/{b}/{t}") >= 1 for b in ("base", "tool")
                        for t in ("pose", "quality"))
         wait_for(matched, timeout=30, what="omc_driver topics")
-        lis.spin(0.5)  # discovery is two-sided: give the driver's publishers time to match us as well
+        wait_matched(lis, procs, node)
         truth_file = tmp_path / "truth.txt"
         sender = procs.start([python_exe, __file__, "--port", str(port), "--frames", str(frames),
                               "--rate", str(rate), "--truth", str(truth_file)], name="sender")
@@ -206,7 +220,7 @@ def test_stream_backend_across_processes(procs, rclpy_context, tmp_path, python_
         assert all(math.isfinite(x) for x in v) and abs(m.pose.position.x) < 10
 
 
-def test_sdk_backend_across_processes_with_c_double(procs, rclpy_context, tmp_path):
+def _sdk_backend_across_processes_with_c_double(procs, rclpy_context, tmp_path):
     """The node on the nokov_sdk backend, loading the compiled double: names (incl. a late body), sentinels."""
     from fullperc_common.testing import installed_exe, wait_for
 
@@ -215,7 +229,7 @@ def test_sdk_backend_across_processes_with_c_double(procs, rclpy_context, tmp_pa
 
     lib = compile_double(C_DIR / "fake_nokov_sdk.c", tmp_path / "libnokov_sdk.so")
     start = tmp_path / "start"  # the double plays its frames once this file exists
-    procs.start([installed_exe("fullperc_drivers", "omc_driver"), "--ros-args", "-p", "backend:=nokov_sdk",
+    node = procs.start([installed_exe("fullperc_drivers", "omc_driver"), "--ros-args", "-p", "backend:=nokov_sdk",
                  "-p", f"sdk_library:={lib}", "-p", "server:=10.1.1.198", "-p", "sdk_timestamp_unit_ns:=1000",
                  "-p", "bodies:=[base, tool]", "-p", "qos_depth:=1000", "-p", "diagnostics_period_s:=0.2"],
                 env={**procs.env, "FAKE_NOKOV_START_FILE": str(start)})
@@ -223,7 +237,7 @@ def test_sdk_backend_across_processes_with_c_double(procs, rclpy_context, tmp_pa
     try:
         wait_for(lambda: (lis.spin(), all(lis.node.count_publishers(f"/omc/{b}/{t}") >= 1 for b in ("base", "tool")
                                           for t in ("pose", "quality")))[1], timeout=30, what="omc_driver topics")
-        lis.spin(0.5)  # discovery is two-sided: give the driver's publishers time to match us as well
+        wait_matched(lis, procs, node)
         start.touch()
         # The double plays 300 frames at 200 Hz from Initialize on; wait for its end (the quality of frame
         # index 299, numbered 1000 + 299 + 3), then for the stall diagnosis.
@@ -245,7 +259,7 @@ def test_sdk_backend_across_processes_with_c_double(procs, rclpy_context, tmp_pa
     assert max(abs(m.pose.position.x - 0.5) for m in lis.poses["tool"]) < 1e-6  # 500 mm -> 0.5 m
 
 
-def test_wrong_sdk_library_path_exits_with_clear_error(procs, tmp_path):
+def _wrong_sdk_library_path_exits_with_clear_error(procs, tmp_path):
     from fullperc_common.testing import installed_exe, wait_for
 
     bad = tmp_path / "missing" / "libnokov_sdk.so"
@@ -256,7 +270,7 @@ def test_wrong_sdk_library_path_exits_with_clear_error(procs, tmp_path):
     assert str(bad) in procs.log(p) and "not found" in procs.log(p)
 
 
-def test_shipped_params_file_starts_the_node(procs, rclpy_context):
+def _shipped_params_file_starts_the_node(procs, rclpy_context):
     """config/omc.yaml parses and passes parameter validation; the node then waits for frames (WARN)."""
     from fullperc_common.testing import installed_exe, wait_for, workspace_root
 
@@ -280,3 +294,26 @@ if __name__ == "__main__":
     ap.add_argument("--truth", type=Path, required=True)
     a = ap.parse_args()
     run_sender(a.port, a.frames, a.rate, a.truth)
+
+
+scenarios = side_by_side_fixture(
+    _stream_backend_across_processes,
+    _sdk_backend_across_processes_with_c_double,
+    _wrong_sdk_library_path_exits_with_clear_error,
+    _shipped_params_file_starts_the_node)
+
+
+def test_stream_backend_across_processes(scenarios, request):
+    scenarios.result(request.node.name)
+
+
+def test_sdk_backend_across_processes_with_c_double(scenarios, request):
+    scenarios.result(request.node.name)
+
+
+def test_wrong_sdk_library_path_exits_with_clear_error(scenarios, request):
+    scenarios.result(request.node.name)
+
+
+def test_shipped_params_file_starts_the_node(scenarios, request):
+    scenarios.result(request.node.name)

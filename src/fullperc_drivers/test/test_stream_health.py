@@ -16,10 +16,15 @@ from pathlib import Path
 
 import numpy as np
 
+from fullperc_common.testing import side_by_side_fixture
+
 sys.path.insert(0, str(Path(__file__).parent))
 from test_omc_driver import Listener, free_udp_port  # noqa: E402
 
 OK, WARN, ERROR = 0, 1, 2
+# each fault phase lasts until the level left OK, which takes the health ladder's stale_after_s: 1 s instead of the
+# default 2 s (10 stream periods at least; every wait below is a condition with a liveness bound)
+STALE_AFTER = "health.stale_after_s:=1.0"
 
 
 class Sender(threading.Thread):
@@ -56,7 +61,7 @@ def _wait_level(lis: Listener, name: str, level: int, *needles: str, timeout: fl
     return lis.last_status(name)[0].message
 
 
-def test_omc_driver_frozen_frames_and_refused_poses(procs, rclpy_context):
+def _omc_driver_frozen_frames_and_refused_poses(procs, rclpy_context):
     from fullperc_common.testing import installed_exe, wait_for
     from fullperc_drivers.streams import OmcBody, OmcFrame, encode_omc
 
@@ -75,7 +80,7 @@ def test_omc_driver_frozen_frames_and_refused_poses(procs, rclpy_context):
 
     port = free_udp_port()
     node = procs.start([installed_exe("fullperc_drivers", "omc_driver"), "--ros-args", "-p", f"stream_port:={port}",
-                        "-p", "bodies:=[base, tool]", "-p", "diagnostics_period_s:=0.5"])
+                        "-p", "bodies:=[base, tool]", "-p", "diagnostics_period_s:=0.5", "-p", STALE_AFTER])
     lis = Listener(rclpy_context)
     sender = Sender(port, make)
     sender.start()
@@ -98,7 +103,7 @@ def test_omc_driver_frozen_frames_and_refused_poses(procs, rclpy_context):
         lis.close()
 
 
-def test_diana_state_frozen_sequence_and_refused_samples(procs, rclpy_context):
+def _diana_state_frozen_sequence_and_refused_samples(procs, rclpy_context):
     from test_diana_state import Listener as DianaListener
 
     from fullperc_common.testing import installed_exe, wait_for
@@ -117,7 +122,7 @@ def test_diana_state_frozen_sequence_and_refused_samples(procs, rclpy_context):
 
     port = free_udp_port()
     node = procs.start([installed_exe("fullperc_drivers", "diana_state"), "--ros-args", "-p", f"stream_port:={port}",
-                        "-p", "diagnostics_period_s:=0.5"])
+                        "-p", "diagnostics_period_s:=0.5", "-p", STALE_AFTER])
     lis = DianaListener(rclpy_context)
     sender = Sender(port, make)
     sender.start()
@@ -138,3 +143,16 @@ def test_diana_state_frozen_sequence_and_refused_samples(procs, rclpy_context):
     finally:
         sender.stop()
         lis.close()
+
+
+scenarios = side_by_side_fixture(
+    _omc_driver_frozen_frames_and_refused_poses,
+    _diana_state_frozen_sequence_and_refused_samples)
+
+
+def test_omc_driver_frozen_frames_and_refused_poses(scenarios, request):
+    scenarios.result(request.node.name)
+
+
+def test_diana_state_frozen_sequence_and_refused_samples(scenarios, request):
+    scenarios.result(request.node.name)

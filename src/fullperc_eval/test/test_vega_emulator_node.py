@@ -1,12 +1,16 @@
 """Multi-process: the installed ``ndi_driver`` node against the installed ``vega_emulator``.
 
 The soak test is the issue's fault-injection acceptance: 1 % corrupted replies plus a link drop
-every N seconds. Default profile (for ``make test``): 40 s with a drop every 10 s. The full
-profile - 120 s with a drop every 30 s - runs with ``FULLPERC_NDI_SOAK=1``.
+every N seconds. In ``make test`` it is a few seconds of that fault mix: a drop every 2 s, until three link losses
+were each followed by a reconnect, corrupted replies were counted and poses flowed again after the last reconnect
+(conditions, waited for with liveness bounds). The long profile -- 120 s with a drop every 30 s, reconnects within
+1 s and the pose rate over the whole run -- runs with ``FULLPERC_NDI_SOAK=1``, which ``make soak`` does
+(soak/soak_ndi_drops.py).
 """
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import threading
@@ -15,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from fullperc_common.testing import installed_exe, wait_for
+from fullperc_common.testing import installed_exe, side_by_side_fixture, wait_for
 
 CONFIG = Path(__file__).resolve().parents[2] / "fullperc_drivers" / "config"
 
@@ -90,7 +94,7 @@ def start_pair(procs, tmp_path, emu_args=(), driver_params=()):
     return emu, drv
 
 
-def test_node_publishes_pose_quality_diagnostics(procs, tmp_path, rclpy_context):
+def _node_publishes_pose_quality_diagnostics(procs, tmp_path, rclpy_context):
     emu, drv = start_pair(procs, tmp_path)
     lis = Listener(rclpy_context, ["tool", "base"])
     try:
@@ -119,7 +123,7 @@ def test_node_publishes_pose_quality_diagnostics(procs, tmp_path, rclpy_context)
     assert procs.stop(drv) == 0
 
 
-def test_node_rejects_bad_parameters(procs, tmp_path):
+def _node_rejects_bad_parameters(procs):
     p = procs.start([installed_exe("fullperc_drivers", "ndi_driver"), "--ros-args", "-p", "mode:=GX"],
                     name="bad_params")
     assert p.wait(30) != 0
@@ -127,39 +131,87 @@ def test_node_rejects_bad_parameters(procs, tmp_path):
 
 
 SOAK = os.environ.get("FULLPERC_NDI_SOAK") == "1"
-DURATION_S = 120.0 if SOAK else 40.0
-DROP_EVERY_S = 30.0 if SOAK else 10.0
+DURATION_S = 120.0 if SOAK else 0.0   # the long profile runs this long before it checks (the in-suite one: no wait)
+DROP_EVERY_S = 30.0 if SOAK else 2.0
+DROPS = 3                             # link losses (each reconnected) the checks wait for
 
 
-@pytest.mark.slow
-def test_soak_corrupted_replies_and_periodic_drops(procs, tmp_path, rclpy_context):
+def _soak_corrupted_replies_and_periodic_drops(procs, tmp_path, rclpy_context):
     emu, drv = start_pair(procs, tmp_path, ["--corrupt-crc", "0.01", "--drop-every", str(DROP_EVERY_S),
                                             "--seed", "7", "--circle", "40"])
     lis = Listener(rclpy_context, ["tool", "base"])
+    t0 = time.monotonic()
+    seen: dict = {}
+
+    def alive():
+        assert drv.poll() is None, "ndi_driver died:\n" + procs.log(drv)[-3000:]
+
+    def faults_survived():
+        """DROPS link losses, each reconnected, corrupted replies counted (the values of the first /diagnostics
+        that showed all of it); then poses flowing after the last reconnect."""
+        alive()
+        if "vals" not in seen:
+            vals, _ = lis.last_diag_values()
+            if not vals:
+                return False
+            losses = int(vals["link_losses"])
+            if not (losses >= DROPS and int(vals["reconnects"]) == losses and int(vals["crc_errors"]) > 0):
+                return False
+            seen.update(vals=vals, n=lis.n(lis.poses["tool"]))
+        return lis.n(lis.poses["tool"]) >= seen["n"] + 30
     try:
-        t_end = time.monotonic() + DURATION_S
-        while time.monotonic() < t_end:
-            assert drv.poll() is None, "ndi_driver died:\n" + procs.log(drv)[-3000:]
+        while time.monotonic() < t0 + DURATION_S:
+            alive()
             time.sleep(0.5)
-        time.sleep(1.5)  # one more diagnostics period
-        assert drv.poll() is None
-        vals, st = lis.last_diag_values()
+        # liveness bound: the driver's start plus DROPS drops; 1 % corruption at 60 replies/s is seen within seconds
+        wait_for(faults_survived, timeout=60 + (DROPS + 1) * DROP_EVERY_S, interval=0.2,
+                 what=f"{DROPS} link losses reconnected, corrupted replies counted, poses after",
+                 detail=lambda: f"last values {lis.last_diag_values()[0]}")
+        elapsed = time.monotonic() - t0
+        vals = seen["vals"]
         with lis.lock:
             poses = list(lis.poses["tool"])
     finally:
         lis.close()
-    drops = int(DURATION_S // DROP_EVERY_S)
     durations = [float(x) for x in vals["reconnect_durations_s"].split()]
     values = [v for p in poses for v in (p.pose.position.x, p.pose.position.y, p.pose.position.z,
                                          p.pose.orientation.x, p.pose.orientation.w)]
-    report = (f"soak {DURATION_S:.0f}s drop/{DROP_EVERY_S:.0f}s: poses={len(poses)} reconnects={vals['reconnects']} "
+    report = (f"soak {elapsed:.0f}s drop/{DROP_EVERY_S:.0f}s: poses={len(poses)} reconnects={vals['reconnects']} "
               f"durations={durations} crc_errors={vals['crc_errors']} retries={vals['retries']} "
               f"timeouts={vals['timeouts']} link_losses={vals['link_losses']} frames={vals['frames']}")
     print(report)
     (tmp_path / "soak.txt").write_text(report)
+    if os.environ.get("FULLPERC_NDI_SOAK_REPORT"):   # soak/soak_ndi_drops.py reads the figures from here
+        counts = {k: int(vals[k]) for k in ("reconnects", "link_losses", "crc_errors", "retries", "timeouts", "frames")}
+        Path(os.environ["FULLPERC_NDI_SOAK_REPORT"]).write_text(json.dumps(
+            {"elapsed_s": elapsed, "poses": len(poses), "reconnect_durations_s": durations, **counts}))
     assert all(math.isfinite(v) for v in values)  # never NaN
-    assert int(vals["link_losses"]) >= drops - 1 and int(vals["reconnects"]) == int(vals["link_losses"])
-    assert len(durations) == int(vals["reconnects"]) and max(durations) < 1.0  # reconnects within 1 s
+    # every loss was reconnected, and each reconnect was timed
+    assert int(vals["link_losses"]) >= DROPS and int(vals["reconnects"]) == int(vals["link_losses"])
+    assert len(durations) == int(vals["reconnects"]) and all(d > 0 for d in durations)
     assert int(vals["crc_errors"]) > 0  # the corrupted replies were seen and counted
-    assert len(poses) > 0.5 * 60 * DURATION_S  # and tracking went on between the faults
+    if SOAK:
+        # the long profile's figures, over its two minutes (wall-clock, so not in `make test`): reconnects within
+        # 1 s, and tracking went on between the faults at over half the 60 Hz rate
+        assert int(vals["link_losses"]) >= int(DURATION_S // DROP_EVERY_S) - 1
+        assert max(durations) < 1.0
+        assert len(poses) > 0.5 * 60 * DURATION_S
     assert procs.stop(drv) == 0
+
+
+# the selected tests' scenarios at once, side by side, each with its own emulator, driver and domain
+scenarios = side_by_side_fixture(_node_publishes_pose_quality_diagnostics, _node_rejects_bad_parameters,
+                                 _soak_corrupted_replies_and_periodic_drops)
+
+
+def test_node_publishes_pose_quality_diagnostics(scenarios, request):
+    scenarios.result(request.node.name)
+
+
+def test_node_rejects_bad_parameters(scenarios, request):
+    scenarios.result(request.node.name)
+
+
+@pytest.mark.slow
+def test_soak_corrupted_replies_and_periodic_drops(scenarios, request):
+    scenarios.result(request.node.name)

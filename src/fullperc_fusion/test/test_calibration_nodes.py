@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fullperc_common.testing import installed_exe, wait_for
+from fullperc_common.testing import installed_exe, side_by_side_fixture, wait_for
 from fullperc_common.transforms import inv_T
 
 HERE = Path(__file__).resolve().parent
@@ -42,7 +42,7 @@ def _run_calibrate(procs, python_exe, tmp_path, pub_args, name):
     return cal, out
 
 
-def test_calibrate_writes_the_links_of_a_still_scene(procs, ros_env, python_exe, tmp_path):
+def _calibrate_writes_the_links_of_a_still_scene(procs, ros_env, python_exe, tmp_path):
     from fullperc_fusion.calibration import se3_residuals
     from fullperc_fusion.calibration_io import load_calibration
 
@@ -61,7 +61,7 @@ def test_calibrate_writes_the_links_of_a_still_scene(procs, ros_env, python_exe,
     assert c.duration_s > 1.4 and c.stamp_ns > 0
 
 
-def test_calibrate_refuses_when_a_body_moves(procs, ros_env, python_exe, tmp_path):
+def _calibrate_refuses_when_a_body_moves(procs, ros_env, python_exe, tmp_path):
     cal, out = _run_calibrate(procs, python_exe, tmp_path, ["--move-base", "0.8:0.005"], "moved")
     log = procs.log(cal)
     assert cal.returncode == 1, log
@@ -72,7 +72,7 @@ def test_calibrate_refuses_when_a_body_moves(procs, ros_env, python_exe, tmp_pat
     assert not out.exists() and not list(tmp_path.glob("moved.yaml.*"))   # no file, no temporary left behind
 
 
-def test_fusion_node_refuses_a_bad_calibration_file(procs, ros_env, tmp_path):
+def _fusion_node_refuses_a_bad_calibration_file(procs, ros_env, tmp_path):
     bad = tmp_path / "cal.yaml"
     bad.write_text("version: 1\nstamp_ns: 0\nduration_s: 1.0\nsource: x\nlinks: {T_omc_base: {position: [0, 0]}}\n")
     p = procs.start([installed_exe("fullperc_fusion", "fusion_node"), "--ros-args", "-p",
@@ -106,7 +106,7 @@ def _call(lis, service, timeout):
     return fut.result()
 
 
-def test_fusion_node_calibration_file_service_and_a_bumped_vega(procs, rclpy_context, python_exe, tmp_path):
+def _fusion_node_calibration_file_service_and_a_bumped_vega(procs, rclpy_context, python_exe, tmp_path):
     """fusion_node starts from a calibration file (init_samples is out of reach: only the file can give links),
     re-calibrates on ~/calibrate (writes calibration.output, swaps the links), and when the Vega is pushed 3 mm
     raises a WARN naming T_base_ots and the size, and link_bumped in FusionStatus."""
@@ -164,10 +164,38 @@ def test_fusion_node_calibration_file_service_and_a_bumped_vega(procs, rclpy_con
     assert abs(size - 3.0) < 0.5, warns[0].message
 
 
-def test_calibrate_help_documents_the_parameters_and_the_exit_status(procs, ros_env):
+def _calibrate_help_documents_the_parameters_and_the_exit_status(procs, ros_env):
     p = procs.start([installed_exe("fullperc_fusion", "calibrate"), "--help"], name="help")
     wait_for(lambda: p.poll() is not None, 30, what="calibrate --help")
     text = procs.log(p)
     assert p.returncode == 0, text
     for word in ("Exit status", "refused", "duration:", "output:", "links:", "omc_base_body:", "[s]"):
         assert word in text, word
+
+
+scenarios = side_by_side_fixture(
+    _calibrate_writes_the_links_of_a_still_scene,
+    _calibrate_refuses_when_a_body_moves,
+    _fusion_node_refuses_a_bad_calibration_file,
+    _fusion_node_calibration_file_service_and_a_bumped_vega,
+    _calibrate_help_documents_the_parameters_and_the_exit_status)
+
+
+def test_calibrate_writes_the_links_of_a_still_scene(scenarios, request):
+    scenarios.result(request.node.name)
+
+
+def test_calibrate_refuses_when_a_body_moves(scenarios, request):
+    scenarios.result(request.node.name)
+
+
+def test_fusion_node_refuses_a_bad_calibration_file(scenarios, request):
+    scenarios.result(request.node.name)
+
+
+def test_fusion_node_calibration_file_service_and_a_bumped_vega(scenarios, request):
+    scenarios.result(request.node.name)
+
+
+def test_calibrate_help_documents_the_parameters_and_the_exit_status(scenarios, request):
+    scenarios.result(request.node.name)

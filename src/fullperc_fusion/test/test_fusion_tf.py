@@ -4,12 +4,13 @@ fusion_node in another; this test subscribes to /tf and /tf_static (a late, tran
 from __future__ import annotations
 
 import importlib.util
+import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from fullperc_common.testing import SpunNode, installed_exe, wait_for
+from fullperc_common.testing import SpunNode, installed_exe, side_by_side_fixture, wait_for
 
 HERE = Path(__file__).resolve().parent
 PUB = HERE / "synthetic_driver_pub.py"
@@ -38,10 +39,12 @@ class TfListener(SpunNode):
 
         self.TFMessage, self.static_qos = TFMessage, static_qos
         super().__init__(ctx, "fusion_tf_listener")
-        self.tf, self.static, self.late_static, self.poses = [], [], [], []
+        self.tf, self.static, self.late_static, self.poses, self.final = [], [], [], [], []
         self.node.create_subscription(TFMessage, "/tf", self.tf.append, dynamic_qos())
         self.node.create_subscription(TFMessage, "/tf_static", self.static.append, static_qos())
         self.node.create_subscription(PoseStamped, "/fullperc/tool/pose", self.poses.append,
+                                      QoSProfile(depth=2000, reliability=ReliabilityPolicy.RELIABLE))
+        self.node.create_subscription(PoseStamped, "/fullperc/tool/final", self.final.append,
                                       QoSProfile(depth=2000, reliability=ReliabilityPolicy.RELIABLE))
         self.start()
 
@@ -54,7 +57,7 @@ def _static_map(msg) -> dict:
     return {t.child_frame_id: (t.header.frame_id, transform_to_T(t)) for t in msg.transforms}
 
 
-def test_fusion_node_broadcasts_tf_and_tf_static(procs, rclpy_context, python_exe, tmp_path):
+def _fusion_node_broadcasts_tf_and_tf_static(procs, rclpy_context, python_exe, tmp_path):
     mod = _pub_module()
     lis = TfListener(rclpy_context)
     try:
@@ -69,18 +72,15 @@ def test_fusion_node_broadcasts_tf_and_tf_static(procs, rclpy_context, python_ex
         # before any data only the given link: base -> diana_base (transient local: delivered although late)
         wait_for(lambda: lis.static, 60, what="/tf_static with tf.diana_base")
         assert set(_static_map(lis.static[0])) == {"diana_base"}
-        pub = procs.start([python_exe, str(PUB), "--log", str(tmp_path / "pub.jsonl"), "--duration", "4.0"],
+        pub = procs.start([python_exe, str(PUB), "--log", str(tmp_path / "pub.jsonl"), "--duration", "2.0"],
                           name="pub")
         wait_for(lambda: pub.poll() is not None, 90, what="publisher to finish")
         assert pub.returncode == 0, procs.log(pub)
-        last = [-1]
-
-        def settled():
-            n = len(lis.tf)
-            done = n == last[0] and n > 0
-            last[0] = n
-            return done
-        wait_for(settled, 30, interval=1.0, what="/tf to settle")
+        # every output is out once the newest tool sample is final (the idle flush); then /tf and the poses agree
+        rows = [json.loads(ln) for ln in (tmp_path / "pub.jsonl").read_text().splitlines()]
+        last_tool = max(r["t_ns"] for r in rows if r.get("body") == "tool")
+        wait_for(lambda: lis.final and _ns(lis.final[-1].header.stamp) >= last_tool, 30,
+                 what="the newest tool sample final")
         wait_for(lambda: len(lis.poses) == sum(len(m.transforms) for m in lis.tf), 30, what="poses and /tf agree")
         lis.subscribe_late()   # a subscriber that joins now gets the whole static tree from one message
         wait_for(lambda: lis.late_static, 60, what="late /tf_static")
@@ -111,7 +111,7 @@ def test_fusion_node_broadcasts_tf_and_tf_static(procs, rclpy_context, python_ex
     assert len(lis.late_static) == 1
 
 
-def test_tf_disabled_publishes_no_tf(procs, rclpy_context):
+def _tf_disabled_publishes_no_tf(procs, rclpy_context):
     lis = TfListener(rclpy_context)
     try:
         p = procs.start([installed_exe("fullperc_fusion", "fusion_node"), "--ros-args", "-p", "tf.enabled:=false"],
@@ -122,3 +122,16 @@ def test_tf_disabled_publishes_no_tf(procs, rclpy_context):
         assert lis.node.count_publishers("/tf") == 0 and lis.node.count_publishers("/tf_static") == 0
     finally:
         lis.close()
+
+
+scenarios = side_by_side_fixture(
+    _fusion_node_broadcasts_tf_and_tf_static,
+    _tf_disabled_publishes_no_tf)
+
+
+def test_fusion_node_broadcasts_tf_and_tf_static(scenarios, request):
+    scenarios.result(request.node.name)
+
+
+def test_tf_disabled_publishes_no_tf(scenarios, request):
+    scenarios.result(request.node.name)
