@@ -54,8 +54,8 @@ a Gauss-Markov process forgets it at the rate the sensor's error does, and the m
   ~2.5 times what the model gives (``spec`` seed 7 P-G-B-P, 16.8-21 s: 0.16 mm in x against the model's 0.065 mm);
   fused at face value those samples swing the velocity by tens of mm/s per update and cross the hop gate without
   being hops (docs/fullperc_filter.md "Where a hop goes"). Scaling R only up, over ~tau of samples, keeps the model
-  where it holds
-  (lambda = 1) and trusts the OMC less where its innovations say it is noisier (covariance matching, Mehra 1972).
+  where it holds (lambda = 1) and trusts the OMC less where its innovations say it is noisier (covariance matching,
+  Mehra 1972).
 * the global source's rotation noise, scaled by mu (``rot_noise_adapt_time`` > 0): R_rot used as mu R_rot, mu learnt
   from the disagreement of (global, local) pairs, back to 1 over the distance beta decays over (:mod:`rot_noise_scale`).
 * hops: NIS of the global position rows above ``hop_gate`` -> the variance of b (``hop_into: b``, the default:
@@ -65,8 +65,8 @@ a Gauss-Markov process forgets it at the rate the sensor's error does, and the m
   sample the motion model did not expect (a noisy velocity between local samples, a hand accelerating). In g it
   is forgotten over ``sys_time``, as the sensor's own systematic error is. Which is better depends on the OMC: on
   the twin, g wins where its steps are small and short (``spec``) and b where they are large and last (``paper``);
-  docs/fullperc_filter.md "Where a hop goes". A rotation hop (NIS of the global rotation rows above the gate) is flagged
-  but not put into beta: the OMC's rotation jumps revert within frames and are part of its R
+  docs/fullperc_filter.md "Where a hop goes". A rotation hop (NIS of the global rotation rows above the gate) is
+  flagged but not put into beta: the OMC's rotation jumps revert within frames and are part of its R
   (:func:`measurement_models.omc_covariance`), so a jump kept in beta would stay wrong after the OMC recovers.
 * error-state update (Joseph form), injection p += dp ..., R = Exp(dtheta) R, and the reset of the error state:
   P = G P G^T with G_thth = I - [dtheta/2]x (the first-order reset Jacobian of the multiplicative update).
@@ -74,8 +74,7 @@ a Gauss-Markov process forgets it at the rate the sensor's error does, and the m
   distance between samples, ``sensor_stats.structure_over_distance``: L = 56.5 mm on the ``paper`` bags); once the
   local source has lost the tool, the tool is usually on its way elsewhere and beta, the OMC's error where the Vega
   saw it, is not the error here (docs/fullperc_filter.md "The orientation bias after the Vega lost the tool"). While
-  the local
-  source sees the tool, beta is observed: no decay by distance.
+  the local source sees the tool, beta is observed: no decay by distance.
 * gaps longer than ``max_gap_s`` re-initialise p, v, R, w from the next sample; b and beta (and their variances)
   are kept (propagated over the gap: b's walk, beta's decay and walk, g's decay).
 
@@ -328,10 +327,10 @@ class FullpercReference(StepCompat):
         the local source sees the tool again -- never, in a run that leaves the Vega's view before the
         calibration is done (the twin's B-G-P: the 30-sample bridge link is 0.2-0.5 mm off at the tool;
         docs/fullperc_filter.md "The link's covariance and the bridge link"). d is taken at a, not at p: the old
-        frame's error that b
-        holds is the one at a (a link's rotation error makes it differ from place to place), so the output is
-        what it would have been had the new frame been used when b was learnt. P is kept: R_M is within a
-        milliradian of I, and the link's own uncertainty is the pipeline's frame covariance, not the filter's.
+        frame's error that b holds is the one at a (a link's rotation error makes it differ from place to place), so
+        the output is what it would have been had the new frame been used when b was learnt. P is kept: R_M is
+        within a milliradian of I, and the link's own uncertainty is the pipeline's frame covariance, not the
+        filter's.
         A reset forgets the frame.
         """
         s = self.s

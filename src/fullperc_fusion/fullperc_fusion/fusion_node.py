@@ -269,7 +269,7 @@ class FusionNode(Node):
                 self._publish(t, pipe.flush())
                 self._publish_final(t)
         for key, sub in self._quality_subs.items():
-            if m := take_queued(sub, 1):
+            while m := take_queued(sub, 1):
                 self._on_quality(key, m[0])
         for loss in self._loss.values():   # nothing more comes: the last /diagnostics settles every count
             loss.end_of_stream()
