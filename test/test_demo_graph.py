@@ -26,9 +26,10 @@ TASK = "B-G-P"
 OUTAGE = (6.0, 12.0)   # task seconds during which the Vega is off
 LETTER = {1: "B", 2: "G", 3: "P"}
 SOURCE_GLOBAL, SOURCE_LOCAL = 1, 2
-# share of a target's input samples (its OMC and Vega poses in the recording) the live node may lose itself: the
-# node's input queues hold seconds (qos_depth) and it drains them at shutdown, so on a busy machine it falls behind
-# and catches up instead of dropping; what it still loses it counts on /diagnostics (_node_losses)
+# share of a target's samples the live node may lose itself: of the offline replay's outputs (every recorded input
+# sample), those the node never published. Its input queues hold seconds (qos_depth) and it drains them at shutdown,
+# so on a busy machine it falls behind and catches up instead of dropping; what it loses it must count and WARN on
+# /diagnostics (_node_losses, an upper bound: frame-number gaps count as lost even when the body was occluded then)
 MAX_LOSS = 0.02
 
 pytestmark = pytest.mark.system
@@ -114,7 +115,8 @@ def _live_vs_offline(run_dir: Path, target: str) -> dict[str, dict[str, float]]:
         truth, ok = _truth(run_dir, target, common)
         e_off = np.linalg.norm(off[m]["p"][i][ok] - truth[ok], axis=1) * 1e3
         e_live = np.linalg.norm(live[m]["p"][j][ok] - truth[ok], axis=1) * 1e3
-        out[m] = {"n_live": len(live[m]["t_ns"]), "n_common": int(i.size), "n_truth": int(ok.sum()),
+        out[m] = {"n_live": len(live[m]["t_ns"]), "n_offline": len(off[m]["t_ns"]), "n_common": int(i.size),
+                  "n_truth": int(ok.sum()),
                   "median_mm": float(np.median(d)) if i.size else float("nan"),
                   "mae_live_mm": float(e_live.mean()) if ok.any() else float("nan"),
                   "mae_offline_mm": float(e_off.mean()) if ok.any() else float("nan")}
@@ -128,16 +130,25 @@ def _input_samples(run_dir: Path, target: str) -> int:
 
 
 def _check_live_against_offline(run_dir: Path, target: str, diff_mm: float, record_property) -> None:
-    """The node lost at most MAX_LOSS of the target's input (the figure goes to the test report), and on the stamps
-    both hold its estimates are the offline replay's: median distance <= ``diff_mm``, and the same MAE against the
-    truth to 0.05 mm (or 2 %)."""
-    lost, n_in = _node_losses(run_dir, target), _input_samples(run_dir, target)
+    """The node lost at most MAX_LOSS of the target's samples -- offline outputs (of every recorded input) it never
+    published; the figures go to the test report --, and on the stamps both hold its estimates are the offline
+    replay's: median distance <= ``diff_mm``, and the same MAE against the truth to 0.05 mm (or 2 %).
+
+    Why outputs and not the node's own count: that is an upper bound (a frame-number gap is counted as a lost pose
+    even when the body was occluded then; a CI run counted 173 of the walking instrument's while the node had
+    published an output of each of its OMC samples), so it is reported, not limited."""
+    counted, n_in = _node_losses(run_dir, target), _input_samples(run_dir, target)
     cmp = _live_vs_offline(run_dir, target)
-    record_property("demo", f"{target}: node lost {lost} of {n_in} input samples ({lost / n_in:.2%}); live vs "
-                    "offline on common stamps: " + ", ".join(
-                        f"{m} {c['n_common']}/{c['n_live']} MAE {c['mae_live_mm']:.3f}/{c['mae_offline_mm']:.3f} mm "
-                        f"median diff {c['median_mm']:.3f} mm" for m, c in cmp.items()))
-    assert lost <= MAX_LOSS * n_in, f"the live node lost {lost} of {n_in} input samples of {target}"
+    missing = {m: c["n_offline"] - c["n_common"] for m, c in cmp.items()}
+    record_property("demo", f"{target}: the node counted {counted} of {n_in} input samples lost; live vs offline on "
+                    "common stamps: " + ", ".join(
+                        f"{m} {c['n_common']}/{c['n_live']} live, {missing[m]} of {c['n_offline']} offline outputs "
+                        f"missing live, MAE {c['mae_live_mm']:.3f}/{c['mae_offline_mm']:.3f} mm median diff "
+                        f"{c['median_mm']:.3f} mm" for m, c in cmp.items()))
+    for method, c in cmp.items():
+        assert missing[method] <= MAX_LOSS * c["n_offline"], \
+            f"the live node lacks {missing[method]} of the {c['n_offline']} {method} outputs of {target} ({counted} " \
+            "input samples counted lost)"
     for method, c in cmp.items():
         assert c["n_common"] >= 0.5 * c["n_live"] and c["n_truth"] >= 0.9 * c["n_common"], (method, c)
         assert c["median_mm"] <= diff_mm, (method, c)
