@@ -12,6 +12,9 @@ profile: scipy conversions were a third of the node's CPU per fused pose). So th
 written here in closed form, with scipy's own formulas and branch rules (quaternion normalisation, Shepperd's
 method with numpy's first-maximum tie rule, a non-orthogonal matrix projected by scipy itself), and
 test_transforms.py pins them to scipy on random and edge-case inputs. Batch math (:func:`mean_T`) keeps scipy.
+
+Imports: scipy is imported where it is used, not here: a driver that only converts poses (ros_conv) would pay
+scipy.spatial's imports (kd-trees, qhull, sparse: ~0.3-0.5 s of every process start) for a fallback it never takes.
 """
 
 from __future__ import annotations
@@ -20,7 +23,6 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 ArrayLike = Sequence[float] | np.ndarray
 
@@ -144,6 +146,8 @@ def T_to_pq(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     rows = T[:3].tolist()
     q4 = R_to_quat((rows[0][:3], rows[1][:3], rows[2][:3]))
     if q4 is None or not all(map(math.isfinite, q4)):
+        from scipy.spatial.transform import Rotation
+
         q = Rotation.from_matrix(T[:3, :3]).as_quat()
     else:
         q = np.array(q4)
@@ -167,6 +171,8 @@ def mean_T(Ts: Sequence[np.ndarray]) -> np.ndarray:
     Ts = list(Ts)
     if not Ts:
         raise ValueError("mean_T needs at least one transform")
+    from scipy.spatial.transform import Rotation
+
     R = Rotation.from_matrix(np.stack([T[:3, :3] for T in Ts])).mean().as_matrix()
     p = np.mean(np.stack([T[:3, 3] for T in Ts]), axis=0)
     return make_T(p, R=R)

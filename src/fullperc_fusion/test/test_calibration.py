@@ -263,6 +263,21 @@ def test_hotelling_threshold():
     assert hotelling_threshold(1e-4, 2) == np.inf
 
 
+@pytest.mark.parametrize("alpha", [1e-4, 1e-3, 0.01, 0.05])
+def test_quantiles_from_scipy_special_are_scipy_stats_ones(alpha):
+    """calibration takes its chi^2 and F quantiles from scipy.special (start-up cost, its imports say why): they are
+    scipy.stats' ppf to rounding, so the gates and thresholds did not move."""
+    from scipy.special import chdtri
+    from scipy.stats import f
+
+    for k in (1, 3, 6):
+        assert chdtri(k, alpha) == pytest.approx(chi2.ppf(1 - alpha, k), rel=1e-12)
+    for dof in (3, 10, 26, 1000):
+        assert hotelling_threshold(alpha, dof) == pytest.approx(3 * dof / (dof - 2) * f.ppf(1 - alpha, 3, dof - 2),
+                                                                rel=1e-12)
+
+
+
 def test_large_noise_short_collection_is_not_refused_for_noise():
     # 2 mm of noise and 30 samples: window means differ by > 1 mm, but not beyond their own noise
     rng = np.random.default_rng(8)
