@@ -9,6 +9,7 @@ output, the simulator's event log and the recorded bag.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import re
@@ -85,6 +86,12 @@ def _node_losses(run_dir: Path, target: str = "tool") -> int:
 def _truth(run_dir: Path, target: str, stamps_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The target's true position in ``base`` at ``stamps_ns`` and the validity mask: the Diana forward kinematics
     for the arm-held tool, the simulator's truth track for the instrument."""
+    return _truth_track(run_dir, target).position_base(stamps_ns)
+
+
+@functools.cache
+def _truth_track(run_dir: Path, target: str):
+    """The target's truth track (read once per run: every bag open costs seconds)."""
     from fullperc_eval.bag.calibration import load_calibration
     from fullperc_eval.evaluation.ground_truth import GroundTruth, target_truth
 
@@ -93,7 +100,7 @@ def _truth(run_dir: Path, target: str, stamps_ns: np.ndarray) -> tuple[np.ndarra
         js = _read(run_dir / "bag", ["/diana/joint_states"])["/diana/joint_states"]
         track = GroundTruth([_ns(m.header) for m in js], [list(m.position) for m in js],
                             load_calibration(run_dir / "calibration.yaml"))
-    return track.position_base(stamps_ns)
+    return track
 
 
 def _live_vs_offline(run_dir: Path, target: str) -> dict[str, dict[str, float]]:
@@ -155,18 +162,26 @@ def _check_live_against_offline(run_dir: Path, target: str, diff_mm: float, reco
         assert abs(c["mae_live_mm"] - c["mae_offline_mm"]) <= max(0.05, 0.02 * c["mae_offline_mm"]), (method, c)
 
 
+_DECODED: dict[tuple[Path, str], list] = {}   # (bag, topic) -> its messages: the module's tests read one bag
+
+
 def _read(bag: Path, topics: list[str]) -> dict[str, list]:
+    """The messages of ``topics`` in ``bag``, decoded; the topics not read before in one pass (an open of the demo's
+    bag costs 1-2 s: rosbags parses every channel's QoS YAML). Callers must not modify the lists."""
     from fullperc_eval.bag.reader import BagReader
 
-    got: dict[str, list] = {t: [] for t in topics}
-    r = BagReader(bag)
-    r.open()
-    try:
-        for m in r.messages([t for t in topics if t in r.topics]):
-            got[m.topic].append(r.deserialize(m.data, m.msgtype))
-    finally:
-        r.close()
-    return got
+    missing = [t for t in topics if (bag, t) not in _DECODED]
+    if missing:
+        got: dict[str, list] = {t: [] for t in missing}
+        r = BagReader(bag)
+        r.open()
+        try:
+            for m in r.messages([t for t in missing if t in r.topics]):
+                got[m.topic].append(r.deserialize(m.data, m.msgtype))
+        finally:
+            r.close()
+        _DECODED.update(((bag, t), v) for t, v in got.items())
+    return {t: _DECODED[(bag, t)] for t in topics}
 
 
 def _ns(h) -> int:

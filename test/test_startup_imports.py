@@ -16,3 +16,11 @@ def test_node_processes_do_not_import_what_they_do_not_use():
                             ("fullperc_fusion.fusion_node", {"scipy.spatial"})):
         out = subprocess.run([sys.executable, "-c", code, module], capture_output=True, text=True, check=True)
         assert set(out.stdout.split()) <= allowed, (module, out.stdout)
+
+
+def test_rosbags_yaml_has_its_c_loader():
+    """rosbags parses metadata.yaml and each MCAP channel's QoS with ruamel.yaml; without ruamel.yaml.clib (optional
+    since ruamel.yaml 0.19, requirements/python.txt pins it) every bag open costs ~0.45 s more."""
+    from ruamel.yaml import YAML
+
+    assert YAML(typ="safe").Parser.__name__ == "CParser"   # the pure-Python one is ruamel.yaml.parser.Parser
