@@ -138,6 +138,11 @@ def test_ready_when_every_listed_regex_matched(tmp_path):
     ("processes:\n  - {name: a, cmd: ['{nope}']}\n", "placeholder {nope}"),
     ("processes:\n  - {name: a, cmd: [x], grace: 0}\n", "grace: must be a number"),
     ("processes:\n  - {name: a, cmd: [x], grace: soon}\n", "grace: must be a number"),
+    ("processes:\n  - {name: a, cmd: [x]}\nstop_stages: [a]\n", "stop_stages: must be a list of non-empty lists"),
+    ("processes:\n  - {name: a, cmd: [x]}\nstop_stages: [[a], [b]]\n", "'b' is not a process"),
+    ("processes:\n  - {name: a, cmd: [x]}\nstop_stages: [[a], [a]]\n", "'a' is named more than once"),
+    ("processes:\n  - {name: a, cmd: [x]}\n  - {name: b, cmd: [x]}\nstop_stages: [[a]]\n",
+     "does not say when 'b' stops"),
 ])
 def test_bad_graph_names_file_and_field(tmp_path, body, msg):
     g = tmp_path / "bad.yaml"
@@ -182,3 +187,46 @@ def test_a_process_gets_its_own_grace_to_finish_its_work(tmp_path):
     sup.wait(timeout=60)
     codes = sup.shutdown()
     assert done.exists() and codes["slow"] == 0, codes
+
+
+def test_stop_stages_stop_a_stage_together_and_the_stages_in_order(tmp_path):
+    """``stop_stages``: the processes of a stage get SIGINT together, the next stage only once they exited. Each of
+    ``a`` and ``b`` finishes its SIGINT handler only after the other has got its SIGINT (one at a time, the first
+    would wait for the second for ever); ``c`` (a later stage) logs its SIGINT after both finished."""
+    log = tmp_path / "events"
+    script = tmp_path / "stage.py"
+    script.write_text(textwrap.dedent(f"""
+        import signal, sys, time
+        me, other = sys.argv[1], sys.argv[2]
+        def stop(*_a):
+            with open({str(log)!r}, "a") as f:
+                f.write(f"{{me}} got\\n")
+            end = time.monotonic() + 60
+            while other != "-" and f"{{other}} got" not in open({str(log)!r}).read() and time.monotonic() < end:
+                time.sleep(0.01)
+            with open({str(log)!r}, "a") as f:
+                f.write(f"{{me}} done\\n")
+            sys.exit(0)
+        signal.signal(signal.SIGINT, stop)
+        print("ready", flush=True)
+        time.sleep(600)
+        """))
+    g = _graph(tmp_path, f"""
+        processes:
+          - {{name: c, cmd: [PY, {script}, c, "-"], ready: {{log: ready}}}}
+          - {{name: a, cmd: [PY, {script}, a, b], ready: {{log: ready}}}}
+          - {{name: b, cmd: [PY, {script}, b, a], ready: {{log: ready}}}}
+          - {{name: end, cmd: [PY, -c, "pass"], ends_graph: true}}
+        grace: 90
+        stop_stages: [[end, a, b], [c]]
+        """)
+    graph = load_graph(g, {})
+    assert graph.stop_stages == [["end", "a", "b"], ["c"]]
+    sup = Supervisor(graph, tmp_path / "logs", tmp_path, out=io.StringIO())
+    assert sup.start()
+    sup.wait(timeout=60)
+    codes = sup.shutdown()
+    events = log.read_text().split("\n")[:-1]
+    assert codes == {"end": 0, "b": 0, "a": 0, "c": 0}, codes
+    assert set(events[:2]) == {"a got", "b got"} and set(events[2:4]) == {"a done", "b done"}, events
+    assert events[4:] == ["c got", "c done"], events
