@@ -6,6 +6,9 @@ sample of ``bags/spec`` (and, for the orientation bias's slow part, ``bags/paper
 kinematics -- no filter runs. This test recomputes them and fails when a constant of ``measurement_models`` or
 ``FullpercParams`` is no longer what the bags give (to 2 %: the constants are written with three digits), e.g.
 after the twin or the bags changed and nobody refitted the models.
+
+The rows are read in bulk (``sensor_stats.bag_rows``); the first test pins them to the per-message reading through
+the node's pipeline (``bag_rows_per_message``), bit for bit, on a committed bag.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from fullperc_eval.evaluation import sensor_stats
@@ -23,6 +27,25 @@ from fullperc_fusion.measurement_models import LocalModelParams, OmcModelParams
 ROOT = Path(__file__).resolve().parents[1]
 
 REL = 0.02
+
+
+def test_bag_rows_read_in_bulk_are_the_per_message_rows(monkeypatch):
+    """bag_rows (records decoded in bulk, only the chain's link estimation per record, stacked mapping) gives the
+    rows of bag_rows_per_message (rosbags' deserialiser, every message through TargetPipeline), bit for bit, without
+    falling back to it. The bag: one with both devices, the link calibration and the target's qualities (all are)."""
+    bag = ROOT / "bags" / "spec" / "G-B-P"
+    layout = load_layout(default_layout_path())
+    ref = sensor_stats.bag_rows_per_message(bag, layout)
+
+    def no_fallback(*_a, **_k):
+        raise AssertionError("bag_rows fell back to the per-message reading")
+    monkeypatch.setattr(sensor_stats, "bag_rows_per_message", no_fallback)
+    got = sensor_stats.bag_rows(bag, layout)
+    assert len(ref[0]) > 1000 and len(ref[1]) > 100                     # both devices, their fit errors read
+    assert (ref[0][:, sensor_stats.FIT] > 0).all() and (ref[1][:, sensor_stats.FIT] > 0).all()
+    for a, b in zip(got, ref, strict=True):
+        assert a.dtype == b.dtype and a.shape == b.shape
+        assert np.array_equal(a, b, equal_nan=True)
 
 
 @pytest.fixture(scope="module")

@@ -27,7 +27,6 @@ import sys
 import numpy as np
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
-from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import JointState
 
 from fullperc_common.diagnostics import Diagnostics
@@ -45,6 +44,15 @@ from .diana.stream import DianaStreamBackend, DianaStreamPipeline, RawJointState
 from .diana_kinematics import DIANA7_MDH, JOINT_NAMES, DianaKinematics
 from .handoff import Handoff
 from .node_common import HEALTH_PERIOD_S, ConsoleThrottle, HealthReport, declare_health, make_qos
+
+
+def _rotvec_to_R(v: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a rotation vector (the controller's TCP orientation, ``diana_api`` only). scipy is imported
+    here: the stream backend's processes (simulator, demo, tests) never need it, and scipy.spatial's imports cost
+    ~0.5 s of CPU at every start (test/test_startup_imports.py)."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(v).as_matrix()
 
 
 class DianaStateNode(Node):
@@ -112,6 +120,7 @@ class DianaStateNode(Node):
         else:
             self.pipeline = None
             self.backend = DianaApiBackend(library, robot_ip, age_compensation_s=age)
+            _rotvec_to_R(np.zeros(3))   # scipy's import now, not in the first poll (see _rotvec_to_R)
             self._poll = self.create_timer(1.0 / rate, self._poll_api)
             self.get_logger().info(f"DianaApi from {library}, robot {robot_ip}, polling at {rate} Hz")
         self._diag_timer = self.create_timer(min(diag_period, HEALTH_PERIOD_S), self._update_diagnostics)
@@ -170,7 +179,7 @@ class DianaStateNode(Node):
             if s.vendor_tcp is not None:
                 # Cross-check against the controller's own FK (its default TCP = flange unless reconfigured).
                 dp = np.linalg.norm(s.vendor_tcp[:3] - T[:3, 3]) * 1e3
-                R = Rotation.from_rotvec(s.vendor_tcp[3:]).as_matrix()
+                R = _rotvec_to_R(s.vendor_tcp[3:])
                 dr = np.linalg.norm(R - T[:3, :3]) * 100.0  # ~mm at 0.1 m lever
                 self._vendor_dev_mm = float(max(dp, dr))
         except ValueError as e:

@@ -42,6 +42,19 @@ def synth_eval(synth):
     return evaluate_bag(synth[0], progress=False)
 
 
+@pytest.fixture(scope="module")
+def synth_replay(synth):
+    """A function giving a fresh copy of the replay of the synthetic bag with the default configuration: one replay
+    for the tests that inject an error into a method's outputs (each changes its own copy)."""
+    import copy
+
+    from fullperc_eval.evaluation.replay import replay
+
+    cfg, _ = replay_config()
+    rep = replay(synth[0], cfg, progress=False)
+    return lambda: copy.deepcopy(rep)
+
+
 # ------------------------------------------------------------------------------------------- ground truth
 def _cal():
     return Calibration(make_T([0.1, -0.2, 0.3], [0, 0, 0.3826834323650898, 0.9238795325112867]),
@@ -249,15 +262,13 @@ def test_orientation_error_of_exact_data_is_zero_for_every_method_and_source(syn
     assert all(v is not None and v < 1e-9 for v in exact.values()), exact
 
 
-def test_injected_orientation_error_is_measured_and_split_by_region(synth, synth_eval):
+def test_injected_orientation_error_is_measured_and_split_by_region(synth, synth_eval, synth_replay):
     from scipy.spatial.transform import Rotation
 
     from fullperc_eval.evaluation.metrics import evaluate_replay
-    from fullperc_eval.evaluation.replay import replay
     from fullperc_fusion.layout import default_layout_path, load_layout
 
-    cfg, _ = replay_config()
-    rep = replay(synth[0], cfg, progress=False)
+    rep = synth_replay()
     angle = 1.7   # deg, about an arbitrary axis in base
     d = Rotation.from_rotvec(np.radians(angle) * np.array([0.48, -0.6, 0.64]))
     o = rep.outputs["kf"]
@@ -328,17 +339,15 @@ def test_local_seen_mask_spans_and_stamp_tolerance():
     assert local_seen_mask(np.array([250 * ms]), local, gap_ns=300 * ms).all()
 
 
-def test_orientation_split_by_the_local_sources_sightings(synth):
+def test_orientation_split_by_the_local_sources_sightings(synth, synth_replay):
     """An orientation error injected into one method only where the Vega sees the tool shows in its ``seen``
     figure alone; the raw local chain has only a ``seen`` figure."""
     from scipy.spatial.transform import Rotation
 
     from fullperc_eval.evaluation.metrics import evaluate_replay, local_seen_mask
-    from fullperc_eval.evaluation.replay import replay
     from fullperc_fusion.layout import default_layout_path, load_layout
 
-    cfg, _ = replay_config()
-    rep = replay(synth[0], cfg, progress=False)
+    rep = synth_replay()
     o = rep.outputs["kf"]
     seen = local_seen_mask(o["t_ns"], rep.single_sources["local"]["t_ns"])
     assert 0 < seen.sum() < len(seen)

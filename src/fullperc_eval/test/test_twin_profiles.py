@@ -11,22 +11,37 @@ simulated. The accuracy helpers are checked on hand-made rows.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from fullperc_common.testing import workspace_root
 from fullperc_eval.bag.calibration import load_calibration
-from fullperc_eval.bag.reader import BagReader, decoded_messages
+from fullperc_eval.bag.fast_decode import (
+    DecodeError,
+    QualityBatch,
+    decode_joint_states,
+    decode_pose_stamped,
+    decode_tracking_quality,
+)
+from fullperc_eval.bag.reader import BagReader, _raw_messages
+from fullperc_eval.bag.types import fullperc_typestore
 from fullperc_eval.evaluation import twin_report
 from fullperc_eval.evaluation.accuracy import holds, summarize
 from fullperc_eval.evaluation.ground_truth import GroundTruth
-from fullperc_eval.evaluation.replay_data import _stamp_ns
 from fullperc_eval.evaluation.twin_report import DEFAULT_SEEDS, check_targets, parse_seeds, task_stats
-from fullperc_eval.sim.dataset import content_from_sim, write_bag
+from fullperc_eval.sim.dataset import content_from_sim, synthetic_content, write_bag
+from fullperc_eval.sim.occluders import (
+    PlacedBox,
+    rays_blocked_by_boxes,
+    rays_blocked_by_capsules,
+    segment_segment_distance,
+)
 from fullperc_eval.sim.runner import run_task
 from fullperc_eval.sim.scene import PROFILES, SceneError, build_scene, load_profile, load_scene_config, merge_overrides
 from fullperc_eval.sim.tasks import TASKS
@@ -37,6 +52,8 @@ BAGS = workspace_root() / "bags"
 REPORT_SEEDS = parse_seeds(DEFAULT_SEEDS)   # what `make twin-report` uses by default
 BAG_SEED = 0          # the committed bags' seed (``make dataset``; test_sample_bags checks their metadata)
 TWIN_TASK = TASKS[0]  # the task simulated again to tie the committed bags to today's twin
+JOINTS = "/diana/joint_states"
+QUALITY = "fullperc_msgs/msg/TrackingQuality"
 # figures of task_stats no bag can give, and why: a profile whose targets need one has its bags' seed simulated
 NOT_IN_BAGS = {"jump_set_change_median_mm": "the OMC's ray count per frame (rays) is not recorded"}
 # a bag holds the poses as the drivers publish them (float32 on the wire) and its truth is the evaluator's (joint
@@ -90,6 +107,98 @@ def test_accuracy_summary_orderings_and_ratios():
     assert s["table1_mae_mm"]["G-B-P"]["cbkf"][0] == pytest.approx(1.75)
 
 
+def _quality_fields(m) -> tuple:
+    """Every field of a TrackingQuality as rosbags deserialises it (stamp in ns)."""
+    return (int(m.header.stamp.sec) * 1_000_000_000 + int(m.header.stamp.nanosec), m.header.frame_id, m.body,
+            bool(m.visible), float(m.fit_error), int(m.frame_number), int(m.markers_used), float(m.latency),
+            int(m.port_status))
+
+
+def _bulk_fields(b: QualityBatch, i: int) -> tuple:
+    return (int(b.t_ns[i]), b.frame_id[i], b.body[i], bool(b.visible[i]), float(b.fit_error[i]),
+            int(b.frame_number[i]), int(b.markers_used[i]), float(b.latency[i]), int(b.port_status[i]))
+
+
+def test_tracking_quality_decoded_in_bulk_is_rosbags_decoding():
+    """fast_decode.decode_tracking_quality (the frame grids here; sensor_stats.bag_rows' fit errors) gives every field
+    of every TrackingQuality of a committed bag as rosbags deserialises it, without its fallback; made-up records
+    (other string lengths in one batch, extreme values) too, a big-endian one and one whose bool byte is neither 0
+    nor 1 through the fallback, and a truncated one is named. (Its place is beside the other decoders' tests in
+    test_fast_decode.py.)"""
+    r = BagReader(BAGS / PROFILES[0] / TWIN_TASK)
+    try:
+        topics = [t for t, info in r.topics.items() if info.msgtype == QUALITY]
+        raw = _raw_messages(r, topics)
+        b = decode_tracking_quality(raw.data, lambda d: pytest.fail("a committed record off the bulk layout"))
+        assert len(topics) >= 6 and len(raw.data) == sum(r.topics[t].count for t in topics)
+        for i, d in enumerate(raw.data):
+            assert _bulk_fields(b, i) == _quality_fields(r.deserialize(d, QUALITY)), f"record {i}"
+    finally:
+        r.close()
+    ts = fullperc_typestore()
+    T = ts.types
+
+    def q(i: int, frame: str, body: str):
+        return T[QUALITY](header=T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](
+            sec=1_700_000_000 + i, nanosec=999_999_999 - i), frame_id=frame), body=body, visible=bool(i % 2),
+            fit_error=np.float32(-1.0 if i % 3 else 1.25e-4 * i), frame_number=(2**32 - 1 - i) if i % 2 else i,
+            markers_used=65535 if i % 4 == 0 else i, latency=np.float32(0.008 * i), port_status=0x31 * (i % 2))
+    msgs = [q(i, ("", "o", "omc", "a_longer_frame")[i % 4], ("tool", "", "instrument", "b")[i // 4 % 4])
+            for i in range(16)]
+    raws = [bytes(ts.serialize_cdr(m, QUALITY)) for m in msgs]
+    raws[5] = bytes(ts.serialize_cdr(msgs[5], QUALITY, little_endian=False))     # big-endian: not the bulk layout
+    vis = 16 + 4 * (-(-len(msgs[6].header.frame_id + "x") // 4)) + 4 + len(msgs[6].body) + 1
+    raws[6] = raws[6][:vis] + b"\x02" + raws[6][vis + 1:]                        # a bool byte that is not 0/1
+    used = []
+
+    def fallback(d: bytes):
+        used.append(d)
+        return ts.deserialize_cdr(d, QUALITY)
+
+    b = decode_tracking_quality(raws, fallback)
+    assert used == [raws[5], raws[6]]
+    for i, d in enumerate(raws):
+        assert _bulk_fields(b, i) == _quality_fields(ts.deserialize_cdr(d, QUALITY)), f"made-up record {i}"
+    with pytest.raises(DecodeError) as e:
+        decode_tracking_quality([*raws[:2], raws[2][:30]], fallback)
+    assert e.value.index == 2
+
+
+def test_culled_occlusion_tests_are_the_plain_ones():
+    """The simulator's line of sight (occluders.rays_blocked_by_capsules / _by_boxes) runs the exact test only on the
+    (ray, occluder) pairs a bound cannot rule out: the result is the plain form's, element for element, here on rays
+    grazing capsules (radii equal to, or a hair off, a pair's distance), a zero-length ray, segments ending on a
+    box's face, and boxes axis-aligned and turned (the committed bags pin it on the twin's own scenes)."""
+    rng = np.random.default_rng(5)
+    F, R, K = 30, 50, 6
+    ray_a = rng.uniform(-1.0, 1.0, (F, R, 3))
+    ray_b = rng.uniform(-3.0, 3.0, (F, R, 3)) + [0.0, 0.0, 2.0]
+    ray_b[0, 0] = ray_a[0, 0]                                           # a zero-length ray
+    cap_a = rng.uniform(-1.5, 1.5, (F, K, 3))
+    cap_b = cap_a + rng.normal(0.0, 0.4, (F, K, 3))
+    cap_b[:, 0] = cap_a[:, 0]                                           # a sphere
+    d = segment_segment_distance(ray_a[:, :, None], ray_b[:, :, None], cap_a[:, None], cap_b[:, None])
+    cap_r = np.quantile(d, 0.05, axis=(0, 1))
+    for k, step in ((1, None), (2, np.inf), (3, 0.0)):     # a pair's distance exactly, a hair above, a hair below
+        f, r = np.unravel_index(np.argmin(np.abs(d[:, :, k] - cap_r[k])), (F, R))
+        cap_r[k] = d[f, r, k] if step is None else np.nextafter(d[f, r, k], step)
+    got = rays_blocked_by_capsules(ray_a, ray_b, cap_a, cap_b, cap_r)
+    assert np.array_equal(got, rays_blocked_by_capsules(ray_a, ray_b, cap_a, cap_b, cap_r, cull=False))
+    assert 0 < got.sum() < got.size
+    turn = Rotation.from_euler("z", 0.7).as_matrix()
+    boxes = [PlacedBox.of("upright", np.array([0.2, 0.0, 0.5]), np.eye(3), np.array([0.3, 0.4, 0.5])),
+             PlacedBox.of("turned", np.array([-0.5, 0.3, 1.0]), turn, np.array([0.6, 0.1, 0.2]))]
+    a = rng.uniform(-2.0, 2.0, (F, 4, 5, 3))
+    b = rng.uniform(-4.0, 4.0, (F, 4, 5, 3))
+    a[0, 0, :, :] = [0.2, 0.0, 1.0]                                      # ending on the upright box's top face
+    b[0, 0, :, 2] = 1.0
+    got = rays_blocked_by_boxes(a, b, boxes)
+    assert np.array_equal(got, rays_blocked_by_boxes(a, b, boxes, cull=False))
+    assert got[0, 0].all() and 0 < got.sum() < got.size
+    flat = rays_blocked_by_boxes(a.reshape(-1, 3), b.reshape(-1, 3), boxes)
+    assert np.array_equal(flat, got.ravel())
+
+
 def _bag_run(bag: Path, profile: str) -> SimpleNamespace:
     """What :func:`task_stats` reads of a :class:`~fullperc_eval.sim.run.SimRun`, from a committed bag: the tool's and
     base marker's OMC and Vega poses on the devices' frame grids (every frame has a quality message; NaN where not
@@ -97,29 +206,36 @@ def _bag_run(bag: Path, profile: str) -> SimpleNamespace:
     joint states do not reach), its true region by the margin model as the simulator labels it, and the Vega's true
     pose from the twin's scene (no bag holds it). The ray count is not recorded: constant here (NOT_IN_BAGS)."""
     cal = load_calibration(bag)
-    with BagReader(bag) as r:
+    quality = {dev: f"/{dev}/tool/quality" for dev in ("omc", "ots")}
+    topics = [*quality.values(), *(f"/{d}/{b}/pose" for d in ("omc", "ots") for b in ("tool", "base")), JOINTS]
+    r = BagReader(bag)   # records read once and decoded in bulk; rosbags' reader is opened only if one needs it
+    try:
         custom = r.info["custom_data"]
-        grid = {dev: np.array(sorted({_stamp_ns(r.deserialize(m.data, m.msgtype).header)
-                                      for m in r.messages([f"/{dev}/tool/quality"])}), np.int64)
-                for dev in ("omc", "ots")}
-        topics = [f"/{d}/{b}/pose" for d in ("omc", "ots") for b in ("tool", "base")]
-        msgs = decoded_messages(r, [*topics, "/diana/joint_states"])
-    gt = GroundTruth([m.t_ns for m in msgs if m.names is not None], [m.position for m in msgs if m.names is not None],
-                     cal)
+        raw = _raw_messages(r, topics)
+        dec = {}
+        for k, topic in enumerate(topics):
+            decode = decode_tracking_quality if topic in quality.values() else \
+                decode_joint_states if topic == JOINTS else decode_pose_stamped
+            dec[topic] = decode([raw.data[i] for i in np.flatnonzero(raw.topic == k)],
+                                lambda d, ty=r.topics[topic].msgtype: r.deserialize(d, ty))
+    finally:
+        r.close()
+    grid = {dev: np.unique(dec[q].t_ns) for dev, q in quality.items()}
+    gt = GroundTruth(dec[JOINTS].t_ns, dec[JOINTS].position, cal)
+    layout = _layout()
 
     def body(dev: str, name: str) -> dict[str, np.ndarray]:
-        t = grid[dev]
-        ms = [m for m in msgs if m.topic == f"/{dev}/{name}/pose"]
-        i = np.searchsorted(t, [m.t_ns for m in ms])
-        assert np.array_equal(t[i], [m.t_ns for m in ms]), f"{bag}: a {dev} pose off its frame grid"
+        t, pb = grid[dev], dec[f"/{dev}/{name}/pose"]
+        i = np.searchsorted(t, pb.t_ns)
+        assert np.array_equal(t[np.minimum(i, len(t) - 1)], pb.t_ns), f"{bag}: a {dev} pose off its frame grid"
         seen, pos, quat = np.zeros(len(t), bool), np.full((len(t), 3), np.nan), np.full((len(t), 4), np.nan)
-        seen[i], pos[i], quat[i] = True, [m.p for m in ms], [m.q for m in ms]
+        seen[i], pos[i], quat[i] = True, pb.p, pb.q
         return {"position": pos, "quat_xyzw": quat, "tracked" if dev == "omc" else "visible": seen}
 
     def truth(t: np.ndarray) -> SimpleNamespace:
         T_base_tool, ok = gt.T_base_tool(t)
         T_omc_tool = cal.T_omc_base @ T_base_tool
-        labels, _ = label_points(load_layout(default_layout_path()), T_omc_tool[ok, :3, 3])
+        labels, _ = label_points(layout, T_omc_tool[ok, :3, 3])
         region = np.zeros(len(t), np.uint8)
         region[ok] = labels
         return SimpleNamespace(T_base_tool=T_base_tool, T_omc_tool=T_omc_tool, region=region)
@@ -131,7 +247,19 @@ def _bag_run(bag: Path, profile: str) -> SimpleNamespace:
                            ots=SimpleNamespace(tools={b: SimpleNamespace(**body("ots", b)) for b in ("tool", "base")}),
                            truth=truth(grid["omc"]), truth_ots=truth(grid["ots"]),
                            static={"T_omc_base": cal.T_omc_base,
-                                   "T_omc_ots": build_scene(seed, profile=profile).static_transforms()["T_omc_ots"]})
+                                   "T_omc_ots": _T_omc_ots(seed, profile)})
+
+
+@functools.cache
+def _layout():
+    """The default layout (the margin model's, as the simulator labels regions), loaded once per module."""
+    return load_layout(default_layout_path())
+
+
+@functools.cache
+def _T_omc_ots(seed: int, profile: str) -> np.ndarray:
+    """The twin's true Vega pose in the OMC frame for ``seed`` and ``profile`` (built once per module)."""
+    return build_scene(seed, profile=profile).static_transforms()["T_omc_ots"]
 
 
 def bag_stats(bag: Path, profile: str) -> dict:
@@ -190,21 +318,58 @@ def _same(a, b) -> bool:
 
 def assert_same_bag(fresh: Path, bag: Path) -> None:
     """``bag`` holds what ``fresh`` holds: topics, types and counts, custom data, calibration, and every message in
-    the same order at the same receive time, its bytes equal or (:func:`_same`) its values."""
-    with BagReader(fresh) as f, BagReader(bag) as c:
+    the same order at the same receive time, its bytes equal or (:func:`_same`) its values. The records are read
+    raw in rosbags' order (fast_decode.read_raw, pinned to rosbags by test_fast_decode); a record whose bytes differ
+    is deserialised by rosbags."""
+    f, c = BagReader(fresh), BagReader(bag)
+    try:
         assert f.info["custom_data"] == c.info["custom_data"]
         assert {n: (t.msgtype, t.count) for n, t in f.topics.items()} == {n: (t.msgtype, t.count)
                                                                           for n, t in c.topics.items()}
-        n = 0
-        for a, b in zip(f.messages(), c.messages(), strict=True):
-            n += 1
-            assert (a.topic, a.timestamp) == (b.topic, b.timestamp), f"message {n}"
-            assert a.data == b.data or _same(f.deserialize(a.data, a.msgtype), c.deserialize(b.data, b.msgtype)), \
-                f"message {n} ({a.topic} at {a.timestamp})"
+        topics = list(f.topics)
+        rf, rc = _raw_messages(f, topics), _raw_messages(c, topics)
+        assert len(rf.data) == len(rc.data) == sum(t.count for t in f.topics.values())
+        for n, (k, ta, a, kb, tb, b) in enumerate(zip(rf.topic.tolist(), rf.timestamp.tolist(), rf.data,
+                                                      rc.topic.tolist(), rc.timestamp.tolist(), rc.data,
+                                                      strict=True), 1):
+            assert (topics[k], ta) == (topics[kb], tb), f"message {n}"
+            typ = f.topics[topics[k]].msgtype
+            assert a == b or _same(f.deserialize(a, typ), c.deserialize(b, typ)), f"message {n} ({topics[k]} at {ta})"
+    finally:
+        f.close()
+        c.close()
     cf, cc = load_calibration(fresh), load_calibration(bag)
     assert cf.source == cc.source
     for k in ("T_base_diana_base", "T_flange_tool", "T_omc_base"):
         assert _same(getattr(cf, k), getattr(cc, k)), k
+
+
+def test_bags_written_in_bulk_are_the_per_message_ones(tmp_path):
+    """write_bag serialises each topic's records at once (sim/cdr_records.py); the bag directory must be, byte for
+    byte, the one its per-message path (rosbags' serialiser, the reference) writes: here for content with a body
+    without fit errors or marker counts, a tracked frame with a NaN pose (not published), a tool never seen (no pose
+    at all), marker counts beyond the wire range, no frame numbers, no joint velocities, and a truth track. (The
+    committed bags tie the bulk path to the twin's own content: test_committed_bags_are_todays_twin. Its place is
+    beside write_bag's other tests in test_dataset.py.)"""
+    c, _ = synthetic_content(3.0, ots_window_s=(0.5, 2.0))
+    tool = c.omc.bodies["tool"]
+    pos = tool.position.copy()
+    pos[5] = np.nan
+    c.omc.bodies["tool"] = dataclasses.replace(tool, position=pos, fit_error=None, markers=None)
+    c.omc.bodies["base"] = dataclasses.replace(c.omc.bodies["base"], markers=np.full(len(pos), 70000.7))
+    c.omc = dataclasses.replace(c.omc, frame_number=None)
+    c.ots.bodies["tool"] = dataclasses.replace(c.ots.bodies["tool"], visible=np.zeros(len(c.ots.t_ns), bool))
+    c.diana = dataclasses.replace(c.diana, dq=None)
+    t_tr = c.omc.t_ns[::10]
+    c.truth = {"instrument": (t_tr, np.broadcast_to(np.eye(4), (len(t_tr), 4, 4)).copy())}
+    (tmp_path / "bulk").mkdir()
+    (tmp_path / "per_message").mkdir()
+    bulk = write_bag(tmp_path / "bulk" / "b", c)
+    ref = write_bag(tmp_path / "per_message" / "b", c, per_message=True)
+    files = sorted(f.name for f in ref.iterdir())
+    assert files == sorted(f.name for f in bulk.iterdir()) and len(files) == 3
+    for f in files:
+        assert (bulk / f).read_bytes() == (ref / f).read_bytes(), f
 
 
 @pytest.mark.parametrize("profile", PROFILES)

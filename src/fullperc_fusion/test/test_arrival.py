@@ -62,17 +62,31 @@ def _shuffled(events, max_delay_ns, seed):
     return [ev for _, ev in sorted(zip(recv, events, strict=True), key=lambda x: x[0])]
 
 
+@pytest.fixture(scope="module")
+def arrival_run():
+    """(cfg, events, (live, final, pipe)) of the stream below through ArrivalPipeline, per (chain, reorder_ms): one
+    run, read by the two tests that follow (the final outputs against ordered processing, the live stamps). Each
+    test only reads it; the run is the same one either test made for itself before."""
+    runs = {}
+
+    def get(chain: str, reorder_ms: int):
+        if (chain, reorder_ms) not in runs:
+            events = stream(duration=2.5, local=(0.5, 2.0), omc_hz=240, ots_hz=400)
+            if reorder_ms:
+                events = _shuffled(events, reorder_ms * MS, seed=reorder_ms)
+            cfg = TargetConfig(filters=ALL, chain=ChainConfig(local_chain=chain, static_links="average"))
+            runs[chain, reorder_ms] = cfg, events, _arrival(cfg, events)
+        return runs[chain, reorder_ms]
+    return get
+
+
 @pytest.mark.parametrize("chain", ["static", "tracked", "direct"])
 @pytest.mark.parametrize("reorder_ms", [0, 30])
-def test_final_estimates_equal_ordered_processing(chain, reorder_ms):
+def test_final_estimates_equal_ordered_processing(chain, reorder_ms, arrival_run):
     """Every filter, every output: same stamps and the same numbers (exactly) as the ordered pipeline, with the
     static links estimated mid-stream (average of the first samples) and samples out of order within the delay."""
-    events = stream(duration=2.5, local=(0.5, 2.0), omc_hz=240, ots_hz=400)
-    if reorder_ms:
-        events = _shuffled(events, reorder_ms * MS, seed=reorder_ms)
-    cfg = TargetConfig(filters=ALL, chain=ChainConfig(local_chain=chain, static_links="average"))
+    cfg, events, (live, final, apipe) = arrival_run(chain, reorder_ms)
     ordered, opipe = _ordered(cfg, events)
-    live, final, apipe = _arrival(cfg, events)
     do, da = _by_key(ordered), _by_key(final)
     assert len(do) > 1000 and do.keys() == da.keys()
     for k, o in do.items():
@@ -87,14 +101,10 @@ def test_final_estimates_equal_ordered_processing(chain, reorder_ms):
 
 @pytest.mark.parametrize("chain", ["static", "tracked", "direct"])
 @pytest.mark.parametrize("reorder_ms", [0, 30])
-def test_live_output_stamps_strictly_increase(chain, reorder_ms):
+def test_live_output_stamps_strictly_increase(chain, reorder_ms, arrival_run):
     """What fusion_node publishes on pose / pose_cov / tf (the live outputs of the primary) never repeats or goes
     back in stamp -- also while the static links are estimated mid-stream and items are re-run with them."""
-    events = stream(duration=2.5, local=(0.5, 2.0), omc_hz=240, ots_hz=400)
-    if reorder_ms:
-        events = _shuffled(events, reorder_ms * MS, seed=reorder_ms)
-    cfg = TargetConfig(filters=ALL, chain=ChainConfig(local_chain=chain, static_links="average"))
-    live, _final, _pipe = _arrival(cfg, events)
+    _cfg, _events, (live, _final, _pipe) = arrival_run(chain, reorder_ms)
     stamps = np.array([o.t_ns for o in live if o.filter == ALL[0]])
     assert stamps.size > 300   # reordered by 30 ms, items older than one already published are not published live
     assert np.all(np.diff(stamps) > 0), np.flatnonzero(np.diff(stamps) <= 0)

@@ -63,18 +63,45 @@ def _items(seed: int, n: int, cov_mode: str | None):
     return out
 
 
+def _frozen(items):
+    """The items with read-only arrays: one list is fed to several filter pairs (:func:`items`), so a filter that
+    changed a measurement in place would raise here instead of changing the input of the runs after it."""
+    for ms in items:
+        for m in ms:
+            for a in (m.p, m.cov):
+                if a is not None:
+                    a.flags.writeable = False
+    return items
+
+
+@pytest.fixture(scope="module")
+def items():
+    """:func:`_items` per (seed, n, cov_mode), made once per module: the kinds and settings of a test below run the
+    same stream (the same seed and length give the same items), now generated once instead of once per kind. A
+    shorter stream of the same seed is the start of the longer one (the n-th item depends only on the draws before
+    it), so it is served as a prefix."""
+    made: dict[tuple[int, str | None], list] = {}
+
+    def get(seed: int, n: int, cov_mode: str | None):
+        have = made.get((seed, cov_mode))
+        if have is None or len(have) < n:
+            made[seed, cov_mode] = have = _frozen(_items(seed, n, cov_mode))
+        return have[:n]
+    return get
+
+
 def _agree(a, b, p_rel: bool, tol: float) -> None:
     assert a.t_ns == b.t_ns and a.sources == b.sources and a.reset == b.reset and a.hop == b.hop
-    assert np.max(np.abs(a.pos_cov - b.pos_cov)) <= tol   # before P: the closed form's pos_cov without building P
+    assert np.abs(a.pos_cov - b.pos_cov).max() <= tol   # before P: the closed form's pos_cov without building P
     for f in ("p", "v", "b", "innovation", "P"):
-        assert np.max(np.abs(getattr(a, f) - getattr(b, f))) <= tol, f
+        assert np.abs(getattr(a, f) - getattr(b, f)).max() <= tol, f
     if p_rel:
-        assert np.max(np.abs(a.P - b.P)) <= tol * np.max(np.abs(b.P))
+        assert np.abs(a.P - b.P).max() <= tol * np.abs(b.P).max()
     assert abs(a.nis - b.nis) <= 10 * tol * max(1.0, b.nis)
     assert abs(a.nis_global - b.nis_global) <= 10 * tol * max(1.0, b.nis_global)
     assert (a.m is None) == (b.m is None)
     if a.m is not None:
-        assert np.max(np.abs(a.m - b.m)) <= tol
+        assert np.abs(a.m - b.m).max() <= tol
 
 
 def _run(kind: str, items, params: FilterParams | None = None, p_rel: bool = False, tol: float = TOL):
@@ -86,7 +113,7 @@ def _run(kind: str, items, params: FilterParams | None = None, p_rel: bool = Fal
         ref.predict(t)
         a, b = fast.update(*ms), ref.update(*ms)
         _agree(a, b, p_rel, tol)
-        assert np.max(np.abs(fast.x - ref.x)) <= tol and fast.time_ns == ref.time_ns
+        assert np.abs(fast.x - ref.x).max() <= tol and fast.time_ns == ref.time_ns
         seen["hop"] += b.hop
         seen["reset"] += b.reset
         seen["pair"] += len(ms) == 2
@@ -97,8 +124,8 @@ def _run(kind: str, items, params: FilterParams | None = None, p_rel: bool = Fal
 
 @pytest.mark.parametrize("cov_mode", [None, "iso", "diag"])
 @pytest.mark.parametrize("kind", FILTER_KINDS)
-def test_closed_form_equals_general_form(kind, cov_mode):
-    items = _items(seed=11, n=2500, cov_mode=cov_mode)
+def test_closed_form_equals_general_form(kind, cov_mode, items):
+    items = items(seed=11, n=2500, cov_mode=cov_mode)
     fast, seen = _run(kind, items, p_rel=True)
     # the stream exercised every branch, and the closed form was used throughout
     assert seen["hop"] >= 10 and seen["reset"] >= 3 and seen["pair"] >= 500 and seen["lag"] >= 300
@@ -116,14 +143,14 @@ def test_closed_form_equals_general_form(kind, cov_mode):
     (FilterParams(shrink_blocks=("p", "v", "b")), 10 * TOL),
 ], ids=["no-hop-to-bias", "other-noise", "eq14-prior", "shrink-pvb"])
 @pytest.mark.parametrize("kind", FILTER_KINDS)
-def test_closed_form_equals_general_form_for_other_settings(kind, params, tol):
+def test_closed_form_equals_general_form_for_other_settings(kind, params, tol, items):
     n = 150 if params.eq14_covariance == "prior" else 1200
-    _run(kind, _items(seed=12, n=n, cov_mode="diag"), params, tol=tol)
+    _run(kind, items(seed=12, n=n, cov_mode="diag"), params, tol=tol)
 
 
 @pytest.mark.parametrize("kind", FILTER_KINDS)
-def test_a_correlated_covariance_falls_back_to_the_general_form_with_equal_results(kind):
-    items = _items(seed=13, n=1500, cov_mode="corr")
+def test_a_correlated_covariance_falls_back_to_the_general_form_with_equal_results(kind, items):
+    items = items(seed=13, n=1500, cov_mode="corr")
     fast, seen = _run(kind, items)
     assert 0 < seen["closed"] < len(items)     # closed form until the first correlated R, general after it
     assert not fast.closed_form

@@ -96,17 +96,36 @@ class FilterpyKF:
         return self.kf.x.ravel().copy(), self.kf.P.copy()
 
 
+@pytest.fixture(scope="module")
+def filterpy_run():
+    """(items, filterpy's (x, P) after each item) per covariance mode, made once per module: both of our forms
+    (general, registry) are compared step by step with the same reference run (filterpy's state depends only on the
+    items, which are read-only here: a filter that changed one in place would raise, not alter the other's input)."""
+    runs: dict[str, tuple] = {}
+
+    def get(cov_mode: str):
+        if cov_mode not in runs:
+            items = _stream(7 + len(cov_mode), 3000, cov_mode)
+            for m in (m for ms in items for m in ms):
+                for a in (m.p, m.cov):
+                    if a is not None:
+                        a.flags.writeable = False
+            ref = FilterpyKF(FilterParams())
+            runs[cov_mode] = items, [ref.step(ms) for ms in items]
+        return runs[cov_mode]
+    return get
+
+
 @pytest.mark.parametrize("cov_mode", ["none", "iso", "diag", "correlated"])
 @pytest.mark.parametrize("which", ["general", "registry"])
-def test_kf_matches_filterpy(which: str, cov_mode: str) -> None:
+def test_kf_matches_filterpy(which: str, cov_mode: str, filterpy_run) -> None:
     params = FilterParams()
     ours = FusionFilter("kf", params) if which == "general" else make_filter("kf", params)
-    ref = FilterpyKF(params)
+    items, reference = filterpy_run(cov_mode)
     resets = 0
-    for k, ms in enumerate(_stream(7 + len(cov_mode), 3000, cov_mode)):
+    for k, (ms, (x, P)) in enumerate(zip(items, reference, strict=True)):
         ours.predict(max(m.t_ns for m in ms))
         st = ours.update(*ms)
-        x, P = ref.step(ms)
         resets += st.reset
         assert np.max(np.abs(st.p - x[0:3])) <= TOL, f"step {k}: position differs"
         assert np.max(np.abs(st.v - x[3:6])) <= TOL, f"step {k}: velocity differs"

@@ -87,14 +87,14 @@ def test_link_covariance_matches_monte_carlo_through_the_lever_arm():
     T_bc = make_T([0.2, 0.1, 1.6], Rot.from_euler("zyx", [-20, 30, 10], degrees=True).as_quat())
     T_ac = T_ab @ T_bc
     d = rng.multivariate_normal(np.zeros(6), C_link, size=40000)
+    # every draw at once (stacks of 4x4 transforms): T = the perturbed T_ab, Tc = T @ T_bc and its error
+    T = np.broadcast_to(T_ab, (len(d), 4, 4)).copy()
+    T[:, :3, 3] += d[:, :3]
+    T[:, :3, :3] = _exp(d[:, 3:]) @ T_ab[:3, :3]
+    Tc = T @ T_bc
     errs = np.empty_like(d)
-    for i, (dp, dphi) in enumerate(zip(d[:, :3], d[:, 3:], strict=True)):
-        T = T_ab.copy()
-        T[:3, 3] += dp
-        T[:3, :3] = _exp(dphi) @ T_ab[:3, :3]
-        Tc = T @ T_bc
-        errs[i, :3] = Tc[:3, 3] - T_ac[:3, 3]
-        errs[i, 3:] = _log(Tc[:3, :3] @ T_ac[:3, :3].T)
+    errs[:, :3] = Tc[:, :3, 3] - T_ac[:3, 3]
+    errs[:, 3:] = _log(Tc[:, :3, :3] @ T_ac[:3, :3].T)
     emp = errs.T @ errs / len(errs)
     C = link_covariance_at(C_link, T_ac[:3, 3] - T_ab[:3, 3])
     scale = np.sqrt(np.outer(np.diag(C), np.diag(C)))

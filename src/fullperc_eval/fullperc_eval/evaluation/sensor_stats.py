@@ -33,7 +33,10 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from fullperc_common.transforms import inv_T
 from fullperc_eval.bag.calibration import load_calibration
+from fullperc_eval.bag.errors import BagError
+from fullperc_eval.bag.fast_decode import DecodeError
 from fullperc_eval.bag.reader import BagReader
 from fullperc_eval.evaluation.config import replay_config
 from fullperc_eval.evaluation.ground_truth import GroundTruth
@@ -44,6 +47,8 @@ from fullperc_fusion.margin import margin_at
 from fullperc_fusion.measurement_models import OmcModelParams
 from fullperc_fusion.pipeline import TargetPipeline
 
+JOINT_TOPIC = "/diana/joint_states"
+QUALITY_TYPE = "fullperc_msgs/msg/TrackingQuality"
 # columns of a sample row
 T, EX, EY, EZ, FIT, MARGIN, DIST, RX, RY, RZ, PX, PY, PZ = range(13)
 
@@ -51,16 +56,30 @@ T, EX, EY, EZ, FIT, MARGIN, DIST, RX, RY, RZ, PX, PY, PZ = range(13)
 def bag_rows(bag: Path, layout) -> tuple[np.ndarray, np.ndarray]:
     """(OMC rows, OTS rows) of one bag: time [s], position error (3) [m], fit error [m], margin [deg] (OMC),
     distance to the Vega [m] (OTS), rotation error vector (3) [rad], true position in base (3) [m]; errors in base,
-    measured minus true."""
+    measured minus true.
+
+    Read in bulk (:func:`_bulk_samples`): the same rows as :func:`bag_rows_per_message`, which feeds every message
+    through the node's pipeline one by one and stays the reference (``test/test_model_constants.py`` pins the two
+    equal on a committed bag). Why: that path spent most of a bag's ~2.5 s in rosbags' per-message deserialiser and
+    in the pipeline's per-sample validation, synchroniser and filter, none of which decides a row. Where the bulk
+    path cannot reproduce it (:class:`_NotBulk`) the per-message path runs.
+    """
+    try:
+        samples, jt, jq, fit = _bulk_samples(Path(bag))
+    except _NotBulk:
+        return bag_rows_per_message(bag, layout)
+    return _sample_rows(Path(bag), layout, samples, jt, jq, fit)
+
+
+def bag_rows_per_message(bag: Path, layout) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`bag_rows` the plain way: every message of the chain's bodies, their qualities and the joint states
+    deserialised by rosbags and pushed through the node's own pipeline (``TargetPipeline``) in bag order; an OMC
+    target sample counts once ``T_omc_base`` is known, an OTS one once the local chain maps it."""
     cfg, _ = replay_config()
     cfg.filters = ("omc",)
     pipe = TargetPipeline(cfg)
     c = cfg.chain
-    # only the chain's bodies (the pipeline ignores the rest) and the target's own quality: every body's quality
-    # message of a frame has the same stamp, so a quality is the target's only by its topic
-    quality = {f"/omc/{c.omc_target}/quality": "omc", f"/ots/{c.ots_target}/quality": "ots"}
-    wanted = {"/diana/joint_states", *quality, *(f"/omc/{b}/pose" for b in (c.omc_target, c.omc_base, c.omc_rig)),
-              *(f"/ots/{b}/pose" for b in (c.ots_target, c.ots_base))}
+    quality, wanted = _wanted(cfg)
     reader = BagReader(bag)
     reader.open()
     fit: dict[tuple[str, int], float] = {}
@@ -91,6 +110,124 @@ def bag_rows(bag: Path, layout) -> tuple[np.ndarray, np.ndarray]:
                 pipe.poll()
     finally:
         reader.close()
+    return _sample_rows(Path(bag), layout, samples, jt, jq, fit)
+
+
+def _wanted(cfg) -> tuple[dict[str, str], set[str]]:
+    """(the target's quality topics -> device, every topic a row needs): only the chain's bodies (the pipeline
+    ignores the rest) and the target's own quality: every body's quality message of a frame has the same stamp, so
+    a quality is the target's only by its topic."""
+    c = cfg.chain
+    quality = {f"/omc/{c.omc_target}/quality": "omc", f"/ots/{c.ots_target}/quality": "ots"}
+    wanted = {JOINT_TOPIC, *quality, *(f"/omc/{b}/pose" for b in (c.omc_target, c.omc_base, c.omc_rig)),
+              *(f"/ots/{b}/pose" for b in (c.ots_target, c.ots_base))}
+    return quality, wanted
+
+
+class _NotBulk(Exception):
+    """Something :func:`_bulk_samples` does not reproduce (another chain or link monitor setting, an invalid pose, a
+    record of another type or one the bulk decoder cannot read): :func:`bag_rows` reads the bag per message."""
+
+
+def _bulk_samples(bag: Path) -> tuple[list, np.ndarray, np.ndarray, dict[tuple[str, int], float]]:
+    """What :func:`bag_rows_per_message` collects before its rows -- (samples, joint stamps, joint positions, fit
+    errors) -- from the records decoded in bulk (:mod:`fullperc_eval.bag.fast_decode`).
+
+    Only what decides a sample runs per record, in bag order: the chain's own static-link estimation
+    (``FrameChain.observe_omc`` / ``observe_ots`` with pose_to_T's matrices, while the links are being estimated),
+    and at each target sample the link in use. The rest of the node's pipeline does not change the links with this
+    configuration: its synchroniser and filter only consume them, and its link monitor only counts a bump unless
+    ``link_monitor.recalibrate`` is set (then, or with another local chain, this raises :class:`_NotBulk`). The
+    samples are then mapped with one stacked product per link estimate (as :mod:`.batch` does for the replay)."""
+    from fullperc_eval.bag.fast_decode import decode_joint_states, decode_pose_stamped, decode_tracking_quality
+    from fullperc_eval.bag.reader import JOINT_TYPE, POSE_TYPE, _raw_messages
+
+    from .batch import _matrices, _norm
+
+    cfg, _ = replay_config()
+    cfg.filters = ("omc",)
+    c = cfg.chain
+    if c.local_chain != "static" or cfg.monitor.recalibrate or c.omc_target in (c.omc_base, c.omc_rig) \
+            or c.ots_target == c.ots_base:
+        raise _NotBulk
+    chain = TargetPipeline(cfg).chain
+    links = chain.links
+    quality, wanted = _wanted(cfg)
+    # per pose topic: 0 OMC target, 1 OTS target, 2 OMC link body, 3 OTS base
+    kind = {f"/omc/{c.omc_target}/pose": 0, f"/ots/{c.ots_target}/pose": 1, f"/ots/{c.ots_base}/pose": 3,
+            **{f"/omc/{b}/pose": 2 for b in (c.omc_base, c.omc_rig)}}
+    reader = BagReader(bag)
+    topics = [t for t in reader.topics if t in wanted]
+    want_type = {t: JOINT_TYPE if t == JOINT_TOPIC else QUALITY_TYPE if t in quality else POSE_TYPE for t in topics}
+    if any(reader.topics[t].msgtype != want_type[t] for t in topics):
+        raise _NotBulk
+    decoders = {JOINT_TYPE: decode_joint_states, POSE_TYPE: decode_pose_stamped, QUALITY_TYPE: decode_tracking_quality}
+    try:
+        raw = _raw_messages(reader, topics)
+        per = {}
+        for k, t in enumerate(topics):
+            idx = np.flatnonzero(raw.topic == k)
+            per[t] = (idx, decoders[want_type[t]]([raw.data[i] for i in idx],
+                                                  lambda d, ty=want_type[t]: reader.deserialize(d, ty)))
+    except (BagError, DecodeError):
+        raise _NotBulk from None   # the per-message path reads it again and says what is wrong
+    finally:
+        reader.close()
+    fit: dict[tuple[str, int], float] = {}
+    for t, dev in quality.items():
+        if t in per:
+            qb = per[t][1]
+            fit.update(zip(((dev, s) for s in qb.t_ns.tolist()), qb.fit_error.tolist(), strict=True))
+    jb = per[JOINT_TOPIC][1] if JOINT_TOPIC in per else None
+    jt = np.asarray([] if jb is None else jb.t_ns, np.int64)
+    jq = np.array([] if jb is None else jb.position)
+    # every pose as pose_to_T accepts it (stamp > 0, finite, unit quaternion to 1e-2), else the per-message path
+    # raises or rejects it as the node would
+    mats: dict[int, np.ndarray] = {}
+    for k, t in enumerate(topics):
+        if t not in kind:
+            continue
+        pb = per[t][1]
+        if not ((pb.t_ns > 0).all() and np.isfinite(pb.p).all() and np.isfinite(pb.q).all()
+                and (np.abs(_norm(pb.q) - 1.0) <= 1e-2).all()):
+            raise _NotBulk
+        mats[k] = _matrices(pb.p, pb.q)
+    within = np.zeros(len(raw.topic), np.int64)
+    for idx, _ in per.values():
+        within[idx] = np.arange(len(idx))
+    kind_of = [kind.get(t, -1) for t in topics]
+    bodies = [t.split("/")[2] for t in topics]
+    stamps = {k: per[t][1].t_ns.tolist() for k, t in enumerate(topics) if k in mats}
+    used: list[tuple[int, int, np.ndarray]] = []   # target samples in bag order: (topic, index in topic, link in use)
+    for k, j in zip(raw.topic.tolist(), within.tolist(), strict=True):
+        what = kind_of[k]
+        if what == 0:
+            if links.T_omc_base is not None:
+                used.append((k, j, links.T_omc_base))
+        elif what == 1:
+            if links.T_base_ots is not None:        # the static chain's local_ready
+                used.append((k, j, links.T_base_ots))
+        elif what >= 2 and links.collecting:        # final links: a link body's sighting changes nothing any more
+            (chain.observe_omc if what == 2 else chain.observe_ots)(bodies[k], stamps[k][j], mats[k][j])
+    # mapping into base: inv(T_omc_base) @ T (global_T), T_base_ots @ T (the static local_T)
+    mapped: dict[int, np.ndarray] = {}
+    groups: dict[tuple[int, int], list[int]] = {}
+    for n, (k, _, L) in enumerate(used):
+        groups.setdefault((k, id(L)), []).append(n)
+    for (k, _), ns in groups.items():
+        L = used[ns[0]][2]
+        A = inv_T(L) if kind_of[k] == 0 else L
+        out = A @ mats[k][[used[n][1] for n in ns]]
+        mapped.update(zip(ns, out, strict=True))
+    samples = [("omc" if kind_of[k] == 0 else "ots", stamps[k][j], mats[k][j], mapped[n])
+               for n, (k, j, _) in enumerate(used)]
+    return samples, jt, jq, fit
+
+
+def _sample_rows(bag: Path, layout, samples: list, jt, jq, fit: dict[tuple[str, int], float]
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The rows of :func:`bag_rows` from its samples ((device, stamp, pose in the device frame, pose in base), in
+    bag order), the joint states and the target's fit error by (device, stamp)."""
     gt = GroundTruth(np.array(jt), np.array(jq), load_calibration(bag))
     Ttrue, ok = gt.T_base_tool(np.array([s[1] for s in samples], dtype=np.int64))
     rows: dict[str, list] = {"omc": [], "ots": []}

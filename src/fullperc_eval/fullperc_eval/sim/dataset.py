@@ -47,6 +47,7 @@ from fullperc_eval.bag.qos import make_qos
 from fullperc_eval.bag.writer import BagWriter
 from fullperc_fusion.layout import default_layout_path, load_layout
 
+from . import cdr_records
 from .runner import run_task
 from .scene import DEFAULT_PROFILE, PROFILES
 from .tasks import TASKS
@@ -110,12 +111,41 @@ def _types(ts):
             T["fullperc_msgs/msg/TrackingQuality"], T["sensor_msgs/msg/JointState"])
 
 
-def write_bag(path: str | Path, content: BagContent, *, compression: str = "zstd") -> Path:
-    """Write ``content`` as a rosbag2 MCAP bag directory at ``path`` (must not exist) + calibration.yaml."""
+def write_bag(path: str | Path, content: BagContent, *, compression: str = "zstd", per_message: bool = False) -> Path:
+    """Write ``content`` as a rosbag2 MCAP bag directory at ``path`` (must not exist) + calibration.yaml.
+
+    Each topic's records are serialised at once (:func:`_bulk_events`, :mod:`.cdr_records`): the bytes rosbags'
+    serialiser gives message by message (``per_message``: that path, the reference; test_twin_profiles.py pins the
+    two bags equal record for record). Content the bulk path does not take (values outside a field's wire range,
+    a joint count other than the names') is written message by message."""
     path = Path(path)
     w = BagWriter(path, storage="mcap", compression=compression, custom_data=content.custom_data,
                   flush_interval=3600.0)
-    ts = w.typestore
+    with w:
+        for prefix, dev in (("/omc", content.omc), ("/ots", content.ots)):
+            for name in dev.bodies:
+                w.add_topic(f"{prefix}/{name}/pose", "geometry_msgs/msg/PoseStamped", [make_qos(depth=dev.qos_depth)])
+                w.add_topic(f"{prefix}/{name}/quality", "fullperc_msgs/msg/TrackingQuality",
+                            [make_qos(depth=dev.qos_depth)])
+        w.add_topic("/diana/joint_states", "sensor_msgs/msg/JointState", [make_qos(depth=10)])
+        w.add_topic("/diana/flange_pose", "geometry_msgs/msg/PoseStamped", [make_qos(depth=10)])
+        for name in content.truth:
+            w.add_topic(f"{TRUTH_PREFIX}/{name}", "geometry_msgs/msg/PoseStamped", [make_qos(depth=10)])
+        bulk = None if per_message else _bulk_events(content)
+        if bulk is not None:
+            for recv, topic, data in bulk:
+                w.write(topic, recv, data)
+        else:
+            for recv, topic, msg in _message_events(w.typestore, content):
+                w.write_msg(topic, recv, msg)
+    save_calibration(path, content.calibration)
+    return path
+
+
+def _message_events(ts, content: BagContent) -> list[tuple[int, str, object]]:
+    """Every message of ``content`` as a rosbags message object, (receive ns, topic, message) in the bag's order:
+    by receive time, ties in the order they are made here (per device frame: each body's pose, if published, then
+    its quality; per arm sample: joint state, flange pose; then each truth track)."""
     PoseStamped, Header, Time, Pose, Point, Quaternion, Quality, JointState = _types(ts)
 
     def header(t_ns: int, frame: str):
@@ -123,72 +153,141 @@ def write_bag(path: str | Path, content: BagContent, *, compression: str = "zstd
 
     events: list[tuple[int, int, str, object]] = []   # (receive ns, sequence, topic, message)
     seq = 0
-    with w:
-        for prefix, dev in (("/omc", content.omc), ("/ots", content.ots)):
-            for name in dev.bodies:
-                w.add_topic(f"{prefix}/{name}/pose", "geometry_msgs/msg/PoseStamped", [make_qos(depth=dev.qos_depth)])
-                w.add_topic(f"{prefix}/{name}/quality", "fullperc_msgs/msg/TrackingQuality",
-                            [make_qos(depth=dev.qos_depth)])
-            t = np.asarray(dev.t_ns, dtype=np.int64)
-            fn = dev.frame_number if dev.frame_number is not None else np.arange(1, len(t) + 1)
-            for k in range(len(t)):
-                tk = int(t[k])
-                recv = tk + int(dev.latency_ns)
-                for name, b in dev.bodies.items():
-                    vis = bool(b.visible[k])
-                    if vis:
-                        p, q = b.position[k], b.quat_xyzw[k]
-                        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
-                            vis = False   # a driver never publishes NaN: reported as not visible
-                        else:
-                            msg = PoseStamped(header=header(tk, dev.frame_id), pose=Pose(
-                                position=Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
-                                orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))))
-                            events.append((recv, seq, f"{prefix}/{name}/pose", msg))
-                            seq += 1
-                    fe = np.nan if b.fit_error is None else float(b.fit_error[k])
-                    qm = Quality(header=header(tk, dev.frame_id), body=name, visible=vis,
-                                 fit_error=np.float32(fe if np.isfinite(fe) else -1.0),
-                                 frame_number=int(fn[k]) & 0xFFFFFFFF,
-                                 markers_used=int(0 if b.markers is None else max(0, min(int(b.markers[k]), 65535))),
-                                 latency=np.float32(dev.latency_ns * 1e-9),
-                                 port_status=int(dev.port_status))
-                    events.append((recv, seq, f"{prefix}/{name}/quality", qm))
-                    seq += 1
-        d = content.diana
-        w.add_topic("/diana/joint_states", "sensor_msgs/msg/JointState", [make_qos(depth=10)])
-        w.add_topic("/diana/flange_pose", "geometry_msgs/msg/PoseStamped", [make_qos(depth=10)])
-        kin = DianaKinematics()
-        Q = np.asarray(d.q, dtype=float)
-        F = kin.fk_many(Q)
-        for k, tk in enumerate(np.asarray(d.t_ns, dtype=np.int64).tolist()):
-            recv = tk + int(d.latency_ns)
-            js = JointState(header=header(tk, d.frame_id), name=list(JOINT_NAMES),
-                            position=Q[k].astype(np.float64),
-                            velocity=(np.asarray(d.dq[k], dtype=np.float64) if d.dq is not None
-                                      else np.zeros(0, np.float64)),
-                            effort=np.zeros(0, np.float64))
-            events.append((recv, seq, "/diana/joint_states", js))
-            seq += 1
-            p, q = T_to_pq(F[k])
-            events.append((recv, seq, "/diana/flange_pose", PoseStamped(header=header(tk, d.frame_id), pose=Pose(
+    for prefix, dev in (("/omc", content.omc), ("/ots", content.ots)):
+        t = np.asarray(dev.t_ns, dtype=np.int64)
+        fn = dev.frame_number if dev.frame_number is not None else np.arange(1, len(t) + 1)
+        for k in range(len(t)):
+            tk = int(t[k])
+            recv = tk + int(dev.latency_ns)
+            for name, b in dev.bodies.items():
+                vis = bool(b.visible[k])
+                if vis:
+                    p, q = b.position[k], b.quat_xyzw[k]
+                    if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
+                        vis = False   # a driver never publishes NaN: reported as not visible
+                    else:
+                        msg = PoseStamped(header=header(tk, dev.frame_id), pose=Pose(
+                            position=Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
+                            orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))))
+                        events.append((recv, seq, f"{prefix}/{name}/pose", msg))
+                        seq += 1
+                fe = np.nan if b.fit_error is None else float(b.fit_error[k])
+                qm = Quality(header=header(tk, dev.frame_id), body=name, visible=vis,
+                             fit_error=np.float32(fe if np.isfinite(fe) else -1.0),
+                             frame_number=int(fn[k]) & 0xFFFFFFFF,
+                             markers_used=int(0 if b.markers is None else max(0, min(int(b.markers[k]), 65535))),
+                             latency=np.float32(dev.latency_ns * 1e-9),
+                             port_status=int(dev.port_status))
+                events.append((recv, seq, f"{prefix}/{name}/quality", qm))
+                seq += 1
+    d = content.diana
+    Q = np.asarray(d.q, dtype=float)
+    F = DianaKinematics().fk_many(Q)
+    for k, tk in enumerate(np.asarray(d.t_ns, dtype=np.int64).tolist()):
+        recv = tk + int(d.latency_ns)
+        js = JointState(header=header(tk, d.frame_id), name=list(JOINT_NAMES),
+                        position=Q[k].astype(np.float64),
+                        velocity=(np.asarray(d.dq[k], dtype=np.float64) if d.dq is not None
+                                  else np.zeros(0, np.float64)),
+                        effort=np.zeros(0, np.float64))
+        events.append((recv, seq, "/diana/joint_states", js))
+        seq += 1
+        p, q = T_to_pq(F[k])
+        events.append((recv, seq, "/diana/flange_pose", PoseStamped(header=header(tk, d.frame_id), pose=Pose(
+            position=Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
+            orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))))))
+        seq += 1
+    for name, (t_tr, T_tr) in content.truth.items():
+        topic = f"{TRUTH_PREFIX}/{name}"
+        for tk, T in zip(np.asarray(t_tr, dtype=np.int64).tolist(), T_tr, strict=True):
+            p, q = T_to_pq(T)
+            events.append((tk, seq, topic, PoseStamped(header=header(tk, "base"), pose=Pose(
                 position=Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
                 orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))))))
             seq += 1
-        for name, (t_tr, T_tr) in content.truth.items():
-            topic = f"{TRUTH_PREFIX}/{name}"
-            w.add_topic(topic, "geometry_msgs/msg/PoseStamped", [make_qos(depth=10)])
-            for tk, T in zip(np.asarray(t_tr, dtype=np.int64).tolist(), T_tr, strict=True):
-                p, q = T_to_pq(T)
-                events.append((tk, seq, topic, PoseStamped(header=header(tk, "base"), pose=Pose(
-                    position=Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
-                    orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))))))
-                seq += 1
-        events.sort(key=lambda e: (e[0], e[1]))
-        for recv, _, topic, msg in events:
-            w.write_msg(topic, recv, msg)
-    save_calibration(path, content.calibration)
-    return path
+    events.sort(key=lambda e: (e[0], e[1]))
+    return [(recv, topic, msg) for recv, _, topic, msg in events]
+
+
+def _whole(a: np.ndarray, lo: int, hi: int) -> bool:
+    """Every value of ``a`` finite and within [lo, hi] (what a wire field of that range takes as is)."""
+    a = np.asarray(a)
+    return bool(a.size == 0 or (np.isfinite(a).all() and a.min() >= lo and a.max() <= hi))
+
+
+def _bulk_events(content: BagContent) -> list[tuple[int, str, bytes]] | None:
+    """:func:`_message_events` as serialised records, (receive ns, topic, CDR bytes) in the same order, each topic
+    serialised at once (:mod:`.cdr_records`); None for content it does not take (see :func:`write_bag`)."""
+    recv_parts, seq_parts, topics, records = [], [], [], []
+
+    def add(topic: str, recv: np.ndarray, seq: np.ndarray, recs: list[bytes]) -> None:
+        recv_parts.append(np.asarray(recv, np.int64))
+        seq_parts.append(np.asarray(seq, np.int64))
+        topics.append(topic)
+        records.append(recs)
+
+    seq0 = 0
+    for prefix, dev in (("/omc", content.omc), ("/ots", content.ots)):
+        t = np.asarray(dev.t_ns, dtype=np.int64)
+        fn = dev.frame_number if dev.frame_number is not None else np.arange(1, len(t) + 1)
+        if not (_whole(t // 1_000_000_000, 0, 2**31 - 1) and _whole(fn, -2**62, 2**62)
+                and 0 <= int(dev.port_status) < 2**32):
+            return None
+        names = list(dev.bodies)
+        vis = np.zeros((len(t), len(names)), bool)
+        for j, b in enumerate(dev.bodies.values()):
+            with np.errstate(invalid="ignore"):
+                vis[:, j] = np.asarray(b.visible, bool) & np.isfinite(np.asarray(b.position, float)).all(1) \
+                    & np.isfinite(np.asarray(b.quat_xyzw, float)).all(1)   # a driver never publishes NaN
+        count = vis.astype(np.int64) + 1                    # per frame and body: its pose (if any), its quality
+        first = seq0 + (np.cumsum(count.ravel()) - count.ravel()).reshape(count.shape)
+        seq0 += int(count.sum())
+        recv = t + int(dev.latency_ns)
+        frame_number = np.asarray(fn).astype(np.int64) & 0xFFFFFFFF
+        for j, (name, b) in enumerate(dev.bodies.items()):
+            v = vis[:, j]
+            add(f"{prefix}/{name}/pose", recv[v], first[v, j],
+                cdr_records.pose_stamped(t[v], dev.frame_id, np.asarray(b.position, float)[v],
+                                         np.asarray(b.quat_xyzw, float)[v]))
+            fe = np.full(len(t), np.nan) if b.fit_error is None else np.asarray(b.fit_error, float)
+            if b.markers is not None and not _whole(b.markers, -2**62, 2**62):
+                return None
+            markers = np.zeros(len(t), np.int64) if b.markers is None else \
+                np.clip(np.asarray(b.markers).astype(np.int64), 0, 65535)
+            with np.errstate(invalid="ignore"):
+                fit = np.where(np.isfinite(fe), fe, -1.0).astype(np.float32)
+            add(f"{prefix}/{name}/quality", recv, first[:, j] + v,
+                cdr_records.tracking_quality(t, dev.frame_id, name, v, fit, frame_number, markers,
+                                             np.float32(dev.latency_ns * 1e-9), int(dev.port_status)))
+    d = content.diana
+    t = np.asarray(d.t_ns, dtype=np.int64)
+    Q = np.asarray(d.q, dtype=float)
+    dq = None if d.dq is None else np.asarray(d.dq, dtype=np.float64)
+    if Q.shape != (len(t), len(JOINT_NAMES)) or (dq is not None and dq.shape != Q.shape) \
+            or not _whole(t // 1_000_000_000, 0, 2**31 - 1):
+        return None
+    F = DianaKinematics().fk_many(Q)
+    recv = t + int(d.latency_ns)
+    seq = seq0 + 2 * np.arange(len(t))
+    add("/diana/joint_states", recv, seq, cdr_records.joint_state(t, d.frame_id, JOINT_NAMES, Q, dq))
+    pq = [T_to_pq(T) for T in F]
+    add("/diana/flange_pose", recv, seq + 1, cdr_records.pose_stamped(t, d.frame_id, np.array([p for p, _ in pq]),
+                                                                      np.array([q for _, q in pq])))
+    seq0 += 2 * len(t)
+    for name, (t_tr, T_tr) in content.truth.items():
+        tt = np.asarray(t_tr, dtype=np.int64)
+        if not _whole(tt // 1_000_000_000, 0, 2**31 - 1):
+            return None
+        pq = [T_to_pq(T) for T in T_tr]
+        add(f"{TRUTH_PREFIX}/{name}", tt, seq0 + np.arange(len(tt)),
+            cdr_records.pose_stamped(tt, "base", np.array([p for p, _ in pq]).reshape(-1, 3),
+                                     np.array([q for _, q in pq]).reshape(-1, 4)))
+        seq0 += len(tt)
+    recv_all, seq_all = np.concatenate(recv_parts), np.concatenate(seq_parts)
+    which = np.concatenate([np.full(len(r), k) for k, r in enumerate(recv_parts)])
+    within = np.concatenate([np.arange(len(r)) for r in recv_parts])
+    order = np.lexsort((seq_all, recv_all))
+    return [(int(recv_all[i]), topics[which[i]], records[which[i]][within[i]]) for i in order.tolist()]
 
 
 def write_truth_bag(path: str | Path, truth: dict[str, tuple[np.ndarray, np.ndarray]],

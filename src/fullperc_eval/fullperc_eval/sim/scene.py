@@ -16,6 +16,8 @@ changes a draw of these). Same seed -> bit-identical scene and measurements.
 
 from __future__ import annotations
 
+import copy
+import functools
 import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -57,11 +59,23 @@ def profile_path(profile: str) -> Path:
     return share_path("fullperc_eval", "config", f"profile_{profile}.yaml")
 
 
+def _yaml_text(text: str) -> Any:
+    """``yaml.safe_load(text)``, a fresh copy each call (the caller may change it) of what the text parses to."""
+    return copy.deepcopy(_parsed(text))
+
+
+@functools.lru_cache(maxsize=16)
+def _parsed(text: str) -> Any:
+    """Parsed once per text: every run builds its scene from the same scene and profile files again (each task and
+    seed, the planner's checks), and the pure-Python YAML parser was ~0.1 s of every run."""
+    return yaml.safe_load(text)
+
+
 def load_profile(profile: str) -> dict:
     """The profile file: ``overrides`` (merged into scene.yaml), ``plans_file``, ``targets``, ``rationale``."""
     p = profile_path(profile)
     try:
-        data = yaml.safe_load(p.read_text())
+        data = _yaml_text(p.read_text())
     except (OSError, yaml.YAMLError) as e:
         raise SceneError(f"profile file {p}: {e}") from e
     if not isinstance(data, dict) or not isinstance(data.get("overrides"), dict):
@@ -86,7 +100,7 @@ def load_scene_config(path: str | os.PathLike | None = None, profile: str | None
     """
     p = Path(path) if path is not None else default_scene_path()
     try:
-        data = yaml.safe_load(p.read_text())
+        data = _yaml_text(p.read_text())
     except (OSError, yaml.YAMLError) as e:
         raise SceneError(f"scene file {p}: {e}") from e
     if not isinstance(data, dict):
