@@ -137,8 +137,9 @@ def _input_samples(run_dir: Path, target: str) -> int:
 
 
 def _check_live_against_offline(run_dir: Path, target: str, diff_mm: float, record_property) -> None:
-    """The node lost at most MAX_LOSS of the target's samples -- offline outputs (of every recorded input) it never
-    published; the figures go to the test report --, and on the stamps both hold its estimates are the offline
+    """The node lost at most MAX_LOSS of the target's OMC samples -- offline OMC pass-through outputs (one per recorded
+    OMC sample) it never published; the figures of every method go to the test report --, and on the stamps both
+    hold its estimates are the offline
     replay's: median distance <= ``diff_mm``, and the same MAE against the truth to 0.05 mm (or 2 %).
 
     Why outputs and not the node's own count: that is an upper bound (a frame-number gap is counted as a lost pose
@@ -152,10 +153,12 @@ def _check_live_against_offline(run_dir: Path, target: str, diff_mm: float, reco
                         f"{m} {c['n_common']}/{c['n_live']} live, {missing[m]} of {c['n_offline']} offline outputs "
                         f"missing live, MAE {c['mae_live_mm']:.3f}/{c['mae_offline_mm']:.3f} mm median diff "
                         f"{c['median_mm']:.3f} mm" for m, c in cmp.items()))
-    for method, c in cmp.items():
-        assert missing[method] <= MAX_LOSS * c["n_offline"], \
-            f"the live node lacks {missing[method]} of the {c['n_offline']} {method} outputs of {target} ({counted} " \
-            "input samples counted lost)"
+    # the OMC pass-through has one output per OMC sample fused: its offline outputs the node never published are OMC
+    # samples it lost (the side-by-side filters' topics are not: a run with 0 lost lacked 61-388 of theirs)
+    c = cmp["omc"]
+    assert missing["omc"] <= MAX_LOSS * c["n_offline"], \
+        f"the live node lacks {missing['omc']} of the {c['n_offline']} omc outputs of {target} ({counted} " \
+        "input samples counted lost)"
     for method, c in cmp.items():
         assert c["n_common"] >= 0.5 * c["n_live"] and c["n_truth"] >= 0.9 * c["n_common"], (method, c)
         assert c["median_mm"] <= diff_mm, (method, c)
