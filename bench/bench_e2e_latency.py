@@ -40,7 +40,7 @@ REPEATS = int(os.environ.get("FULLPERC_BENCH_REPEATS", "3"))
 
 def every_filter() -> tuple[str, list[str]]:
     """The node's default primary filter and every other registered one (side by side)."""
-    from fullperc_fusion.filter_registry import FILTERS
+    from fullperc_fusion.filters.registry import FILTERS
     from fullperc_fusion.fusion_config import PARAMS
 
     primary = str(next(p.default for p in PARAMS if p.name == "filter"))

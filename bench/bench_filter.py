@@ -27,6 +27,7 @@ Run: python bench/bench_filter.py
 
 from __future__ import annotations
 
+import dataclasses
 import statistics
 import time
 
@@ -36,12 +37,12 @@ from scipy.linalg.lapack import dgesv
 from scipy.spatial.transform import Rotation as Rot
 
 from fullperc_common.transforms import inv_T, make_T
-from fullperc_fusion.filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement
-from fullperc_fusion.filter_registry import FILTERS, make_filter
-from fullperc_fusion.filters import FILTER_KINDS, FusionFilter, PassThrough
-from fullperc_fusion.fullperc_reference import FullpercParams, FullpercReference, R_to_quat, so3_exp
-from fullperc_fusion.measurement_models import local_covariance, omc_covariance, omc_systematic_var, rotate_cov
-from fullperc_fusion.pipeline import FILTER_NAMES, TargetConfig, TargetPipeline
+from fullperc_fusion.filters.api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement
+from fullperc_fusion.filters.fullperc_reference import FullpercParams, FullpercReference, R_to_quat, so3_exp
+from fullperc_fusion.filters.measurement_models import local_covariance, omc_covariance, omc_systematic_var, rotate_cov
+from fullperc_fusion.filters.paper_family import FILTER_KINDS, FusionFilter, PassThrough
+from fullperc_fusion.filters.registry import FILTERS, make_filter
+from fullperc_fusion.pipeline.ordered import FILTER_NAMES, TargetConfig, TargetPipeline
 
 N = 2000
 
@@ -170,7 +171,8 @@ def filter_step_figures(zs, repeats=9) -> None:
     (``FusionFilter`` for the paper's kinds, :data:`REFERENCES`), else the bare 6-state numpy KF step.
     Then ``filter_step_us[fullperc,6dof]`` (module docstring) against its reference."""
     items = step_items(zs)
-    names = [n for n in dict.fromkeys([*STEP_FIGURES, *FILTERS]) if FILTERS.get(n) is not PassThrough]
+    names = [n for n in dict.fromkeys([*STEP_FIGURES, *FILTERS])
+             if n not in FILTERS or FILTERS[n].factory is not PassThrough]
     runs = [(n, n, items) for n in names]
     if "fullperc" in FILTERS:
         runs.append(("fullperc,6dof", "fullperc", step_items_6dof(len(zs))))
@@ -268,14 +270,14 @@ def main() -> None:
              note="target samples (OMC 120 Hz + OTS 60 Hz) pushed, synchronised, fused; real time needs 180/s")
     if "fullperc" in FILTERS:
         fast, ref = [], []
-        factory = FILTERS["fullperc"]
+        entry = FILTERS["fullperc"]
         for _ in range(3):   # interleaved; the registry entry swapped for the reference only around its run
             fast.append(median_time(lambda: run_pipeline(ev, ("fullperc",)), repeats=1))
-            FILTERS["fullperc"] = FullpercReference
+            FILTERS["fullperc"] = dataclasses.replace(entry, factory=FullpercReference)
             try:
                 ref.append(median_time(lambda: run_pipeline(ev, ("fullperc",)), repeats=1))
             finally:
-                FILTERS["fullperc"] = factory
+                FILTERS["fullperc"] = entry
         emit("pipeline_samples_per_s_fullperc", n_in / statistics.median(fast), "samples/s",
              baseline=n_in / statistics.median(ref),
              note="fullperc alone through TargetPipeline (model covariances, orientation) vs the same pipeline with "

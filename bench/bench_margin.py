@@ -19,9 +19,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from benchlib import emit, median_time  # noqa: E402
 
-from fullperc_fusion.layout import default_layout_path, load_layout  # noqa: E402
-from fullperc_fusion.margin import compute_margin, label_point, label_points  # noqa: E402
-from fullperc_fusion.margin_map import compute_margin_map  # noqa: E402
+from fullperc_fusion.margin.layout import default_layout_path, load_layout  # noqa: E402
+from fullperc_fusion.margin.map import compute_margin_map  # noqa: E402
+from fullperc_fusion.margin.view_margin import compute_margin, label_point, label_points  # noqa: E402
 
 
 def main() -> None:

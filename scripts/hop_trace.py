@@ -22,7 +22,7 @@ import argparse
 
 import numpy as np
 
-import fullperc_fusion.fullperc_filter as ff
+import fullperc_fusion.filters.fullperc as ff
 from fullperc_eval.evaluation.metrics import evaluate_bag
 
 

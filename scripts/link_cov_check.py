@@ -7,8 +7,9 @@ config) and records, for every Vega sample, the link T_base_ots it was mapped th
 through one link carries that link's error, so the mean of the raw Vega chain's error against the Diana truth over
 those samples is the link's error at the tool (the Vega's own noise averages out over hundreds of samples). Per link
 it prints that mean [mm], the std the covariance predicts for it at the samples' mean lever arm
-(:func:`fullperc_fusion.measurement_models.link_covariance_at`) [mm] and their ratio z per axis; at the end the rms
-of z per axis over all links: ~1 when the covariance is the size of the error, well above 1 when it is too small.
+(:func:`fullperc_fusion.filters.measurement_models.link_covariance_at`) [mm] and their ratio z per axis; at the
+end the rms of z per axis over all links: ~1 when the covariance is the size of the error, well above 1 when it is
+too small.
 
 Run: python scripts/link_cov_check.py BAG [BAG ...]
 """
@@ -19,9 +20,9 @@ import argparse
 
 import numpy as np
 
-import fullperc_fusion.pipeline as pipeline
+import fullperc_fusion.pipeline.ordered as pipeline
 from fullperc_eval.evaluation.metrics import evaluate_bag
-from fullperc_fusion.measurement_models import link_covariance_at
+from fullperc_fusion.filters.measurement_models import link_covariance_at
 
 
 def link_errors(bag: str) -> list[dict]:

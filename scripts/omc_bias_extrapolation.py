@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 from raw_sensor_stats import EX, EZ, PX, PZ, T, bag_rows  # this directory: the same rows, from the node's chain
 
-from fullperc_fusion.layout import default_layout_path, load_layout
+from fullperc_fusion.margin.layout import default_layout_path, load_layout
 
 
 def _mae(err: np.ndarray) -> float:

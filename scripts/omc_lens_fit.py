@@ -38,8 +38,8 @@ from raw_sensor_stats import EX, EZ, PX, PZ, T, bag_rows  # this directory: the 
 from fullperc_eval.bag.calibration import load_calibration
 from fullperc_eval.sim.omc_lens import LensResidual
 from fullperc_eval.sim.omc_model import triangulate
-from fullperc_fusion.layout import default_layout_path, load_layout
-from fullperc_fusion.margin import camera_visibility
+from fullperc_fusion.margin.layout import default_layout_path, load_layout
+from fullperc_fusion.margin.view_margin import camera_visibility
 
 EPS = 1e-4
 KEYS = ("raw", "const", "lens", "prior", "true")

@@ -23,7 +23,7 @@ import numpy as np
 
 from fullperc_eval.evaluation import sensor_stats
 from fullperc_eval.evaluation.metrics import evaluate_bag, local_seen_mask
-from fullperc_fusion.layout import default_layout_path, load_layout
+from fullperc_fusion.margin.layout import default_layout_path, load_layout
 
 METHODS = ("fullperc", "omc")
 

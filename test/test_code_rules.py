@@ -190,49 +190,83 @@ FORBIDDEN_PACKAGES = {
     "fullperc_drivers": {"fullperc_fusion", "fullperc_eval"},
     "fullperc_fusion": {"fullperc_drivers", "fullperc_eval"},
 }
-# fullperc_eval's sub-packages, top to bottom: a module may import its own sub-package and lower ranks only;
-# bag and emulators share the bottom rank and so may not import each other.
+# Sub-package layers of the packages built in sub-packages, top to bottom: a module may import its own sub-package
+# and lower ranks only; sub-packages of equal rank may not import each other. ``TOP`` is the rank of the modules
+# directly in the package (fullperc_fusion's nodes and their cores); None: every module must be in a sub-package.
 EVAL_LAYERS = {"graph": 3, "evaluation": 2, "sim": 1, "bag": 0, "emulators": 0}
+FUSION_LAYERS = {"filters": 0, "calibration": 0, "margin": 0, "pipeline": 1}
+LAYERS: dict[str, tuple[dict[str, int], int | None]] = {
+    "fullperc_eval": (EVAL_LAYERS, None),
+    "fullperc_fusion": (FUSION_LAYERS, 2),
+}
+TOP = "(top)"
 
 
-def _eval_layer(module: str) -> str | None:
+def _layer(module: str) -> str | None:
+    """The sub-package (or TOP) that ``module`` belongs to in its layered package; None for the package itself."""
     parts = module.split(".")
-    return parts[1] if len(parts) > 1 else None
+    if len(parts) < 2:
+        return None
+    layers, _ = LAYERS[parts[0]]
+    if parts[1] in layers:
+        return parts[1]
+    return TOP if len(parts) == 2 else parts[1]
+
+
+def _rank(pkg: str, layer: str) -> int | None:
+    layers, top = LAYERS[pkg]
+    return top if layer == TOP else layers.get(layer)
+
+
+def _chain(pkg: str) -> str:
+    layers, top = LAYERS[pkg]
+    ranks = sorted({*layers.values(), *([top] if top is not None else [])}, reverse=True)
+    return " -> ".join(" | ".join(sorted([n for n, r in layers.items() if r == k] + (["top"] if k == top else [])))
+                       for k in ranks)
 
 
 def layering_violations(graph: dict[str, set[str]]) -> list[str]:
     out = []
     for src, dsts in sorted(graph.items()):
         top = src.split(".")[0]
-        if top == "fullperc_eval" and src != "fullperc_eval" and _eval_layer(src) not in EVAL_LAYERS:
-            out.append(f"{src}: not in a layer of fullperc_eval ({', '.join(EVAL_LAYERS)})")
+        if top in LAYERS and src != top and _rank(top, _layer(src) or "") is None:
+            out.append(f"{src}: not in a layer of {top} ({', '.join(LAYERS[top][0])})")
         for dst in sorted(dsts):
             dtop = dst.split(".")[0]
             if dtop in FORBIDDEN_PACKAGES.get(top, ()):
                 out.append(f"{src} -> {dst}: {top} must not import {dtop}")
-            if top == dtop == "fullperc_eval":
-                ls, ld = _eval_layer(src), _eval_layer(dst)
+            if top == dtop and top in LAYERS:
+                ls, ld = _layer(src), _layer(dst)
                 if ls is None or ld is None or ls == ld:
-                    continue  # the top-level package holds only a docstring; a layer may import itself
-                if ls not in EVAL_LAYERS or ld not in EVAL_LAYERS or EVAL_LAYERS[ls] <= EVAL_LAYERS[ld]:
-                    out.append(f"{src} -> {dst}: fullperc_eval.{ls} must not import fullperc_eval.{ld} "
-                               "(graph -> evaluation -> sim -> bag | emulators)")
+                    continue  # a package's __init__ holds only a docstring; a layer may import itself
+                rs, rd = _rank(top, ls), _rank(top, ld)
+                if rs is None or rd is None or rs <= rd:
+                    out.append(f"{src} -> {dst}: {top}.{ls} must not import {top}.{ld} ({_chain(top)})")
     return out
 
 
 def test_layering_checker_finds_planted_violations():
     planted = {
-        "fullperc_fusion.margin": {"fullperc_drivers.diana_kinematics", "fullperc_common.transforms"},
+        "fullperc_fusion.margin.view_margin": {"fullperc_drivers.diana_kinematics", "fullperc_common.transforms"},
         "fullperc_common.share": {"fullperc_eval.bag.types"},
         "fullperc_eval.sim.run": {"fullperc_eval.graph.demo", "fullperc_eval.sim.scene", "fullperc_eval.bag.writer"},
         "fullperc_eval.bag.reader": {"fullperc_eval.emulators.vega_device"},
         "fullperc_eval.graph.demo": {"fullperc_eval.evaluation.metrics", "fullperc_eval.bag.reader",
-                                     "fullperc_fusion.layout"},
+                                     "fullperc_fusion.margin.layout"},
         "fullperc_eval.stray": set(),
+        "fullperc_fusion.filters.paper_fast": {"fullperc_fusion.filters.api", "fullperc_fusion.margin.layout"},
+        "fullperc_fusion.pipeline.ordered": {"fullperc_fusion.filters.api", "fullperc_fusion.fusion_config"},
+        "fullperc_fusion.fusion_node": {"fullperc_fusion.pipeline.ordered", "fullperc_fusion.fusion_config"},
+        "fullperc_fusion.odd.thing": set(),
     }
     found = layering_violations(planted)
-    assert len(found) == 5, found
-    assert any(v.startswith("fullperc_fusion.margin -> fullperc_drivers") for v in found)
+    assert len(found) == 8, found
+    assert any(v.startswith("fullperc_fusion.odd.thing: not in a layer") for v in found)
+    assert any(v.startswith("fullperc_fusion.filters.paper_fast -> fullperc_fusion.margin.layout") for v in found)
+    assert any(v.startswith("fullperc_fusion.pipeline.ordered -> fullperc_fusion.fusion_config: "
+                            "fullperc_fusion.pipeline must not import fullperc_fusion.(top) "
+                            "(top -> pipeline -> calibration | filters | margin)") for v in found)
+    assert any(v.startswith("fullperc_fusion.margin.view_margin -> fullperc_drivers") for v in found)
     assert any(v.startswith("fullperc_common.share -> fullperc_eval") for v in found)
     assert any(v.startswith("fullperc_eval.sim.run -> fullperc_eval.graph.demo") for v in found)
     assert any(v.startswith("fullperc_eval.bag.reader -> fullperc_eval.emulators") for v in found)

@@ -229,8 +229,8 @@ def _true_labels(run_dir: Path, stamps_ns: np.ndarray) -> tuple[np.ndarray, np.n
     """
     from fullperc_eval.bag.calibration import load_calibration
     from fullperc_eval.evaluation.ground_truth import GroundTruth
-    from fullperc_fusion.layout import default_layout_path, load_layout
-    from fullperc_fusion.margin import label_points
+    from fullperc_fusion.margin.layout import default_layout_path, load_layout
+    from fullperc_fusion.margin.view_margin import label_points
 
     js = _read(run_dir / "bag", ["/diana/joint_states"])["/diana/joint_states"]
     cal = load_calibration(run_dir / "calibration.yaml")
@@ -245,7 +245,7 @@ def _true_labels(run_dir: Path, stamps_ns: np.ndarray) -> tuple[np.ndarray, np.n
 
 def test_region_labels_follow_the_task_order(demo):
     from fullperc_common.runs import runs
-    from fullperc_fusion.margin import label_points
+    from fullperc_fusion.margin.view_margin import label_points
 
     _, run_dir = demo
     msgs = _read(run_dir / "bag", ["/fullperc/tool/region"])["/fullperc/tool/region"]
@@ -436,8 +436,8 @@ def test_the_arm_hangs_under_base_with_the_simulators_transform(demo):
 def test_the_instrument_is_labelled_and_evaluated(demo, record_property):
     p, run_dir = demo
     from fullperc_eval.evaluation.ground_truth import load_truth_track
-    from fullperc_fusion.layout import default_layout_path, load_layout
-    from fullperc_fusion.margin import label_points
+    from fullperc_fusion.margin.layout import default_layout_path, load_layout
+    from fullperc_fusion.margin.view_margin import label_points
 
     assert f"region {INSTRUMENT}:" in p.stdout, "margin_node did not label the instrument live"
     msgs = _read(run_dir / "bag", [f"/fullperc/{INSTRUMENT}/region"])[f"/fullperc/{INSTRUMENT}/region"]

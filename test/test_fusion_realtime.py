@@ -101,7 +101,7 @@ def _bag_messages(reader, stop_ns: int | None = None):
 
 def _ordered(config, messages):
     """The offline result: the ordered pipeline (what the evaluator runs) over the messages in bag order."""
-    from fullperc_fusion.pipeline import TargetPipeline
+    from fullperc_fusion.pipeline.ordered import TargetPipeline
 
     pipe = TargetPipeline(config)
     outs = []
@@ -114,8 +114,8 @@ def _ordered(config, messages):
 
 def _live_and_offline(tmp: Path) -> dict:
     from fullperc_eval.bag.reader import BagReader
-    from fullperc_fusion.calibration import Calibration
-    from fullperc_fusion.calibration_io import save_calibration
+    from fullperc_fusion.calibration.io import save_calibration
+    from fullperc_fusion.calibration.se3_stats import Calibration
     from fullperc_fusion.fusion_config import load_fusion_config
 
     reader = BagReader(BAG)

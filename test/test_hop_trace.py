@@ -6,7 +6,7 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-import fullperc_fusion.fullperc_filter as ff
+import fullperc_fusion.filters.fullperc as ff
 
 ROOT = Path(__file__).resolve().parents[1]
 

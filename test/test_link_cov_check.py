@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-import fullperc_fusion.pipeline as pipeline
+import fullperc_fusion.pipeline.ordered as pipeline
 
 ROOT = Path(__file__).resolve().parents[1]
 

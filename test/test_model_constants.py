@@ -20,9 +20,9 @@ import numpy as np
 import pytest
 
 from fullperc_eval.evaluation import sensor_stats
-from fullperc_fusion.fullperc_reference import FullpercParams
-from fullperc_fusion.layout import default_layout_path, load_layout
-from fullperc_fusion.measurement_models import LocalModelParams, OmcModelParams
+from fullperc_fusion.filters.fullperc_reference import FullpercParams
+from fullperc_fusion.filters.measurement_models import LocalModelParams, OmcModelParams
+from fullperc_fusion.margin.layout import default_layout_path, load_layout
 
 ROOT = Path(__file__).resolve().parents[1]
 

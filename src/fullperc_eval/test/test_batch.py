@@ -24,8 +24,8 @@ from fullperc_eval.evaluation.batch import _matrices, _to_pq, unsupported_reason
 from fullperc_eval.evaluation.metrics import evaluate_bag
 from fullperc_eval.evaluation.replay import replay
 from fullperc_eval.sim.dataset import synthetic_content, write_bag
-from fullperc_fusion.frame_chain import ChainConfig, pose_to_T
-from fullperc_fusion.pipeline import TargetConfig
+from fullperc_fusion.pipeline.frame_chain import ChainConfig, pose_to_T
+from fullperc_fusion.pipeline.ordered import TargetConfig
 
 ROOT = Path(__file__).resolve().parents[3]
 SAMPLE = ROOT / "bags" / "paper" / "G-B-P"
@@ -183,7 +183,7 @@ def test_supported_configurations():
     assert unsupported_reason(TargetConfig(filters=FIVE)) == ""
     assert unsupported_reason(TargetConfig(filters=("cbkf",))) == ""
     assert unsupported_reason(TargetConfig(filters=FIVE, chain=ChainConfig(local_chain="tracked")))
-    from fullperc_fusion.sources import SourceSet, SourceSpec
+    from fullperc_fusion.pipeline.sources import SourceSet, SourceSpec
 
     d = SourceSet()
     extra = SourceSpec("atracsys", "local", "/atracsys", None, "std", ChainConfig())

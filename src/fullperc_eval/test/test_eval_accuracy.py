@@ -224,8 +224,8 @@ def test_calibration_seeds_that_are_also_evaluated_are_refused(tmp_path, capsys)
 
 def test_a_given_noise_model_file_is_used_for_every_profile(tmp_path):
     from fullperc_eval.evaluation.accuracy import noise_model_configs
+    from fullperc_fusion.filters.noise_model_file import noise_model_yaml
     from fullperc_fusion.fusion_config import load_fusion_config
-    from fullperc_fusion.noise_model_file import noise_model_yaml
 
     nm = tmp_path / "noise.yaml"
     nm.write_text(noise_model_yaml({"margin_std": 2e-3}, {"sys_time": 7.0}, "test"))
@@ -251,9 +251,9 @@ def test_calibrated_noise_model_of_the_committed_spec_bags_is_the_built_in_one(t
 
     from fullperc_eval.evaluation import sensor_stats
     from fullperc_eval.evaluation.accuracy import calibrated_fusion_config
+    from fullperc_fusion.filters.measurement_models import OmcModelParams
     from fullperc_fusion.fusion_config import load_fusion_config
-    from fullperc_fusion.layout import default_layout_path, load_layout
-    from fullperc_fusion.measurement_models import OmcModelParams
+    from fullperc_fusion.margin.layout import default_layout_path, load_layout
 
     bags = Path(__file__).resolve().parents[3] / "bags" / "spec"
     monkeypatch.setattr(sensor_stats, "bag_rows", cached_bag_rows)

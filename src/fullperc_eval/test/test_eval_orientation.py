@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 from fullperc_eval.evaluation.consistency import bound, nees, summary
 from fullperc_eval.evaluation.orientation import orientation_error_deg, pose_error
 from fullperc_eval.evaluation.sources import SourceTap
-from fullperc_fusion.filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement
+from fullperc_fusion.filters.api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement
 
 
 def _random_rots(n: int, seed: int) -> Rotation:

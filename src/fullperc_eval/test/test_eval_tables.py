@@ -14,7 +14,7 @@ import numpy as np
 from fullperc_eval.evaluation.config import METHODS, PAPER_METHODS
 from fullperc_eval.evaluation.consistency import summary
 from fullperc_eval.evaluation.tables import format_table1, format_table2, nees_cell
-from fullperc_fusion.pipeline import FILTER_NAMES
+from fullperc_fusion.pipeline.ordered import FILTER_NAMES
 
 
 def _ends(line: str) -> list[int]:

@@ -23,9 +23,9 @@ from fullperc_eval.evaluation.metrics import evaluate_bag, transition_segments
 from fullperc_eval.evaluation.report import write_report
 from fullperc_eval.evaluation.tables import to_json
 from fullperc_eval.sim.dataset import synthetic_content, write_bag
-from fullperc_fusion.filters import FilterParams
-from fullperc_fusion.frame_chain import ChainConfig
-from fullperc_fusion.pipeline import FILTER_NAMES, TargetConfig
+from fullperc_fusion.filters.paper_family import FilterParams
+from fullperc_fusion.pipeline.frame_chain import ChainConfig
+from fullperc_fusion.pipeline.ordered import FILTER_NAMES, TargetConfig
 
 OFFSET = (0.003, 0.001, -0.002)   # injected OMC error [m]; |OFFSET| = sqrt(14) mm
 
@@ -266,7 +266,7 @@ def test_injected_orientation_error_is_measured_and_split_by_region(synth, synth
     from scipy.spatial.transform import Rotation
 
     from fullperc_eval.evaluation.metrics import evaluate_replay
-    from fullperc_fusion.layout import default_layout_path, load_layout
+    from fullperc_fusion.margin.layout import default_layout_path, load_layout
 
     rep = synth_replay()
     angle = 1.7   # deg, about an arbitrary axis in base
@@ -303,7 +303,7 @@ def test_raw_local_chain_is_a_single_source_and_the_tap_sees_the_omc_as_the_pass
 
 
 def test_regions_carry_the_layouts_threshold_and_the_time_spent(synth_eval):
-    from fullperc_fusion.layout import default_layout_path, load_layout
+    from fullperc_fusion.margin.layout import default_layout_path, load_layout
 
     reg = synth_eval.result["regions"]
     assert reg["threshold_deg"] == load_layout(default_layout_path()).threshold_deg
@@ -345,7 +345,7 @@ def test_orientation_split_by_the_local_sources_sightings(synth, synth_replay):
     from scipy.spatial.transform import Rotation
 
     from fullperc_eval.evaluation.metrics import evaluate_replay, local_seen_mask
-    from fullperc_fusion.layout import default_layout_path, load_layout
+    from fullperc_fusion.margin.layout import default_layout_path, load_layout
 
     rep = synth_replay()
     o = rep.outputs["kf"]

@@ -15,7 +15,7 @@ import yaml
 from fullperc_common.testing import installed_exe
 from fullperc_eval.bag.writer import BagWriter
 from fullperc_eval.sim.dataset import synthetic_content, write_bag
-from fullperc_fusion.pipeline import FILTER_NAMES
+from fullperc_fusion.pipeline.ordered import FILTER_NAMES
 
 TIMEOUT = 300   # liveness bound for a hung process, not a performance limit
 

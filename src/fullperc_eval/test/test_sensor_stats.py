@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from fullperc_eval.evaluation.sensor_stats import RANDOM_WALK_TAU_S, noise_model_from_stats, regress, write_noise_model
-from fullperc_fusion.measurement_models import OmcModelParams
-from fullperc_fusion.noise_model_file import load_noise_model
+from fullperc_fusion.filters.measurement_models import OmcModelParams
+from fullperc_fusion.filters.noise_model_file import load_noise_model
 
 
 def stats(**over):
@@ -74,7 +74,7 @@ def test_each_omc_row_has_the_fit_error_of_its_own_body(cached_bag_rows):
     from fullperc_eval.bag.reader import BagReader
     from fullperc_eval.evaluation.replay_data import _stamp_ns
     from fullperc_eval.evaluation.sensor_stats import FIT, T
-    from fullperc_fusion.layout import default_layout_path, load_layout
+    from fullperc_fusion.margin.layout import default_layout_path, load_layout
 
     bag = workspace_root() / "bags" / "spec" / "G-B-P"
     reader = BagReader(bag)

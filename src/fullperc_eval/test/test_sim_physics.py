@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 from fullperc_eval.sim.occluders import PlacedBox, points_in_boxes, rays_blocked_by_boxes, segment_segment_distance
 from fullperc_eval.sim.omc_model import CameraSet, NoiseModel, Occluders, fit_body, kabsch, observe_markers
 from fullperc_eval.sim.ots_model import OtsModel
-from fullperc_fusion.layout import NDI_PYRAMID_PLANES, Box, Frustum, look_at_R, look_at_R_ndi
+from fullperc_fusion.margin.layout import NDI_PYRAMID_PLANES, Box, Frustum, look_at_R, look_at_R_ndi
 
 TARGET = np.array([0.1, -0.05, 1.0])
 

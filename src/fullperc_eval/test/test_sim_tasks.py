@@ -28,7 +28,7 @@ from fullperc_eval.sim.tasks import (
     plan_task,
     plan_to_dict,
 )
-from fullperc_fusion.margin import BVV, label_points
+from fullperc_fusion.margin.view_margin import BVV, label_points
 
 CHEAPEST = "P-B-G"  # the task whose cold search is shortest (a few seconds)
 

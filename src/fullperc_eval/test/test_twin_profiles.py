@@ -45,8 +45,8 @@ from fullperc_eval.sim.occluders import (
 from fullperc_eval.sim.runner import run_task
 from fullperc_eval.sim.scene import PROFILES, SceneError, build_scene, load_profile, load_scene_config, merge_overrides
 from fullperc_eval.sim.tasks import TASKS
-from fullperc_fusion.layout import default_layout_path, load_layout
-from fullperc_fusion.margin import label_points
+from fullperc_fusion.margin.layout import default_layout_path, load_layout
+from fullperc_fusion.margin.view_margin import label_points
 
 BAGS = workspace_root() / "bags"
 REPORT_SEEDS = parse_seeds(DEFAULT_SEEDS)   # what `make twin-report` uses by default

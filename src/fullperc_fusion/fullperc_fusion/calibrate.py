@@ -5,8 +5,8 @@ Subscribes (names as fusion_node's parameters ``omc_base_body``, ``omc_rig_body`
   /ots/<ots_base_tool>/pose   the OTS's sightings of the reference marker (eq. 2)  -> T_base_ots
   /omc/<omc_rig_body>/pose    the OMC's sightings of the marker on the OTS (eq. 1) -> T_rig_ots (with both above)
 for ``duration`` seconds of sensor stamps from the first sighting, while the setup stands still; then estimates
-each link in ``links`` separately with the robust SE(3) mean of :mod:`fullperc_fusion.calibration` (outliers
-rejected, 6x6 covariance of the mean) and writes ``output`` (:mod:`fullperc_fusion.calibration_io`; written to a
+each link in ``links`` separately with the robust SE(3) mean of :mod:`fullperc_fusion.calibration.se3_stats` (outliers
+rejected, 6x6 covariance of the mean) and writes ``output`` (:mod:`fullperc_fusion.calibration.io`; written to a
 temporary file and renamed, so never a partial file), which ``fusion_node`` loads with ``calibration_file``.
 
 Exit status: 0 = calibrated and written (one summary line on stdout); 1 = refused -- a body moved during the
@@ -30,12 +30,16 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from fullperc_common.node_main import run_node
 from fullperc_common.params import ParameterError, declare
 from fullperc_common.ros_conv import pose_to_pq, stamp_to_ns
-
-from .calibration import LINK_NAMES, CalibrationBodies, CalibrationSettings, StaticThresholds
-from .calibration_io import save_calibration
-from .calibration_run import CalibrationRun, summary
-from .frame_chain import ChainConfig
-from .fusion_config import Param, convert
+from fullperc_fusion.calibration.io import save_calibration
+from fullperc_fusion.calibration.run import CalibrationRun, summary
+from fullperc_fusion.calibration.se3_stats import (
+    LINK_NAMES,
+    CalibrationBodies,
+    CalibrationSettings,
+    StaticThresholds,
+)
+from fullperc_fusion.fusion_config import Param, convert
+from fullperc_fusion.pipeline.frame_chain import ChainConfig
 
 NAME = "calibrate"
 _C = ChainConfig()

@@ -27,17 +27,22 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from fullperc_common.params import ParameterError
-
-from .calibration import CalibrationError, CalibrationSettings, StaticThresholds
-from .calibration_io import load_calibration
-from .filter_registry import FILTERS
-from .frame_chain import LOCAL_CHAINS, STATIC_LINK_MODES, BadSample, ChainConfig, pose_to_T
-from .fullperc_filter import FullpercParams
-from .fullperc_reference import HOP_INTO
-from .fusion_health import HealthParams
-from .link_monitor import MonitorParams
-from .pipeline import FILTER_NAMES, TargetConfig
-from .sources import SOURCE_KEYS, read_source_values, source_set
+from fullperc_fusion.calibration.io import load_calibration
+from fullperc_fusion.calibration.monitor import MonitorParams
+from fullperc_fusion.calibration.se3_stats import CalibrationError, CalibrationSettings, StaticThresholds
+from fullperc_fusion.filters.fullperc import FullpercParams
+from fullperc_fusion.filters.fullperc_reference import HOP_INTO
+from fullperc_fusion.filters.registry import FILTERS
+from fullperc_fusion.fusion_health import HealthParams
+from fullperc_fusion.pipeline.frame_chain import (
+    LOCAL_CHAINS,
+    STATIC_LINK_MODES,
+    BadSample,
+    ChainConfig,
+    pose_to_T,
+)
+from fullperc_fusion.pipeline.ordered import FILTER_NAMES, TargetConfig
+from fullperc_fusion.pipeline.sources import SOURCE_KEYS, read_source_values, source_set
 
 # every method: the paper's five in the column order of its Table 1 (omc, kf, bkf, ckf, cbkf: the first five of
 # the registry reversed), then every further registered filter (fullperc) in registry order
@@ -378,12 +383,12 @@ def filter_params(vals: dict[str, Any]) -> FullpercParams:
 def model_layout(vals: dict[str, Any], filters: tuple[str, ...]):
     """The layout for the OMC model's view margin when a filter uses the models (``fullperc.layout_file``), else
     None. A file that cannot be read raises ParameterError naming the parameter."""
-    if not any(getattr(FILTERS[f], "uses_models", False) for f in filters if f in FILTERS):
+    if not any(FILTERS[f].caps.models for f in filters if f in FILTERS):
         return None
     path = vals["fullperc.layout_file"]
     if path.strip().lower() == "none":
         return None
-    from .layout import LayoutError, default_layout_path, load_layout
+    from fullperc_fusion.margin.layout import LayoutError, default_layout_path, load_layout
 
     try:
         return load_layout(path or default_layout_path())
@@ -394,7 +399,7 @@ def model_layout(vals: dict[str, Any], filters: tuple[str, ...]):
 def noise_model(vals: dict[str, Any]):
     """The :class:`~.noise_model_file.NoiseModel` of ``fullperc.noise_model_file`` (the built-in one for '').
     A file that cannot be used raises ParameterError naming the parameter."""
-    from .noise_model_file import NoiseModel, NoiseModelError, load_noise_model
+    from fullperc_fusion.filters.noise_model_file import NoiseModel, NoiseModelError, load_noise_model
 
     path = vals["fullperc.noise_model_file"]
     if not path.strip():

@@ -80,18 +80,24 @@ from fullperc_common.node_main import run_node
 from fullperc_common.params import ParameterError, declare
 from fullperc_common.ros_conv import ns_to_stamp, pose_msg, pose_to_pq, stamp_to_ns
 from fullperc_common.tf import Broadcaster, StaticBroadcaster, transform_stamped
+from fullperc_fusion.calibration.io import save_calibration
+from fullperc_fusion.calibration.run import CalibrationRun, summary
+from fullperc_fusion.calibration.se3_stats import CalibrationBodies
+from fullperc_fusion.fusion_config import (
+    calibration_settings,
+    health_params,
+    primary_and_extra,
+    read_values,
+    spec,
+    target_config,
+)
+from fullperc_fusion.fusion_health import GLOBAL, LOCAL, InputLoad, SourceLoss, TargetHealth
+from fullperc_fusion.fusion_publish import OutputPublisher, publish_outputs
+from fullperc_fusion.pipeline.arrival import ArrivalPipeline, make_pipeline
+from fullperc_fusion.pipeline.frame_chain import links_needed, pose_to_T
+from fullperc_fusion.pipeline.ordered import FusedOutput, TargetPipeline
+from fullperc_fusion.pipeline.sources import routes
 from fullperc_msgs.msg import FusionStatus, Region, TrackingQuality
-
-from .arrival import ArrivalPipeline, make_pipeline
-from .calibration import CalibrationBodies
-from .calibration_io import save_calibration
-from .calibration_run import CalibrationRun, summary
-from .frame_chain import links_needed, pose_to_T
-from .fusion_config import calibration_settings, health_params, primary_and_extra, read_values, spec, target_config
-from .fusion_health import GLOBAL, LOCAL, InputLoad, SourceLoss, TargetHealth
-from .fusion_publish import OutputPublisher, publish_outputs
-from .pipeline import FusedOutput, TargetPipeline
-from .sources import routes
 
 # Diagnostics.set takes an int level (the diagnostic_msgs constants are bytes in rclpy).
 OK, WARN, ERROR = (diag.as_level(v) for v in (diag.OK, diag.WARN, diag.ERROR))
@@ -485,7 +491,7 @@ class FusionNode(Node):
         tfs = publish_outputs(
             self._out_sets, target, outs, self._primary, self._extra, self._region.get(target, 0),
             on_primary=lambda o: h.output(now, o.sources, o.hop, o.bias),
-            on_error=lambda o, why: pipe._problem("publish_error", f"{o.filter}: {why}", o.t_ns),
+            on_error=lambda o, why: pipe.report_problem("publish_error", f"{o.filter}: {why}", o.t_ns),
             tf_of=None if self._tf is None else
             lambda o: transform_stamped(o.t_ns, "base", target, p=o.p, q_xyzw=o.q))
         if tfs:

@@ -28,9 +28,8 @@ from typing import Any
 import numpy as np
 from geometry_msgs.msg import Pose, PoseStamped, PoseWithCovarianceStamped
 
+from fullperc_fusion.pipeline.ordered import FusedOutput
 from fullperc_msgs.msg import FusionStatus
-
-from .pipeline import FusedOutput
 
 __all__ = ["OutputPublisher", "fill_pose", "publish_outputs"]
 

@@ -16,7 +16,7 @@ enough for a region label) or, if ``T_omc_base`` is given as a parameter [x y z 
 topic is not subscribed). Until T_omc_base is known, poses in ``base`` are answered with label UNKNOWN and the
 diagnostics say why. Any other frame_id gives UNKNOWN and an ERROR diagnostic.
 
-Hysteresis (:mod:`fullperc_fusion.region_filter`): ``hysteresis.margin_band_deg`` [deg] (default 1.0; a GVV
+Hysteresis (:mod:`fullperc_fusion.margin.hysteresis`): ``hysteresis.margin_band_deg`` [deg] (default 1.0; a GVV
 label is kept while margin >= threshold - band, a PVV label becomes GVV at margin >= threshold + band) and
 ``hysteresis.min_dwell`` [s] (default 0.2; after a change the label is held for at least this much of pose
 stamps), both 0 = off, changeable at run time. The published label changes once per real crossing (delayed by at
@@ -49,12 +49,11 @@ from fullperc_common.node_main import run_node
 from fullperc_common.params import ParameterError, declare
 from fullperc_common.ros_conv import pose_to_T, stamp_to_ns
 from fullperc_common.transforms import is_finite_pose, make_T
+from fullperc_fusion.margin.hysteresis import HysteresisParams, RegionFilter
+from fullperc_fusion.margin.layout import Layout, LayoutError, default_layout_path, load_layout
+from fullperc_fusion.margin.map import REGION_COLORS, MarginMap, compute_margin_map
+from fullperc_fusion.margin.view_margin import BVV, GVV, PVV, REGION_NAMES, UNKNOWN, label_point
 from fullperc_msgs.msg import Region
-
-from .layout import Layout, LayoutError, default_layout_path, load_layout
-from .margin import BVV, GVV, PVV, REGION_NAMES, UNKNOWN, label_point
-from .margin_map import REGION_COLORS, MarginMap, compute_margin_map
-from .region_filter import HysteresisParams, RegionFilter
 
 OK, WARN, ERROR = as_level(_diag.OK), as_level(_diag.WARN), as_level(_diag.ERROR)
 MAP_TOPIC = "/fullperc/margin_map"

@@ -9,12 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fullperc_fusion.arrival import ArrivalPipeline, make_pipeline
-from fullperc_fusion.filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement
-from fullperc_fusion.filter_registry import make_filter
-from fullperc_fusion.frame_chain import ChainConfig
-from fullperc_fusion.pipeline import TargetConfig, TargetPipeline
-from fullperc_fusion.synchronizer import GLOBAL, LOCAL, ApproxSync, Sample
+from fullperc_fusion.filters.api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement
+from fullperc_fusion.filters.registry import make_filter
+from fullperc_fusion.pipeline.arrival import ArrivalPipeline, make_pipeline
+from fullperc_fusion.pipeline.frame_chain import ChainConfig
+from fullperc_fusion.pipeline.ordered import TargetConfig, TargetPipeline
+from fullperc_fusion.pipeline.synchronizer import GLOBAL, LOCAL, ApproxSync, Sample
 
 MS = 1_000_000
 # the device-level synthetic streams of test_pipeline.py (tests run with --import-mode=importlib: load by path)
@@ -368,7 +368,7 @@ def test_a_source_that_comes_late_but_in_order_is_dropped_not_a_restart():
     as late (counted), the timeline is not restarted -- a restart put the output a second back in time (a demo run with
     three busy loops beside: /fullperc/instrument/pose went 1.08 s back). A source whose late run lasts
     LATE_SOURCE_SPAN_NS of its own stamps still restarts it (no stall if the other source fell silent)."""
-    from fullperc_fusion.arrival import LATE_SOURCE_SPAN_NS
+    from fullperc_fusion.pipeline.arrival import LATE_SOURCE_SPAN_NS
 
     cfg = TargetConfig(filters=("cbkf",))
     pipe = ArrivalPipeline(cfg)

@@ -10,10 +10,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fullperc_fusion.batch_filter import BatchUnsupported, run_closed_form
-from fullperc_fusion.fast_filter import ClosedFormFilter
-from fullperc_fusion.filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement
-from fullperc_fusion.filters import FILTER_KINDS, FilterParams
+from fullperc_fusion.filters.api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement
+from fullperc_fusion.filters.paper_batch import BatchUnsupported, run_closed_form
+from fullperc_fusion.filters.paper_family import FILTER_KINDS, FilterParams
+from fullperc_fusion.filters.paper_fast import ClosedFormFilter
 
 
 def _items(seed: int, n: int = 600):

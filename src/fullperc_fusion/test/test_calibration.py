@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from fullperc_common.transforms import T_to_pq, inv_T, make_T, mean_T
-from fullperc_fusion.calibration import (
+from fullperc_fusion.calibration.se3_stats import (
     COV_FLOOR,
     LINK_NAMES,
     BumpThresholds,
@@ -501,7 +501,7 @@ def test_collector_refuses_listing_every_problem():
 
 
 def test_bodies_from_chain_config():
-    from fullperc_fusion.frame_chain import ChainConfig
+    from fullperc_fusion.pipeline.frame_chain import ChainConfig
     b = CalibrationBodies.from_chain_config(ChainConfig(omc_base="B", ots_base="b", omc_rig="R"))
     assert (b.omc_base, b.ots_base, b.omc_rig) == ("B", "b", "R")
     assert CalibrationBodies() == CalibrationBodies.from_chain_config(ChainConfig())

@@ -8,8 +8,8 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from fullperc_common.transforms import make_T
-from fullperc_fusion.calibration import Calibration, CalibrationError, robust_se3_mean, se3_retract
-from fullperc_fusion.calibration_io import calibration_to_dict, load_calibration, save_calibration
+from fullperc_fusion.calibration.io import calibration_to_dict, load_calibration, save_calibration
+from fullperc_fusion.calibration.se3_stats import Calibration, CalibrationError, robust_se3_mean, se3_retract
 
 
 def make_cal() -> Calibration:

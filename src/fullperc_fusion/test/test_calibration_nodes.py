@@ -43,8 +43,8 @@ def _run_calibrate(procs, python_exe, tmp_path, pub_args, name):
 
 
 def _calibrate_writes_the_links_of_a_still_scene(procs, ros_env, python_exe, tmp_path):
-    from fullperc_fusion.calibration import se3_residuals
-    from fullperc_fusion.calibration_io import load_calibration
+    from fullperc_fusion.calibration.io import load_calibration
+    from fullperc_fusion.calibration.se3_stats import se3_residuals
 
     cal, out = _run_calibrate(procs, python_exe, tmp_path, [], "still")
     log = procs.log(cal)
@@ -85,8 +85,8 @@ def _fusion_node_refuses_a_bad_calibration_file(procs, ros_env, tmp_path):
 
 def _write_true_calibration(path):
     """A calibration file with the synthetic scene's true links (noise-free sightings through the Collector)."""
-    from fullperc_fusion.calibration import Collector
-    from fullperc_fusion.calibration_io import save_calibration
+    from fullperc_fusion.calibration.io import save_calibration
+    from fullperc_fusion.calibration.se3_stats import Collector
 
     col = Collector(("T_omc_base", "T_base_ots"), duration_s=1.0)
     for k in range(121):
@@ -111,8 +111,8 @@ def _fusion_node_calibration_file_service_and_a_bumped_vega(procs, rclpy_context
     re-calibrates on ~/calibrate (writes calibration.output, swaps the links), and when the Vega is pushed 3 mm
     raises a WARN naming T_base_ots and the size, and link_bumped in FusionStatus."""
     from fullperc_common.diagnostics import as_level
-    from fullperc_fusion.calibration import se3_residuals
-    from fullperc_fusion.calibration_io import load_calibration
+    from fullperc_fusion.calibration.io import load_calibration
+    from fullperc_fusion.calibration.se3_stats import se3_residuals
 
     Listener = _load("test_fusion_node").Listener
     cal_in, cal_out = tmp_path / "in.yaml", tmp_path / "out.yaml"

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from fullperc_common.transforms import T_to_pq, make_T
-from fullperc_fusion.calibration import CalibrationBodies, se3_retract
-from fullperc_fusion.calibration_run import CalibrationRun, summary
+from fullperc_fusion.calibration.run import CalibrationRun, summary
+from fullperc_fusion.calibration.se3_stats import CalibrationBodies, se3_retract
 
 S = 1_000_000_000
 T0 = 1_700_000_000 * S

@@ -15,10 +15,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fullperc_fusion.fast_filter import ClosedFormFilter, separable_cov
-from fullperc_fusion.filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Filter, Measurement
-from fullperc_fusion.filter_registry import make_filter
-from fullperc_fusion.filters import FILTER_KINDS, FilterParams, FusionFilter
+from fullperc_fusion.filters.api import SOURCE_GLOBAL, SOURCE_LOCAL, Filter, Measurement
+from fullperc_fusion.filters.paper_family import FILTER_KINDS, FilterParams, FusionFilter
+from fullperc_fusion.filters.paper_fast import ClosedFormFilter, separable_cov
+from fullperc_fusion.filters.registry import make_filter
 
 S = 1_000_000_000
 TOL = 1e-12

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fullperc_fusion.filter_api import (
+from fullperc_fusion.filters.api import (
     SOURCE_GLOBAL,
     SOURCE_LOCAL,
     BadMeasurement,
@@ -17,9 +17,9 @@ from fullperc_fusion.filter_api import (
     Measurement,
     check_covariance,
 )
-from fullperc_fusion.filter_registry import FILTERS, make_filter
-from fullperc_fusion.filters import FILTER_KINDS, FilterParams, FusionFilter, PassThrough
-from fullperc_fusion.pipeline import FILTER_NAMES
+from fullperc_fusion.filters.paper_family import FILTER_KINDS, FilterParams, FusionFilter, PassThrough
+from fullperc_fusion.filters.registry import FILTERS, make_filter
+from fullperc_fusion.pipeline.ordered import FILTER_NAMES
 
 S = 1_000_000_000
 I3 = np.eye(3)

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fullperc_fusion.filters import (
+from fullperc_fusion.filters.paper_family import (
     SOURCE_GLOBAL,
     SOURCE_LOCAL,
     FilterParams,

@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation as Rot
 
 from fullperc_common.transforms import inv_T, make_T
-from fullperc_fusion.frame_chain import BadSample, ChainConfig, FrameChain, pose_to_T
+from fullperc_fusion.pipeline.frame_chain import BadSample, ChainConfig, FrameChain, pose_to_T
 
 MS = 1_000_000
 

@@ -20,10 +20,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fullperc_fusion.filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement
-from fullperc_fusion.filter_registry import make_filter
-from fullperc_fusion.fullperc_filter import FullpercFilter
-from fullperc_fusion.fullperc_reference import FullpercParams, FullpercReference, R_to_quat, so3_exp
+from fullperc_fusion.filters.api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement
+from fullperc_fusion.filters.fullperc import FullpercFilter
+from fullperc_fusion.filters.fullperc_reference import FullpercParams, FullpercReference, R_to_quat, so3_exp
+from fullperc_fusion.filters.registry import make_filter
 
 S = 1_000_000_000
 TOL = 1e-12

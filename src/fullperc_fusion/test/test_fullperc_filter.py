@@ -13,10 +13,10 @@ import pytest
 from scipy.spatial.transform import Rotation as Rot
 from scipy.stats import chi2
 
-from fullperc_fusion.filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, BadMeasurement, Filter, Measurement
-from fullperc_fusion.filter_registry import make_filter
-from fullperc_fusion.fullperc_filter import FullpercFilter, FullpercParams, N, R_to_quat, quat_to_R, so3_exp, so3_log
-from fullperc_fusion.fullperc_reference import FullpercReference
+from fullperc_fusion.filters.api import SOURCE_GLOBAL, SOURCE_LOCAL, BadMeasurement, Filter, Measurement
+from fullperc_fusion.filters.fullperc import FullpercFilter, FullpercParams, N, R_to_quat, quat_to_R, so3_exp, so3_log
+from fullperc_fusion.filters.fullperc_reference import FullpercReference
+from fullperc_fusion.filters.registry import make_filter
 
 MS = 1_000_000
 DT = 1 / 120

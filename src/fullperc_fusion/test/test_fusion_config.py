@@ -11,12 +11,12 @@ import yaml
 
 from fullperc_common.params import ParameterError
 from fullperc_fusion import fusion_config as fc
-from fullperc_fusion.filters import FilterParams
-from fullperc_fusion.frame_chain import ChainConfig
-from fullperc_fusion.fullperc_filter import FullpercParams
+from fullperc_fusion.calibration.monitor import MonitorParams
+from fullperc_fusion.filters.fullperc import FullpercParams
+from fullperc_fusion.filters.paper_family import FilterParams
 from fullperc_fusion.fusion_health import HealthParams
-from fullperc_fusion.link_monitor import MonitorParams
-from fullperc_fusion.pipeline import TargetConfig
+from fullperc_fusion.pipeline.frame_chain import ChainConfig
+from fullperc_fusion.pipeline.ordered import TargetConfig
 
 # fusion.yaml's `tool.ang_accel_noise`: the simulated OR's tool is held by the arm (test_truth_motion.py ties the
 # value to its truth motion); the node-wide default is a hand-held target's
@@ -200,8 +200,8 @@ def test_calibration_and_link_monitor_rows_are_mapped(tmp_path):
 
 def _calibration_file(tmp_path):
     from fullperc_common.transforms import make_T
-    from fullperc_fusion.calibration import Collector
-    from fullperc_fusion.calibration_io import save_calibration
+    from fullperc_fusion.calibration.io import save_calibration
+    from fullperc_fusion.calibration.se3_stats import Collector
 
     rng = np.random.default_rng(0)
     col = Collector(("T_omc_base", "T_base_ots"), duration_s=1.0)
@@ -241,7 +241,7 @@ def test_a_bad_calibration_file_names_the_parameter_the_file_and_the_field(tmp_p
 def test_fullperc_block_is_mapped_and_its_layout_loaded_only_when_used(tmp_path):
     """filter: fullperc -> FullpercParams from the fullperc.* rows and the layout for the OMC model's view margin;
     without a filter that uses the models no layout is read; a bad layout file names the parameter."""
-    from fullperc_fusion.layout import Layout
+    from fullperc_fusion.margin.layout import Layout
 
     p = _write(tmp_path, {"filter": "fullperc", "fullperc": {"sys_time": 2.5, "rot_local_std": 1e-3}})
     cfg, _ = fc.load_fusion_config(p, filters=None)
@@ -334,7 +334,7 @@ def test_a_targets_own_motion_model_and_hop_rule(tmp_path):
 def test_target_parameter_names_cannot_be_source_names():
     """sources.py refuses a source named like a per-target parameter (it cannot import this table: the import
     would be circular), so its reserved names must hold every TARGET_PARAMS name."""
-    from fullperc_fusion import sources
+    from fullperc_fusion.pipeline import sources
 
     assert {tp.name for tp in fc.TARGET_PARAMS} <= sources._RESERVED
 

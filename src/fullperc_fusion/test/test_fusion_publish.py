@@ -10,7 +10,7 @@ import pytest
 
 from fullperc_common.ros_conv import ns_to_stamp, pose_msg
 from fullperc_fusion.fusion_publish import OutputPublisher, fill_pose, publish_outputs
-from fullperc_fusion.pipeline import FusedOutput
+from fullperc_fusion.pipeline.ordered import FusedOutput
 
 
 class FakePub:

@@ -21,9 +21,15 @@ import numpy as np
 import pytest
 from filterpy.kalman import KalmanFilter
 
-from fullperc_fusion.filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement
-from fullperc_fusion.filter_registry import make_filter
-from fullperc_fusion.filters import FilterParams, FusionFilter, measurement_matrix, process_noise, transition
+from fullperc_fusion.filters.api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement
+from fullperc_fusion.filters.paper_family import (
+    FilterParams,
+    FusionFilter,
+    measurement_matrix,
+    process_noise,
+    transition,
+)
+from fullperc_fusion.filters.registry import make_filter
 
 S = 1_000_000_000
 TOL = 1e-12

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
-from fullperc_fusion.layout import (
+from fullperc_fusion.margin.layout import (
     NDI_PYRAMID_PLANES,
     Box,
     LayoutError,

@@ -12,8 +12,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from fullperc_common.transforms import make_T
-from fullperc_fusion.calibration import se3_retract
-from fullperc_fusion.link_monitor import LinkMonitor, MonitorParams
+from fullperc_fusion.calibration.monitor import LinkMonitor, MonitorParams
+from fullperc_fusion.calibration.se3_stats import se3_retract
 
 S = 1_000_000_000
 T0 = 1_700_000_000 * S

@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from fullperc_fusion import margin as M
-from fullperc_fusion.layout import default_layout_path, load_layout
-from fullperc_fusion.margin_map import TABLE_BINS, compute_margin_map, grid_axis, margin_table, save_heatmap_png
+from fullperc_fusion.margin import view_margin as M
+from fullperc_fusion.margin.layout import default_layout_path, load_layout
+from fullperc_fusion.margin.map import TABLE_BINS, compute_margin_map, grid_axis, margin_table, save_heatmap_png
 
 # Half a table bin in cos(beta), converted to beta at the steepest point of the 40-140 deg band (1/sin 40).
 PER_PAIR_TOL_DEG = math.degrees(1.0 / TABLE_BINS / math.sin(math.radians(40.0))) + 1e-3
@@ -119,7 +119,7 @@ def test_map_cuts_the_ots_shadow_out_of_bvv():
     """Hand-made geometry: a box 1 m in front of the OTS; the map's BVV is the frustum minus the box's shadow."""
     from scipy.spatial.transform import Rotation
 
-    from fullperc_fusion.layout import look_at_R_ndi, parse_layout
+    from fullperc_fusion.margin.layout import look_at_R_ndi, parse_layout
 
     ots_pos, aim = np.array([0.0, -2.0, 1.0]), np.array([0.0, 0.0, 1.0])
     q = Rotation.from_matrix(look_at_R_ndi(ots_pos, aim)).as_quat().tolist()

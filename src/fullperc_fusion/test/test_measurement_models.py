@@ -7,8 +7,8 @@ import pytest
 from scipy.spatial.transform import Rotation as Rot
 
 from fullperc_common.transforms import make_T
-from fullperc_fusion.filter_api import check_covariance
-from fullperc_fusion.measurement_models import (
+from fullperc_fusion.filters.api import check_covariance
+from fullperc_fusion.filters.measurement_models import (
     LocalModelParams,
     OmcModelParams,
     link_covariance_at,

@@ -13,11 +13,10 @@ import pytest
 import yaml
 
 from fullperc_common.params import ParameterError
-from fullperc_fusion.filter_api import SOURCE_GLOBAL
-from fullperc_fusion.fullperc_reference import FullpercParams
-from fullperc_fusion.fusion_config import FusionConfigError, load_fusion_config
-from fullperc_fusion.measurement_models import OmcModelParams, omc_covariance, omc_systematic_var
-from fullperc_fusion.noise_model_file import (
+from fullperc_fusion.filters.api import SOURCE_GLOBAL
+from fullperc_fusion.filters.fullperc_reference import FullpercParams
+from fullperc_fusion.filters.measurement_models import OmcModelParams, omc_covariance, omc_systematic_var
+from fullperc_fusion.filters.noise_model_file import (
     BIAS_KEYS,
     OMC_KEYS,
     NoiseModel,
@@ -26,7 +25,8 @@ from fullperc_fusion.noise_model_file import (
     noise_model_yaml,
     parse_noise_model,
 )
-from fullperc_fusion.pipeline import TargetConfig, TargetPipeline
+from fullperc_fusion.fusion_config import FusionConfigError, load_fusion_config
+from fullperc_fusion.pipeline.ordered import TargetConfig, TargetPipeline
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_pipeline_fullperc import run, stream  # noqa: E402  (same directory: the shared synthetic stream)

@@ -7,9 +7,9 @@ import pytest
 from scipy.spatial.transform import Rotation as Rot
 
 from fullperc_common.transforms import T_to_pq, inv_T, make_T
-from fullperc_fusion.filters import SOURCE_GLOBAL, SOURCE_LOCAL
-from fullperc_fusion.frame_chain import ChainConfig
-from fullperc_fusion.pipeline import TargetConfig, TargetPipeline
+from fullperc_fusion.filters.paper_family import SOURCE_GLOBAL, SOURCE_LOCAL
+from fullperc_fusion.pipeline.frame_chain import ChainConfig
+from fullperc_fusion.pipeline.ordered import TargetConfig, TargetPipeline
 
 S = 1_000_000_000
 T0 = 1_700_000_000 * S   # a realistic host-clock epoch

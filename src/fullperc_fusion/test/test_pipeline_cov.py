@@ -8,11 +8,11 @@ import pytest
 from scipy.spatial.transform import Rotation as Rot
 
 from fullperc_common.transforms import inv_T, make_T
-from fullperc_fusion import filter_registry
-from fullperc_fusion.filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Filter, Step
-from fullperc_fusion.filters import FilterParams
+from fullperc_fusion.filters import registry as filter_registry
+from fullperc_fusion.filters.api import SOURCE_GLOBAL, SOURCE_LOCAL, Filter, Step
+from fullperc_fusion.filters.paper_family import FilterParams
 from fullperc_fusion.fusion_health import ERROR, GLOBAL, HealthParams, TargetHealth
-from fullperc_fusion.pipeline import TargetConfig, TargetPipeline
+from fullperc_fusion.pipeline.ordered import TargetConfig, TargetPipeline
 
 S = 1_000_000_000
 T0 = 1_700_000_000 * S
@@ -149,10 +149,16 @@ class _Hold:
         return Step(max(m.t_ns for m in measurements), self.last.p.copy(), np.zeros(3), np.zeros(3),
                     np.eye(6) * 1e-8, SOURCE_LOCAL)
 
+    def snapshot(self) -> object:
+        return self.last
+
+    def restore(self, snap: object) -> None:
+        self.last = snap
+
 
 def test_one_registry_entry_adds_a_filter_to_the_pipeline(monkeypatch):
     assert isinstance(_Hold(), Filter)
-    monkeypatch.setitem(filter_registry.FILTERS, "hold", _Hold)
+    monkeypatch.setitem(filter_registry.FILTERS, "hold", filter_registry.FilterSpec(_Hold))
     outs = run(TargetPipeline(TargetConfig(filters=("cbkf", "hold"))), stream(1.0))
     held = [o for o in outs if o.filter == "hold"]
     assert held and all(o.sources == SOURCE_LOCAL for o in held)

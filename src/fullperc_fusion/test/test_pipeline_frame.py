@@ -14,13 +14,13 @@ from pathlib import Path
 import numpy as np
 
 from fullperc_common.transforms import inv_T, mean_T
-from fullperc_fusion.arrival import ArrivalPipeline
-from fullperc_fusion.calibration import se3_retract
-from fullperc_fusion.frame_chain import ChainConfig
-from fullperc_fusion.fullperc_filter import FullpercFilter
-from fullperc_fusion.link_monitor import MonitorParams
-from fullperc_fusion.measurement_models import link_covariance_at
-from fullperc_fusion.pipeline import TargetConfig, TargetPipeline
+from fullperc_fusion.calibration.monitor import MonitorParams
+from fullperc_fusion.calibration.se3_stats import se3_retract
+from fullperc_fusion.filters.fullperc import FullpercFilter
+from fullperc_fusion.filters.measurement_models import link_covariance_at
+from fullperc_fusion.pipeline.arrival import ArrivalPipeline
+from fullperc_fusion.pipeline.frame_chain import ChainConfig
+from fullperc_fusion.pipeline.ordered import TargetConfig, TargetPipeline
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_pipeline_links import BUMP, T0, T_OMC_BASE, T_OMC_OTS, S, run, truth  # noqa: E402  (the same OR and path)

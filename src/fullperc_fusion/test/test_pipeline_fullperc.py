@@ -7,10 +7,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation as Rot
 
 from fullperc_common.transforms import inv_T, make_T
-from fullperc_fusion.filter_api import SOURCE_GLOBAL, SOURCE_LOCAL
-from fullperc_fusion.fullperc_filter import FullpercFilter, quat_to_R, so3_log
-from fullperc_fusion.measurement_models import omc_covariance
-from fullperc_fusion.pipeline import TargetConfig, TargetPipeline
+from fullperc_fusion.filters.api import SOURCE_GLOBAL, SOURCE_LOCAL
+from fullperc_fusion.filters.fullperc import FullpercFilter, quat_to_R, so3_log
+from fullperc_fusion.filters.measurement_models import omc_covariance
+from fullperc_fusion.pipeline.ordered import TargetConfig, TargetPipeline
 
 S = 1_000_000_000
 T0 = 1_700_000_000 * S

@@ -10,10 +10,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation as Rot
 
 from fullperc_common.transforms import inv_T, make_T
-from fullperc_fusion.calibration import se3_retract
-from fullperc_fusion.frame_chain import ChainConfig
-from fullperc_fusion.link_monitor import MonitorParams
-from fullperc_fusion.pipeline import TargetConfig, TargetPipeline
+from fullperc_fusion.calibration.monitor import MonitorParams
+from fullperc_fusion.calibration.se3_stats import se3_retract
+from fullperc_fusion.pipeline.frame_chain import ChainConfig
+from fullperc_fusion.pipeline.ordered import TargetConfig, TargetPipeline
 
 S = 1_000_000_000
 T0 = 1_700_000_000 * S

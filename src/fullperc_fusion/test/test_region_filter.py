@@ -8,9 +8,9 @@ import math
 import numpy as np
 import pytest
 
-from fullperc_fusion.layout import default_layout_path, load_layout
-from fullperc_fusion.margin import BVV, GVV, PVV, PointLabel, label_point
-from fullperc_fusion.region_filter import HysteresisParams, RegionFilter
+from fullperc_fusion.margin.hysteresis import HysteresisParams, RegionFilter
+from fullperc_fusion.margin.layout import default_layout_path, load_layout
+from fullperc_fusion.margin.view_margin import BVV, GVV, PVV, PointLabel, label_point
 
 MS = 1_000_000
 THR = 1000.0

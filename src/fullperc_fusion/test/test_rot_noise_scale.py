@@ -15,10 +15,17 @@ import math
 import numpy as np
 import pytest
 
-from fullperc_fusion.filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement
-from fullperc_fusion.fullperc_filter import FullpercFilter
-from fullperc_fusion.fullperc_reference import FullpercParams, FullpercReference, R_to_quat, quat_to_R, so3_exp, so3_log
-from fullperc_fusion.rot_noise_scale import pair_estimate, scale_decay, scale_step, scaled_cov
+from fullperc_fusion.filters.api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement
+from fullperc_fusion.filters.fullperc import FullpercFilter
+from fullperc_fusion.filters.fullperc_reference import (
+    FullpercParams,
+    FullpercReference,
+    R_to_quat,
+    quat_to_R,
+    so3_exp,
+    so3_log,
+)
+from fullperc_fusion.filters.rot_noise_scale import pair_estimate, scale_decay, scale_step, scaled_cov
 
 S = 1_000_000_000
 SG, SL = 2.4e-3, 1.0e-3       # model std of the OMC's and the Vega's rotation per axis [rad]

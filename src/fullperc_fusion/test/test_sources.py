@@ -14,11 +14,11 @@ from scipy.spatial.transform import Rotation as Rot
 from fullperc_common.params import ParameterError
 from fullperc_common.transforms import inv_T, make_T
 from fullperc_fusion import fusion_config as fc
-from fullperc_fusion.arrival import ArrivalPipeline
-from fullperc_fusion.frame_chain import ChainConfig
-from fullperc_fusion.pipeline import TargetConfig, TargetPipeline
-from fullperc_fusion.sources import SourceSet, SourceSpec
-from fullperc_fusion.synchronizer import ApproxSync, Sample
+from fullperc_fusion.pipeline.arrival import ArrivalPipeline
+from fullperc_fusion.pipeline.frame_chain import ChainConfig
+from fullperc_fusion.pipeline.ordered import TargetConfig, TargetPipeline
+from fullperc_fusion.pipeline.sources import SourceSet, SourceSpec
+from fullperc_fusion.pipeline.synchronizer import ApproxSync, Sample
 
 MS = 1_000_000
 _spec = importlib.util.spec_from_file_location("_pipeline_streams", Path(__file__).with_name("test_pipeline.py"))
@@ -278,7 +278,7 @@ def test_arrival_final_estimates_equal_ordered_processing_with_two_local_sources
 
 def _est(T):
     from fullperc_common.transforms import T_to_pq
-    from fullperc_fusion.calibration import LinkEstimate
+    from fullperc_fusion.calibration.se3_stats import LinkEstimate
 
     p, q = T_to_pq(T)
     return LinkEstimate(p, q, np.eye(6) * 1e-10, 100, 100, 0.1, 0.2, 0.1, 0.2, "test")
@@ -287,8 +287,8 @@ def _est(T):
 def test_a_calibration_file_gives_the_further_sources_link_by_its_name(tmp_path):
     """T_base_atracsys in the calibration file is the Atracsys chain's static link from the first sample on (and not
     the OTS's); the OTS's T_base_ots stays the OTS's; an unknown link name is still refused."""
-    from fullperc_fusion.calibration import Calibration
-    from fullperc_fusion.calibration_io import save_calibration
+    from fullperc_fusion.calibration.io import save_calibration
+    from fullperc_fusion.calibration.se3_stats import Calibration
 
     T_ba, T_bo = inv_T(T_OMC_BASE) @ T_OMC_ATR, inv_T(T_OMC_BASE) @ T_OMC_OTS
     cal = tmp_path / "cal.yaml"
@@ -317,7 +317,7 @@ def test_a_calibration_file_gives_the_further_sources_link_by_its_name(tmp_path)
 def test_model_covariance_per_source_for_filters_that_use_models(events3):
     """fullperc (uses_models): an Atracsys with noise_model vega gets the Vega distance model through its own chain,
     one with noise_std its diagonal -- a 1 cm std makes the fused position variance far larger than the model's."""
-    from fullperc_fusion.fullperc_filter import FullpercParams
+    from fullperc_fusion.filters.fullperc import FullpercParams
 
     ev = [e for e in events3(ots=(0, 0)) if not (e[0] == "omc" and e[1] == "tool")]
     var = {}

@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fullperc_fusion.synchronizer import GLOBAL, LOCAL, ApproxSync
+from fullperc_fusion.pipeline.synchronizer import GLOBAL, LOCAL, ApproxSync
 
 MS = 1_000_000
 

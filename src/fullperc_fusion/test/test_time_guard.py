@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation as Rot
 from fullperc_common.params import ParameterError
 from fullperc_common.transforms import inv_T, make_T
 from fullperc_fusion import fusion_config as fc
-from fullperc_fusion.pipeline import TargetConfig, TargetPipeline
+from fullperc_fusion.pipeline.ordered import TargetConfig, TargetPipeline
 
 S = 1_000_000_000
 T0 = 1_700_000_000 * S

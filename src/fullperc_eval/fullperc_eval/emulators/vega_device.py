@@ -20,7 +20,7 @@ lies at negative z (a tool in front of the camera has z ~ -950 .. -2400 mm). ``q
 order; the emulator converts to NDI's scalar-first order on the wire. ``None`` (or a missing key)
 means the tool is not visible: MISSING. A pose outside ``frustum`` is also MISSING (with reply
 option 0800 it is reported, port status 0x40 "out of volume"). ``frustum`` is the margin model's
-:class:`fullperc_fusion.layout.Frustum` (metres, in the ``ots`` frame; the simulator passes its layout's),
+:class:`fullperc_fusion.margin.layout.Frustum` (metres, in the ``ots`` frame; the simulator passes its layout's),
 by default :func:`pyramid_frustum`. A ROM uploaded by the host is matched to a tool by its bytes (zero
 padding ignored) or, failing that, by its part number; an unknown but well-formed ROM loads fine and is
 always MISSING.
@@ -52,7 +52,7 @@ from fullperc_drivers.ndi.protocol import (
 )
 from fullperc_drivers.ndi.rom import read_rom
 from fullperc_drivers.ndi.transport import COMM_CODE_BAUD
-from fullperc_fusion.layout import Frustum
+from fullperc_fusion.margin.layout import Frustum
 
 
 @dataclass
@@ -74,7 +74,7 @@ def pyramid_frustum(near_mm: float = 950.0, far_mm: float = 2400.0, half_angle_x
 
     Defaults: the Polaris pyramid's 950-2400 mm depth (ndi.md §7.1); the half-angles are our nominal choice
     (the Vega lateral extents are UNCERTAIN in ndi.md) — configure them. As a margin-model
-    :class:`~fullperc_fusion.layout.Frustum` (metres) its two planes are the near and far cross-sections;
+    :class:`~fullperc_fusion.margin.layout.Frustum` (metres) its two planes are the near and far cross-sections;
     the linear interpolation between them is the pyramid's ``|x| <= d tan(half_angle_x)``,
     ``|y| <= d tan(half_angle_y)``.
     """

@@ -20,7 +20,7 @@ line per seed on stderr. Then, per profile:
   (position, dof 3; full pose, dof 6, for methods that fuse the orientation);
 * the goal checks of issue 18 for :data:`GOAL_METHOD` (:func:`goal_checks`).
 
-The noise model of ``fullperc`` (``fullperc.noise_model_file``, :mod:`fullperc_fusion.noise_model_file`), per
+The noise model of ``fullperc`` (``fullperc.noise_model_file``, :mod:`fullperc_fusion.filters.noise_model_file`), per
 profile: ``builtin`` (default) keeps the built-in model (the ``spec`` bags' statistics: what fusion_node runs
 without ``fullperc.noise_model_file``); ``calibrated`` fits it with ``fit_noise_model`` (:mod:`.sensor_stats`:
 raw OMC against the arm's forward kinematics, no filter) on the bags of the calibration seeds -- never an
@@ -81,7 +81,7 @@ def calibrated_fusion_config(profile: str, key: str, cache: str, fusion_config: 
                              seeds: list[int]) -> dict[str, Any]:
     """Fit ``profile``'s noise model on the six bags of each calibration seed (generated when missing) and write it
     with a fusion config that reads it (:func:`fusion_config_reading`) into ``<cache>/<profile>-<key>/``."""
-    from fullperc_fusion.layout import default_layout_path, load_layout
+    from fullperc_fusion.margin.layout import default_layout_path, load_layout
 
     from .sensor_stats import fitted, pool_rows, profile_rows, write_noise_model
 
@@ -122,7 +122,7 @@ def noise_model_configs(mode: str, profiles: tuple[str, ...], keys: dict[str, st
     if mode == "builtin":
         return {p: {"fusion_config": fusion_config, "noise_model_file": "", "noise_model": None} for p in profiles}
     if mode != "calibrated":
-        from fullperc_fusion.noise_model_file import load_noise_model
+        from fullperc_fusion.filters.noise_model_file import load_noise_model
 
         load_noise_model(mode)   # a bad file: a clear error before any work
         path = Path(mode).resolve()

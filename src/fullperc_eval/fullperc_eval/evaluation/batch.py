@@ -1,14 +1,15 @@
 """Batched replay of one bag (issue 16 item 6): the per-sample replay's result, computed on arrays.
 
-Why: :func:`.replay.replay` pushes every message through :class:`~fullperc_fusion.pipeline.TargetPipeline`, which
-validates it, maps it into ``base``, builds :class:`~fullperc_fusion.filter_api.Measurement` objects and steps
-every filter once per item: ~1.3 s for a 28 s bag, 12k measurements/s, while decoding alone runs at ~200k/s.
+Why: :func:`.replay.replay` pushes every message through
+:class:`~fullperc_fusion.pipeline.ordered.TargetPipeline`, which validates it, maps it into ``base``, builds
+:class:`~fullperc_fusion.filters.api.Measurement` objects and steps every filter once per item:
+~1.3 s for a 28 s bag, 12k measurements/s, while decoding alone runs at ~200k/s.
 Offline, the whole recording is known at once, so most of that work can be done on arrays:
 
 1. decoding: the raw MCAP records of each topic decoded in bulk (:mod:`fullperc_eval.bag.fast_decode`) into
    arrays; nothing is built per message;
 2. validation of every pose at once (stamp > 0, finite, quaternion within 1e-2 of unit norm: the tests of
-   :func:`~fullperc_fusion.poses.pose_to_T`), and the target samples' matrices with pose_to_T's formulas;
+   :func:`~fullperc_fusion.calibration.poses.pose_to_T`), and the target samples' matrices with pose_to_T's formulas;
 3. the control flow in bag order, as the per-sample replay runs it, but only what decides something: the
    pipeline's own static-link estimation and link monitor (its ``FrameChain.observe_omc`` / ``observe_ots`` and
    ``LinkMonitor.add`` with the matrices of step 2 -- the same code, so the links come from exactly the same
@@ -17,7 +18,7 @@ Offline, the whole recording is known at once, so most of that work can be done 
    index) with the idle flush, and for each item the links in use when it came out;
 4. mapping into ``base``: one stacked matrix product per link estimate and stream (``inv(T_omc_base) @ T``,
    ``T_base_ots @ T``), quaternions with :func:`~fullperc_common.transforms.T_to_pq`'s closed form vectorised;
-5. filtering: :func:`fullperc_fusion.batch_filter.run_closed_form` (KF/BKF/CKF/CBKF in one loop on floats) and
+5. filtering: :func:`fullperc_fusion.filters.paper_batch.run_closed_form` (KF/BKF/CKF/CBKF in one loop on floats) and
    the ``omc`` pass-through as a selection;
 6. the outputs, the single-source tap, the counts and the warnings assembled as the per-sample replay does.
 
@@ -42,13 +43,13 @@ from fullperc_common.transforms import T_to_pq, inv_T
 from fullperc_eval.bag.errors import BagError
 from fullperc_eval.bag.fast_decode import DecodeError, decode_joint_states, decode_pose_stamped
 from fullperc_eval.bag.reader import _raw_messages
-from fullperc_fusion.batch_filter import BatchUnsupported, run_closed_form
-from fullperc_fusion.fast_filter import ClosedFormFilter
-from fullperc_fusion.filter_api import SOURCE_GLOBAL, SOURCE_LOCAL
-from fullperc_fusion.filter_registry import make_filter
-from fullperc_fusion.filters import FILTER_KINDS, PassThrough
-from fullperc_fusion.pipeline import TargetConfig, TargetPipeline
-from fullperc_fusion.synchronizer import GLOBAL, LOCAL
+from fullperc_fusion.filters.api import SOURCE_GLOBAL, SOURCE_LOCAL
+from fullperc_fusion.filters.paper_batch import BatchUnsupported, run_closed_form
+from fullperc_fusion.filters.paper_family import FILTER_KINDS, PassThrough
+from fullperc_fusion.filters.paper_fast import ClosedFormFilter
+from fullperc_fusion.filters.registry import make_filter
+from fullperc_fusion.pipeline.ordered import TargetConfig, TargetPipeline
+from fullperc_fusion.pipeline.synchronizer import GLOBAL, LOCAL
 
 from .config import EvaluationError
 from .replay_data import JOINT_TOPIC, Prepared, Replay, _task_name

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from fullperc_fusion.fusion_config import FusionConfigError, load_fusion_config
-from fullperc_fusion.pipeline import FILTER_NAMES, TargetConfig
+from fullperc_fusion.pipeline.ordered import FILTER_NAMES, TargetConfig
 
 # Every method: the paper's five in the paper's column order (Table 1: OMC, KF, BKF, CKF, CBKF) first, then every
 # further registered filter (e.g. fullperc) in registry order -- so the paper's tables, JSON lines and figures keep

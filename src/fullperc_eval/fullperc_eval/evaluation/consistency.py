@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 from scipy.special import gammaincinv  # chi2.ppf's own formula: scipy.stats costs every evaluate process ~0.6 s
 
-from fullperc_fusion.filter_api import SOURCE_GLOBAL, SOURCE_LOCAL
+from fullperc_fusion.filters.api import SOURCE_GLOBAL, SOURCE_LOCAL
 
 CONFIDENCE = 0.95
 # FusedOutput.orientation_source with both bits set: the filter fused the orientation itself (fullperc); one bit:

@@ -19,7 +19,7 @@ HOP_WINDOW_S = 0.5              # the OMC error is compared over this long befor
 
 
 def region_definitions(threshold_deg: float) -> dict[str, str]:
-    """BVV / GVV / PVV as the labels of this run were made (paper §4.2, :mod:`fullperc_fusion.margin`)."""
+    """BVV / GVV / PVV as the labels of this run were made (paper §4.2, :mod:`fullperc_fusion.margin.view_margin`)."""
     t = f"{threshold_deg:g}"
     return {"BVV": "best view volume: inside the local tracker's (Vega's) measurement volume with a clear line of "
                    "sight from it -- the fusion has the precise local measurement",

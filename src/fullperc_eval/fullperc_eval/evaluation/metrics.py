@@ -3,7 +3,7 @@
 :func:`evaluate_bag` is the whole evaluation of one bag: configuration (:mod:`.config`), replay
 (:mod:`.replay`), ground truth (:mod:`.ground_truth`) and these metrics. The error of a method is
 |p_method - p_true| in ``base`` at every pose it output; the true path is labelled with the view-margin model
-(:func:`fullperc_fusion.margin.label_points`, layout in the ``omc`` frame) on the joint-state time grid.
+(:func:`fullperc_fusion.margin.view_margin.label_points`, layout in the ``omc`` frame) on the joint-state time grid.
 
 Definitions (documented in docs/evaluation.md, pinned by tests):
 
@@ -38,9 +38,9 @@ from fullperc_common.transforms import make_T, mean_T
 from fullperc_eval.bag.calibration import Calibration, CalibrationError, load_calibration
 from fullperc_eval.bag.errors import BagError
 from fullperc_eval.bag.reader import BagReader
-from fullperc_fusion.layout import LayoutError, default_layout_path, load_layout
-from fullperc_fusion.margin import label_points
-from fullperc_fusion.pipeline import TargetConfig
+from fullperc_fusion.margin.layout import LayoutError, default_layout_path, load_layout
+from fullperc_fusion.margin.view_margin import label_points
+from fullperc_fusion.pipeline.ordered import TargetConfig
 
 from .config import METHODS, EvaluationError, replay_config
 from .consistency import FUSED_ORIENTATION, nees, summary

@@ -7,7 +7,7 @@ method is also judged on its orientation:
   the angle of the relative rotation R_true^T R_est -- the smallest rotation that takes one onto the other,
   independent of the frame it is expressed in and of the quaternion sign;
 * the **pose error vector** (for the NEES, :mod:`.consistency`) follows the covariance convention of
-  :mod:`fullperc_fusion.filter_api`: delta = [p_true - p_est, dtheta] with R_true = exp([dtheta]x) R_est, the
+  :mod:`fullperc_fusion.filters.api`: delta = [p_true - p_est, dtheta] with R_true = exp([dtheta]x) R_est, the
   rotation part a small rotation vector about the axes of ``base``. Using the same convention as the filters' 6x6
   covariance is what makes the cross terms of a full pose covariance meaningful.
 

@@ -2,7 +2,7 @@
 
 :func:`replay` reads the raw driver topics (``/omc/<body>/pose``, ``/ots/<tool>/pose``, ``/diana/joint_states``)
 with :class:`fullperc_eval.bag.reader.BagReader`, in bag (receive) order, and feeds them into one
-:class:`fullperc_fusion.pipeline.TargetPipeline` running every method side by side, pushing and polling like the
+:class:`fullperc_fusion.pipeline.ordered.TargetPipeline` running every method side by side, pushing and polling like the
 node does in its default ``clock: stamps`` mode (including its idle flush, emulated on bag time), so offline and
 live give the same poses. By default it runs batched (:mod:`.batch`, the same result on arrays, falling back to
 the message-by-message replay where it must; ``per_sample=True`` forces the latter). :func:`live_replay` instead
@@ -21,7 +21,7 @@ import numpy as np
 
 from fullperc_eval.bag.errors import BagError
 from fullperc_eval.bag.reader import BagReader, decoded_messages
-from fullperc_fusion.pipeline import TargetConfig, TargetPipeline
+from fullperc_fusion.pipeline.ordered import TargetConfig, TargetPipeline
 
 from .config import METHODS, EvaluationError
 from .replay_data import JOINT_TOPIC, JOINT_TYPE, POSE_TYPE, Outputs, Prepared, Replay, _stamp_ns, _task_name, prepare
@@ -37,10 +37,10 @@ def omc_quality_by_stamp(reader: BagReader, config: TargetConfig) -> dict[int, d
     """H3 hook (issue 18, fullperc): the OMC target body's TrackingQuality by header stamp, for
     ``push_omc(quality=...)``, so a filter with ``uses_models`` gets the OMC model covariance offline as live.
     Empty when no configured filter uses the models or the bag has no quality topic."""
-    from fullperc_fusion.filter_registry import FILTERS
+    from fullperc_fusion.filters.registry import FILTERS
 
     topic = f"/omc/{config.chain.omc_target}/quality"
-    if topic not in reader.topics or not any(getattr(FILTERS.get(f), "uses_models", False) for f in config.filters):
+    if topic not in reader.topics or not any(FILTERS[f].caps.models for f in config.filters if f in FILTERS):
         return {}
     out: dict[int, dict[str, float]] = {}
     reader.open()

@@ -15,7 +15,7 @@ import numpy as np
 
 from fullperc_eval.bag.errors import BagError
 from fullperc_eval.bag.reader import BagReader
-from fullperc_fusion.pipeline import TargetConfig
+from fullperc_fusion.pipeline.ordered import TargetConfig
 
 from .config import EvaluationError
 

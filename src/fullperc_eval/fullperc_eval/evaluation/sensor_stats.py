@@ -1,5 +1,5 @@
-"""Raw-sensor statistics behind the constants of ``fullperc_fusion.measurement_models`` (issue 18), and the
-noise-model file of an installation (``fit_noise_model``, :mod:`fullperc_fusion.noise_model_file`).
+"""Raw-sensor statistics behind the constants of ``fullperc_fusion.filters.measurement_models`` (issue 18), and the
+noise-model file of an installation (``fit_noise_model``, :mod:`fullperc_fusion.filters.noise_model_file`).
 
 Noise-model calibration, not filter tuning: every tracked /omc/<tool>/pose and /ots/<tool>/pose sample of the
 bags is mapped into ``base`` by the node's own frame chain and compared with the Diana forward kinematics (the
@@ -41,11 +41,11 @@ from fullperc_eval.bag.reader import BagReader
 from fullperc_eval.evaluation.config import replay_config
 from fullperc_eval.evaluation.ground_truth import GroundTruth
 from fullperc_eval.evaluation.replay_data import _stamp_ns
-from fullperc_fusion.frame_chain import pose_to_T
-from fullperc_fusion.layout import default_layout_path, load_layout
-from fullperc_fusion.margin import margin_at
-from fullperc_fusion.measurement_models import OmcModelParams
-from fullperc_fusion.pipeline import TargetPipeline
+from fullperc_fusion.filters.measurement_models import OmcModelParams
+from fullperc_fusion.margin.layout import default_layout_path, load_layout
+from fullperc_fusion.margin.view_margin import margin_at
+from fullperc_fusion.pipeline.frame_chain import pose_to_T
+from fullperc_fusion.pipeline.ordered import TargetPipeline
 
 JOINT_TOPIC = "/diana/joint_states"
 QUALITY_TYPE = "fullperc_msgs/msg/TrackingQuality"
@@ -449,7 +449,7 @@ def noise_model_from_stats(f: dict[str, Any]) -> tuple[dict[str, float], dict[st
 
 def write_noise_model(path: str | Path, f: dict[str, Any], source: str) -> str:
     """Write the noise-model file of statistics ``f`` (:func:`noise_model_from_stats`) to ``path``; returns it."""
-    from fullperc_fusion.noise_model_file import noise_model_yaml
+    from fullperc_fusion.filters.noise_model_file import noise_model_yaml
 
     omc, bias = noise_model_from_stats(f)
     text = noise_model_yaml(omc, bias, f"{source}: {f['n_omc']} OMC samples against the arm's forward kinematics")

@@ -4,8 +4,8 @@ Issue 18's orientation goal compares a fusing filter with "the better single sou
 method (the ``omc`` pass-through), but the raw local chain -- the Vega measurement mapped into ``base`` through the
 static link (or eq. 1 / eq. 2) -- is not output by anything. Recomputing it beside the pipeline would be a second
 implementation of the frame chain that could disagree with the first; instead :class:`SourceTap` sits in the
-pipeline's filter table like a filter (the :class:`fullperc_fusion.filter_api.Filter` protocol), records each
-:class:`~fullperc_fusion.filter_api.Measurement` exactly as the filters receive it and returns no step, so the
+pipeline's filter table like a filter (the :class:`fullperc_fusion.filters.api.Filter` protocol), records each
+:class:`~fullperc_fusion.filters.api.Measurement` exactly as the filters receive it and returns no step, so the
 pipeline emits nothing for it and every other filter is untouched (filters are independent of one another).
 
 ``snapshot()`` / ``restore()`` keep it correct under a pipeline that rewinds and replays its filters: a restore
@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fullperc_fusion.filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement
+from fullperc_fusion.filters.api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement
 
 ROLES = {SOURCE_GLOBAL: "global", SOURCE_LOCAL: "local"}
 

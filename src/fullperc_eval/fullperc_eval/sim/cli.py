@@ -25,7 +25,7 @@ import numpy as np
 
 from fullperc_eval.bag.calibration import save_calibration
 from fullperc_eval.bag.errors import BagError
-from fullperc_fusion.layout import load_layout
+from fullperc_fusion.margin.layout import load_layout
 
 from .dataset import sim_calibration, write_truth_bag
 from .live import LiveServer

@@ -45,7 +45,7 @@ from fullperc_eval.bag.errors import BagError
 from fullperc_eval.bag.metadata import load_metadata, write_metadata
 from fullperc_eval.bag.qos import make_qos
 from fullperc_eval.bag.writer import BagWriter
-from fullperc_fusion.layout import default_layout_path, load_layout
+from fullperc_fusion.margin.layout import default_layout_path, load_layout
 
 from . import cdr_records
 from .runner import run_task

@@ -39,7 +39,7 @@ from fullperc_common.share import share_path
 from fullperc_drivers.streams import DianaState, OmcBody, OmcFrame, encode_diana, encode_omc
 from fullperc_eval.emulators.vega_device import ToolPose
 from fullperc_eval.emulators.vega_server import VegaEmulator
-from fullperc_fusion.layout import Frustum
+from fullperc_fusion.margin.layout import Frustum
 
 from .run import SimRun
 from .scene import OMC_BODIES

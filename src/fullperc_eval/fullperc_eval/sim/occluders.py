@@ -5,11 +5,11 @@ the OMC/OTS models can test every marker x camera ray of a whole chunk of frames
 A ray is a segment from a marker to a camera centre; it is blocked when it passes within a
 capsule's radius of the capsule's axis segment, or through a box.
 
-A box is the margin model's :class:`fullperc_fusion.layout.Box` (axis-aligned, ``lo``/``hi``) given in its own
+A box is the margin model's :class:`fullperc_fusion.margin.layout.Box` (axis-aligned, ``lo``/``hi``) given in its own
 frame and placed in ``omc`` by a rotation and a centre (:class:`PlacedBox`): the layout's occluders unrotated,
 scene.yaml's obstacles and the robot's cart turned about z. The segment test here is the simulator's own: a ray
 counts as blocked when it touches the box anywhere on [marker, camera], both ends included, where the margin
-model's :meth:`~fullperc_fusion.layout.Box.blocks` spares a point lying on the box's surface.
+model's :meth:`~fullperc_fusion.margin.layout.Box.blocks` spares a point lying on the box's surface.
 
 Staff walk seeded paths (:class:`StaffWalker`): each person moves through random waypoints
 inside a rectangular floor zone with a smooth (raised-cosine) speed profile between waypoints,
@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fullperc_fusion.layout import Box
+from fullperc_fusion.margin.layout import Box
 
 _EPS = 1e-12
 
@@ -98,7 +98,7 @@ def rays_blocked_by_capsules(ray_a: np.ndarray, ray_b: np.ndarray, cap_a: np.nda
 
 @dataclass(frozen=True)
 class PlacedBox:
-    """An oriented box: the margin model's :class:`~fullperc_fusion.layout.Box` centred in its own frame
+    """An oriented box: the margin model's :class:`~fullperc_fusion.margin.layout.Box` centred in its own frame
     (``lo = -half``, ``hi = half``), placed in omc by ``center`` and ``R`` (omc_from_box)."""
 
     box: Box

@@ -36,7 +36,7 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 
 from fullperc_common.transforms import inv_T, make_T, mean_T
-from fullperc_fusion.margin import BVV, label_points
+from fullperc_fusion.margin.view_margin import BVV, label_points
 
 from .omc_model import BodyFit, NoiseModel, Occluders, fit_body, observe_markers
 from .scene import OMC_BODIES, OTS_TOOLS, Scene

@@ -2,7 +2,7 @@
 
 Two files define it:
   * the camera layout shared with the margin model (``fullperc_fusion/config/or_layout.yaml``, loaded with
-    :func:`fullperc_fusion.layout.load_layout`): OMC camera poses, FOV, range, resolution, the Vega pose and
+    :func:`fullperc_fusion.margin.layout.load_layout`): OMC camera poses, FOV, range, resolution, the Vega pose and
     its measurement volume — so the region labels and the simulated measurements come from one geometry;
   * this package's ``config/scene.yaml``: everything only the simulator needs (measurement-model
     parameters, miscalibration, marker geometries, obstacles, staff, Diana base pose, tool mount, task
@@ -30,7 +30,7 @@ from scipy.spatial.transform import Rotation
 from fullperc_common.share import share_path
 from fullperc_common.transforms import inv_T, make_T
 from fullperc_drivers.diana_kinematics import DianaKinematics
-from fullperc_fusion.layout import Layout, default_layout_path, load_layout
+from fullperc_fusion.margin.layout import Layout, default_layout_path, load_layout
 
 from .occluders import PlacedBox, StaffWalker
 from .omc_lens import LensResidual

@@ -3,7 +3,7 @@
 A task is a region order, e.g. ``"P-B-G-P"``: the target starts in the poor view volume, enters the
 OTS volume (best), leaves it into the good view volume, and ends in the poor one. :func:`plan_task`
 finds a single-joint arc (the paper's protocol) whose ground-truth target path crosses the regions in
-exactly that order, using the margin model of :mod:`fullperc_fusion.margin` on the same layout the
+exactly that order, using the margin model of :mod:`fullperc_fusion.margin.view_margin` on the same layout the
 simulated cameras use:
 
 1. place the arm's cart (seeded, inside ``diana.base_zone`` of scene.yaml: beside the table, any yaw) and draw a
@@ -55,7 +55,7 @@ import yaml
 
 from fullperc_common.runs import runs
 from fullperc_common.share import share_path
-from fullperc_fusion.margin import BVV, GVV, PVV, label_points
+from fullperc_fusion.margin.view_margin import BVV, GVV, PVV, label_points
 
 from .occluders import points_in_boxes
 from .run import simulate_ideal_visibility

@@ -33,7 +33,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from fullperc_common.transforms import inv_T
-from fullperc_fusion.margin import label_points
+from fullperc_fusion.margin.view_margin import label_points
 
 from .omc_model import NoiseModel, Occluders, fit_body, observe_markers
 from .run import CHUNK, BodySeries, SimRun, ToolSeries, Truth, _arm_state, _occluders

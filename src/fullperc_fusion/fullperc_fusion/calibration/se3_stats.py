@@ -1,6 +1,6 @@
 """Calibration of the static links of the frame chain (issue 15 item 1): robust SE(3) means with covariance.
 
-Links, named and oriented as in :mod:`fullperc_fusion.frame_chain` (``T_a_b`` maps points from b into a):
+Links, named and oriented as in :mod:`fullperc_fusion.pipeline.frame_chain` (``T_a_b`` maps points from b into a):
 
 * ``T_omc_base``  the OMC's sightings of the base body, averaged.
 * ``T_base_ots``  eq. (2): the average of the *inverted* OTS sightings of the base tool, inv(T_ots_base_i)
@@ -40,7 +40,7 @@ with the noise covariance pooled within the windows). The first condition lets t
 sub-millimetre hops, which are significant but are noise of the sensor, not motion; the second keeps a short,
 noisy collection from being refused for noise.
 
-YAML reading and writing are in :mod:`fullperc_fusion.calibration_io`.
+YAML reading and writing are in :mod:`fullperc_fusion.calibration.io`.
 """
 
 from __future__ import annotations
@@ -53,7 +53,7 @@ from scipy.spatial.transform import Rotation
 from scipy.special import chdtri, fdtri  # the chi^2 and F quantiles: scipy.stats costs a node ~0.6 s of start-up
 
 from fullperc_common.transforms import T_to_pq, inv_T, make_T, mean_T
-from fullperc_fusion.poses import BadSample, pose_to_T
+from fullperc_fusion.calibration.poses import BadSample, pose_to_T
 
 CALIBRATION_VERSION = 1
 LINK_NAMES = ("T_omc_base", "T_base_ots", "T_rig_ots")

@@ -48,9 +48,16 @@ from operator import add, mul
 import numpy as np
 from scipy.linalg.lapack import dgesv as _dgesv
 
-from .filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement, Step, StepCompat, predict_interval, split_update
-from .filters import FilterParams
-from .fullperc_reference import (
+from fullperc_fusion.filters.api import (
+    SOURCE_GLOBAL,
+    SOURCE_LOCAL,
+    Measurement,
+    Step,
+    StepCompat,
+    predict_interval,
+    split_update,
+)
+from fullperc_fusion.filters.fullperc_reference import (
     FullpercParams,
     FullpercReference,
     N,
@@ -61,7 +68,8 @@ from .fullperc_reference import (
     so3_exp,
     so3_log,
 )
-from .rot_noise_scale import pair_estimate, scale_decay, scale_step, scaled_cov
+from fullperc_fusion.filters.paper_family import FilterParams
+from fullperc_fusion.filters.rot_noise_scale import pair_estimate, scale_decay, scale_step, scaled_cov
 
 __all__ = ["FullpercFilter", "FullpercParams", "N", "R_to_quat", "quat_to_R", "so3_exp", "so3_log"]
 

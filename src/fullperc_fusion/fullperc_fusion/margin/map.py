@@ -1,7 +1,7 @@
 """Margin map of a room grid (BVV / GVV / PVV everywhere) and a PNG heatmap slice for reports.
 
 A 6 x 5 x 3 m room at 2 cm is ~11 M points x 66 camera pairs, so this does not call
-:func:`fullperc_fusion.margin.compute_margin` (float64, ``arccos`` per pair: ~10 ns per element here). It runs the
+:func:`.view_margin.compute_margin` (float64, ``arccos`` per pair: ~10 ns per element here). It runs the
 same Algorithm 1 with a dedicated kernel:
 
   * the grid is processed in column blocks (bx x by x all z) on a thread pool (numpy releases the GIL);
@@ -9,7 +9,7 @@ same Algorithm 1 with a dedicated kernel:
   * per camera pair: one dot product, then ``180° − β`` is read from a 65 537-entry table indexed by cos β that already
     holds 0 outside the convergence band, so there is no ``arccos`` and no band comparison per element;
   * camera pairs (and cameras, occluders, the OTS test) that cannot matter for a block are skipped;
-  * the BVV test (OTS frustum and the OTS's line of sight, :func:`fullperc_fusion.margin.in_bvv`) runs in float64
+  * the BVV test (OTS frustum and the OTS's line of sight, :func:`.view_margin.in_bvv`) runs in float64
     on the blocks that overlap the frustum's bounding box, so the map's BVV is exactly that of ``label_points``.
 
 Accuracy against the float64 path: a table bin is 2/65536 wide in cos β, i.e. at most ~0.0014° of β per pair inside
@@ -27,8 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .layout import Layout
-from .margin import BVV, GVV, PVV, REGION_NAMES, in_bvv, labels_from
+from fullperc_fusion.margin.layout import Layout
+from fullperc_fusion.margin.view_margin import BVV, GVV, PVV, REGION_NAMES, in_bvv, labels_from
 
 TABLE_BINS = 1 << 16
 _SEGMENT_END32 = np.float32(1.0 - 1e-6)  # float32 cannot hold layout.SEGMENT_END (1 - 1e-9)

@@ -7,8 +7,8 @@ compares the Vega's live view with the calibrated link:
 
 * reference: the calibrated link in the OTS's direction, T_ots_base = inv(T_base_ots), where a frame's noise is
   small (~0.2 mm; the other direction carries the rotation noise times the 2 m lever; see
-  :func:`~fullperc_fusion.calibration.link_bump`);
-* live: the robust SE(3) mean (:func:`~fullperc_fusion.calibration.robust_se3_mean`, outliers rejected) of the
+  :func:`~fullperc_fusion.calibration.se3_stats.link_bump`);
+* live: the robust SE(3) mean (:func:`~fullperc_fusion.calibration.se3_stats.robust_se3_mean`, outliers rejected) of the
   sightings in the last ``window_s`` seconds of stamps, evaluated every ``window_s / 2`` once the window holds
   ``min_samples`` sightings -- a step is seen in full at most 1.5 windows after it happened, and earlier when most
   of a window is already past it;
@@ -24,7 +24,7 @@ far marker by lever x angle, 2.3 mm per mrad) and ``rot_max`` 5 mrad, not 3 mrad
 margin against a false alarm.
 
 Pure and clock-free (stamps only), so it runs the same in ``fusion_node``, in the offline evaluator (through
-:class:`~fullperc_fusion.pipeline.TargetPipeline`) and in unit tests.
+:class:`~fullperc_fusion.pipeline.ordered.TargetPipeline`) and in unit tests.
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .calibration import BumpThresholds, CalibrationError, link_bump, robust_se3_mean
+from fullperc_fusion.calibration.se3_stats import BumpThresholds, CalibrationError, link_bump, robust_se3_mean
 
 
 @dataclass(frozen=True)

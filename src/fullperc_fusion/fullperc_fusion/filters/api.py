@@ -166,14 +166,33 @@ def split_update(kind: str, measurements) -> tuple[Measurement | None, Measureme
     return mg, ml
 
 
+@dataclass(frozen=True)
+class Capabilities:
+    """What a filter supports, declared in its registry entry (:class:`~.registry.FilterSpec`), never guessed from
+    its attributes: the pipeline, the evaluator and the node configuration read these flags, nothing else.
+
+    * ``models``: for every sample without a device covariance the pipeline computes the model covariance of
+      :mod:`~.measurement_models` (OMC quality and view margin, Vega distance, calibrated link) and passes it in
+      :attr:`Measurement.cov`; filters without it get ``cov=None`` and use their fixed noise.
+    * ``orientation``: its :class:`Step` carries a fused orientation (``q``, ``pose_cov``); the pipeline outputs it
+      instead of copying a source's.
+    * ``snapshot``: ``snapshot()`` returns the whole state as a value and ``restore(snap)`` puts it back (rewind and
+      replay on arrival). Every registered filter must have it; the flag states it for checks and documentation.
+    * ``batch``: :func:`~.paper_batch.run_closed_form` replays it in one loop on arrays (offline evaluation).
+    """
+
+    models: bool = False
+    orientation: bool = False
+    snapshot: bool = True
+    batch: bool = False
+
+
 @runtime_checkable
 class Filter(Protocol):
-    """What the pipeline needs of a filter. Register an implementation in :mod:`filter_registry`.
+    """What the pipeline needs of a filter. Register an implementation in :mod:`~.registry`.
 
-    Optional: a filter with ``uses_models = True`` gets, for every sample without a device covariance, the model
-    covariance of :mod:`measurement_models` (OMC quality and view margin, Vega distance and calibrated link);
-    the others get ``cov=None`` and use their fixed noise. A :class:`Step` with ``q`` (and ``pose_cov``) is a
-    fused orientation: the pipeline outputs it instead of copying a source's.
+    What it supports beyond this (model covariances, orientation, batch replay) its registry entry declares in
+    :class:`Capabilities`.
 
     * ``predict(t_ns)``: move the state to ``t_ns`` (non-decreasing; ValueError when time goes backwards).
       On a filter that has no state yet, or after a gap it does not bridge, it only records the stamp.
@@ -183,6 +202,7 @@ class Filter(Protocol):
       nothing to say about these measurements (``omc`` given a local sample only). Raises ValueError
       (BadMeasurement included) for input it refuses, without fusing it.
     * ``reset()``: forget the state.
+    * ``snapshot()`` / ``restore(snap)``: the whole state as a value, and back (rewind and replay on arrival).
     """
 
     kind: str
@@ -192,6 +212,10 @@ class Filter(Protocol):
     def predict(self, t_ns: int) -> None: ...
 
     def update(self, *measurements: Measurement) -> Step | None: ...
+
+    def snapshot(self) -> object: ...
+
+    def restore(self, snap: object) -> None: ...
 
 
 class StepCompat:

@@ -39,7 +39,13 @@ import numpy as np
 import yaml
 
 from fullperc_common.yaml_file import load_yaml_file
-from fullperc_fusion.calibration import CALIBRATION_VERSION, LINK_NAMES, Calibration, CalibrationError, LinkEstimate
+from fullperc_fusion.calibration.se3_stats import (
+    CALIBRATION_VERSION,
+    LINK_NAMES,
+    Calibration,
+    CalibrationError,
+    LinkEstimate,
+)
 
 CONVENTIONS = ("T_a_b maps points from frame b into frame a; position in m; quaternion x y z w; covariance of the "
                "mean in the tangent space [dx dy dz rx ry rz] of the parent frame a: p = p_mean + d, "

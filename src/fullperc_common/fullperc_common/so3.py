@@ -1,7 +1,8 @@
-"""SO(3) helpers of the ``fullperc`` filter: Exp/Log of rotation vectors and quaternion (x y z w) conversions.
+"""SO(3) helpers, the project's one copy: the skew matrix, Exp/Log of rotation vectors, quaternion (x y z w) <-> R.
 
-Plain numpy on 3-vectors and 3x3 matrices (the filter calls them once or twice per sample, where scipy's
-``Rotation`` objects cost more than the arithmetic); ``test_fullperc_filter.py`` holds them to scipy.
+Plain numpy on 3-vectors and 3x3 matrices: the ``fullperc`` filter calls them once or twice per sample, where
+scipy's ``Rotation`` objects cost more than the arithmetic (and drivers import fullperc_common without scipy).
+``fullperc_fusion/test/test_fullperc_filter.py`` holds them to scipy.
 """
 
 from __future__ import annotations
@@ -10,19 +11,20 @@ import math
 
 import numpy as np
 
-__all__ = ["so3_exp", "so3_log", "quat_to_R", "R_to_quat"]
+__all__ = ["skew", "so3_exp", "so3_log", "quat_to_R", "R_to_quat"]
 
 _I3 = np.eye(3)
 
 
-def _skew(a: np.ndarray) -> np.ndarray:
+def skew(a: np.ndarray) -> np.ndarray:
+    """[a]x, the matrix of the cross product: skew(a) @ b == np.cross(a, b)."""
     return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
 
 
 def so3_exp(w: np.ndarray) -> np.ndarray:
     """Exp of a rotation vector (Rodrigues); series below 1e-8 rad."""
     th = math.sqrt(float(w @ w))
-    K = _skew(w)
+    K = skew(w)
     if th < 1e-8:
         return _I3 + K + 0.5 * K @ K
     return _I3 + (math.sin(th) / th) * K + ((1.0 - math.cos(th)) / (th * th)) * K @ K

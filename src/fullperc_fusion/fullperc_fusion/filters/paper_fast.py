@@ -44,8 +44,16 @@ import math
 
 import numpy as np
 
-from .filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement, Step, StepCompat, predict_interval, split_update
-from .filters import FILTER_KINDS, FilterParams, FusionFilter
+from fullperc_fusion.filters.api import (
+    SOURCE_GLOBAL,
+    SOURCE_LOCAL,
+    Measurement,
+    Step,
+    StepCompat,
+    predict_interval,
+    split_update,
+)
+from fullperc_fusion.filters.paper_family import FILTER_KINDS, FilterParams, FusionFilter
 
 __all__ = ["AxisStep", "ClosedFormFilter", "separable_cov"]
 

@@ -50,9 +50,8 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from fullperc_common.params import ParameterError
-
-from .calibration import LINK_NAMES, Calibration
-from .frame_chain import LOCAL_CHAINS, ChainConfig
+from fullperc_fusion.calibration.se3_stats import LINK_NAMES, Calibration
+from fullperc_fusion.pipeline.frame_chain import LOCAL_CHAINS, ChainConfig
 
 ROLES = ("global", "local")
 GLOBAL_MODELS = ("omc", "std")

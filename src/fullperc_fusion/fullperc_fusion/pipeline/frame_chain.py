@@ -21,9 +21,10 @@ system"); :class:`StaticLinks` can be re-estimated on request (``fusion_node``'s
 
 How the static links are estimated (``static_links``; a link given as a parameter is never estimated):
   * ``average``   the chordal mean of the first ``init_samples`` sightings of each body.
-  * ``calibrate`` (default) the robust SE(3) mean of :mod:`fullperc_fusion.calibration` (outliers rejected, refused
-                  when a body moved or too few sightings came) over ``calibration_duration_s`` seconds of stamps,
-                  one :class:`~fullperc_fusion.calibration.Collector` for the global link and one for the local
+  * ``calibrate`` (default) the robust SE(3) mean of :mod:`fullperc_fusion.calibration.se3_stats`
+                  (outliers rejected, refused when a body moved or too few sightings came) over
+                  ``calibration_duration_s`` seconds of stamps, one
+                  :class:`~fullperc_fusion.calibration.se3_stats.Collector` for the global link and one for the local
                   link; a refused collection is logged (:attr:`StaticLinks.last_refusal`) and started again.
                   Bridge: a link that has no value yet (the start; not a re-estimation, whose previous link stays)
                   is served meanwhile by the ``average`` estimate (the first ``init_samples`` sightings, exactly as
@@ -52,8 +53,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fullperc_common.transforms import inv_T, mean_T
-
-from .calibration import (
+from fullperc_fusion.calibration.poses import BadSample, pose_to_T
+from fullperc_fusion.calibration.se3_stats import (
     Calibration,
     CalibrationBodies,
     CalibrationError,
@@ -63,7 +64,6 @@ from .calibration import (
     link_T_rig_ots,
     mean_estimate,
 )
-from .poses import BadSample, pose_to_T
 
 __all__ = ["LOCAL_CHAINS", "STATIC_LINK_MODES", "BadSample", "ChainConfig", "FrameChain", "StaticLinks",
            "links_needed", "pose_to_T"]

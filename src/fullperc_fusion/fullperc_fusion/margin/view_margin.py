@@ -26,7 +26,7 @@ Two implementations of the same arithmetic (float64):
   * :func:`compute_margin` — vectorized over many points (chunked, no Python loop over points);
   * :func:`margin_at` / :func:`label_point` — one point, small arrays only, for the node's per-pose path (tens of
     µs); the OTS line of sight is one more column in the cameras' slab test, so it costs almost nothing.
-The room-scale map uses a faster float32 kernel in :mod:`fullperc_fusion.margin_map`.
+The room-scale map uses a faster float32 kernel in :mod:`fullperc_fusion.margin.map`.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .layout import SEGMENT_END, Layout
+from fullperc_fusion.margin.layout import SEGMENT_END, Layout
 
 # Same values as fullperc_msgs/Region (pinned by test_margin.py); the core stays ROS-free.
 UNKNOWN, BVV, GVV, PVV = 0, 1, 2, 3

@@ -75,7 +75,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement, Step, StepCompat, predict_interval, split_update
+from fullperc_fusion.filters.api import (
+    SOURCE_GLOBAL,
+    SOURCE_LOCAL,
+    Measurement,
+    Step,
+    StepCompat,
+    predict_interval,
+    split_update,
+)
 
 __all__ = ["FILTER_KINDS", "SOURCE_GLOBAL", "SOURCE_LOCAL", "FilterParams", "FusionFilter", "PassThrough", "Step",
            "biased_factors", "kalman_update", "measurement_matrix", "process_noise", "transition"]

@@ -23,9 +23,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .fast_filter import biased_factor
-from .filter_api import SOURCE_GLOBAL, SOURCE_LOCAL
-from .filters import FILTER_KINDS, FilterParams
+from fullperc_fusion.filters.api import SOURCE_GLOBAL, SOURCE_LOCAL
+from fullperc_fusion.filters.paper_family import FILTER_KINDS, FilterParams
+from fullperc_fusion.filters.paper_fast import biased_factor
 
 __all__ = ["BatchOutput", "BatchUnsupported", "run_closed_form"]
 

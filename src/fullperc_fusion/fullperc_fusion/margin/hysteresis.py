@@ -21,7 +21,7 @@ Time is the pose stamp [ns] (acquisition time), so a replayed bag gives the labe
 earlier than the last change (a replay restarted) ends the hold.
 
 Consistency of the published Region: :meth:`RegionFilter.update` returns the label together with the
-:class:`~fullperc_fusion.margin.PointLabel` that supports it and the threshold in force, so that in every
+:class:`~fullperc_fusion.margin.view_margin.PointLabel` that supports it and the threshold in force, so that in every
 message BVV <=> the evidence is inside the OTS volume with line of sight, GVV <=> margin_deg >= threshold_deg,
 PVV <=> margin_deg < threshold_deg. With the band the threshold in force is ``threshold -/+ band`` (above);
 while a change is held back the evidence is that of the newest pose that had the held label (at most
@@ -33,7 +33,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from .margin import BVV, GVV, PVV, UNKNOWN, PointLabel
+from fullperc_fusion.margin.view_margin import BVV, GVV, PVV, UNKNOWN, PointLabel
 
 
 @dataclass(frozen=True)

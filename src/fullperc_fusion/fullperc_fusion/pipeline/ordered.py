@@ -78,16 +78,17 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fullperc_common.transforms import T_to_pq, inv_T
-
-from .calibration import Calibration
-from .filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, BadMeasurement, Measurement, Step, check_covariance
-from .filter_registry import FILTERS, make_filter
-from .filters import FilterParams
-from .frame_chain import BadSample, ChainConfig, FrameChain, pose_to_T
-from .layout import Layout
-from .link_monitor import LinkMonitor, MonitorParams
-from .margin import margin_at
-from .measurement_models import (
+from fullperc_fusion.calibration.monitor import LinkMonitor, MonitorParams
+from fullperc_fusion.calibration.se3_stats import Calibration
+from fullperc_fusion.filters.api import (
+    SOURCE_GLOBAL,
+    SOURCE_LOCAL,
+    BadMeasurement,
+    Measurement,
+    Step,
+    check_covariance,
+)
+from fullperc_fusion.filters.measurement_models import (
     OmcModelParams,
     link_covariance_at,
     local_covariance,
@@ -95,8 +96,13 @@ from .measurement_models import (
     omc_systematic_var,
     rotate_cov,
 )
-from .sources import SourceSet, fixed_cov, model_cov_std, renamed_calibration
-from .synchronizer import GLOBAL, LOCAL, ApproxSync, SyncItem
+from fullperc_fusion.filters.paper_family import FilterParams
+from fullperc_fusion.filters.registry import FILTERS, make_filter
+from fullperc_fusion.margin.layout import Layout
+from fullperc_fusion.margin.view_margin import margin_at
+from fullperc_fusion.pipeline.frame_chain import BadSample, ChainConfig, FrameChain, pose_to_T
+from fullperc_fusion.pipeline.sources import SourceSet, fixed_cov, model_cov_std, renamed_calibration
+from fullperc_fusion.pipeline.synchronizer import GLOBAL, LOCAL, ApproxSync, SyncItem
 
 _QUALITY_KEEP_NS = 1_000_000_000   # OMC qualities older than this behind the fused sample are dropped
 FILTER_NAMES: tuple[str, ...] = tuple(FILTERS)   # ("cbkf", "ckf", "bkf", "kf", "omc"): filter_registry.FILTERS
@@ -197,6 +203,11 @@ class TargetPipeline:
         self._omc_quality: dict[int, dict] = {}   # stamp -> TrackingQuality of the OMC target body (fit_error ...)
 
     # ---- input ------------------------------------------------------------------------------
+    def report_problem(self, key: str, msg: str, t_ns: int | None) -> None:
+        """Count a problem of kind ``key`` (a key of :attr:`counts`) and make ``msg`` the newest one: the pipeline's
+        own rejections, and a caller's (``fusion_node``'s publish errors) the same way."""
+        self._problem(key, msg, t_ns)
+
     def _problem(self, key: str, msg: str, t_ns: int | None) -> None:
         self.counts[key] += 1
         self.last_problem = msg

@@ -58,8 +58,8 @@ import copy
 from dataclasses import dataclass, field
 from typing import Any
 
-from .pipeline import FusedOutput, TargetConfig, TargetPipeline
-from .synchronizer import GLOBAL, LOCAL, ApproxSync, Sample, SyncItem
+from fullperc_fusion.pipeline.ordered import FusedOutput, TargetConfig, TargetPipeline
+from fullperc_fusion.pipeline.synchronizer import GLOBAL, LOCAL, ApproxSync, Sample, SyncItem
 
 PROCESSING_MODES = ("arrival", "ordered")
 LATE_SOURCE_SPAN_NS = 5_000_000_000   # [ns] of a late source's own (in-order) stamps before it restarts the timeline

@@ -91,10 +91,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .filter_api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement, Step, StepCompat, predict_interval, split_update
-from .filters import FilterParams
-from .rot_noise_scale import pair_estimate, scale_decay, scale_step, scaled_cov
-from .so3 import R_to_quat, _skew, quat_to_R, so3_exp, so3_log
+from fullperc_common.so3 import R_to_quat, quat_to_R, so3_exp, so3_log
+from fullperc_common.so3 import skew as _skew
+from fullperc_fusion.filters.api import (
+    SOURCE_GLOBAL,
+    SOURCE_LOCAL,
+    Measurement,
+    Step,
+    StepCompat,
+    predict_interval,
+    split_update,
+)
+from fullperc_fusion.filters.paper_family import FilterParams
+from fullperc_fusion.filters.rot_noise_scale import pair_estimate, scale_decay, scale_step, scaled_cov
 
 __all__ = ["HOP_INTO", "FullpercParams", "FullpercReference", "so3_exp", "so3_log", "quat_to_R", "R_to_quat"]
 

@@ -1,0 +1,65 @@
+"""Every fusion filter by name: the one place a filter is registered (CONTRIBUTING.md, "How to add a filter").
+
+:data:`FILTERS` maps a name to a :class:`FilterSpec`: the factory ``(params) -> Filter`` (:class:`~.api.Filter`),
+the filter's own parameter dataclass, and its declared :class:`~.api.Capabilities`. Everything that lists, builds or
+asks about filters derives from it: :func:`make_filter`, :func:`capabilities`, ``pipeline.ordered.FILTER_NAMES``
+(the order of this dict is the evaluator's column order and the benchmarks'), and through FILTER_NAMES the checks
+of ``TargetConfig`` and ``fusion_config`` (the ``filter`` / ``filters`` node parameters).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import partial
+
+from fullperc_fusion.filters.api import Capabilities, Filter
+from fullperc_fusion.filters.fullperc import FullpercFilter
+from fullperc_fusion.filters.fullperc_reference import FullpercParams
+from fullperc_fusion.filters.paper_family import FilterParams, PassThrough
+from fullperc_fusion.filters.paper_fast import ClosedFormFilter
+
+FilterFactory = Callable[[FilterParams | None], Filter]
+
+
+@dataclass(frozen=True)
+class FilterSpec:
+    """One registry entry: how to build the filter, which parameters it takes, what it supports."""
+
+    factory: FilterFactory
+    params: type[FilterParams] = FilterParams
+    caps: Capabilities = Capabilities()
+
+
+_PAPER = Capabilities(batch=True)   # position only, fixed noise, replayable in paper_batch's closed-form loop
+
+FILTERS: dict[str, FilterSpec] = {
+    # the paper's four filters in closed form per axis (paper_fast; falls back to paper_family.FusionFilter, the
+    # general form and the tests' reference, when a measurement's position covariance couples the axes)
+    "cbkf": FilterSpec(partial(ClosedFormFilter, "cbkf"), FilterParams, _PAPER),   # the paper's method (default)
+    "ckf": FilterSpec(partial(ClosedFormFilter, "ckf"), FilterParams, _PAPER),
+    "bkf": FilterSpec(partial(ClosedFormFilter, "bkf"), FilterParams, _PAPER),
+    "kf": FilterSpec(partial(ClosedFormFilter, "kf"), FilterParams, _PAPER),
+    "omc": FilterSpec(PassThrough, FilterParams, _PAPER),             # the raw global source, for comparison
+    # ours: CBKF's compensated position + per-measurement model covariance + orientation on SO(3); the fast form
+    # (filters.fullperc) of the general fullperc_reference.FullpercReference, the tests' reference
+    "fullperc": FilterSpec(FullpercFilter, FullpercParams, Capabilities(models=True, orientation=True)),
+}
+
+
+def spec(name: str) -> FilterSpec:
+    """The registry entry of ``name``; ValueError naming the registered filters when there is none."""
+    try:
+        return FILTERS[name]
+    except KeyError:
+        raise ValueError(f"filter '{name}' is not one of {tuple(FILTERS)}") from None
+
+
+def capabilities(name: str) -> Capabilities:
+    """What filter ``name`` declares it supports."""
+    return spec(name).caps
+
+
+def make_filter(name: str, params: FilterParams | None = None) -> Filter:
+    """A new filter ``name`` (a key of :data:`FILTERS`) with ``params`` (default: its own parameter dataclass's)."""
+    return spec(name).factory(params)
