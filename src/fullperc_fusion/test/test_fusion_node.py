@@ -318,6 +318,11 @@ def _alarms(tmp: Path) -> dict:
             wait_for(lambda: [st for st in _statuses(lis, "probe") if _last_stamp(st) >= last_probe], 60,
                      what="diagnostics of probe after all its samples",
                      detail=lambda: [st.message for st in _statuses(lis, "probe")[-3:]])
+            # and tool's FusionStatus of the newest sample those /diagnostics say it fused (the test reads the last
+            # status's bias): the statuses go on a topic of their own, so /diagnostics can arrive before them
+            newest = max(_last_stamp(st) for st in _statuses(lis, "tool"))
+            wait_for(lambda: any(_ns(s.header.stamp) >= newest for s in list(lis.got["/fullperc/tool/status"])), 30,
+                     what="tool's FusionStatus of its newest fused sample")
             hop_ns = min(r["t_ns"] for r in rows if r["body"] == "probe" and "jump" in r)
             _pub_exited(procs, pub)
             return {"lis": lis, "hop_ns": hop_ns, "warn": warn, "err": err, "alive": node.poll() is None,
