@@ -146,7 +146,7 @@ def _config_key(target: str = "tool") -> bytes:
     """What the evaluator's configuration is made of: fusion_node's parameter values as used for ``target`` (the
     files they name, e.g. the params file itself, included by content) and the default layout."""
     from fullperc_eval.evaluation.config import replay_config
-    from fullperc_fusion.layout import default_layout_path
+    from fullperc_fusion.margin.layout import default_layout_path
 
     _, flat = replay_config(None, target)
     named = [v for v in flat.values() if isinstance(v, str) and v and Path(v).is_file()]
