@@ -2,7 +2,7 @@
 
 Three processes on one DDS domain (LOCALHOST discovery, own domain id): ``e2e_publisher.py`` (stand-in drivers,
 stamping each pose with its publish time), the installed ``fusion_node`` with its default settings and every
-registered filter enabled (``filter_registry.FILTERS``: the paper's four, ``omc``, and any filter added since;
+registered filter enabled (``filters.registry.FILTERS``: the paper's four, ``omc``, and any filter added since;
 the default primary first), and this script, which subscribes to the fused pose and takes ``receive - stamp``
 (harness: ``live_fusion.py``).
 

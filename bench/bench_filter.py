@@ -2,8 +2,8 @@
 
 ``filter_step_us[<name>]`` (issue 16 item 3, goal <= 20 us; ``cbkf`` and ``fullperc`` first, then every other
 registered filter but the pass-through): one ``predict`` + ``update`` of the filter the pipeline uses
-(``filter_registry.make_filter``; the paper's four in closed form per axis, fast_filter.py; ``fullperc`` its fast
-form, fullperc_filter.py) on prebuilt Measurements, as the pipeline calls it, over a 120 Hz global stream with a
+(``filters.registry.make_filter``; the paper's four in closed form per axis, paper_fast.py; ``fullperc`` its fast
+form, filters/fullperc.py) on prebuilt Measurements, as the pipeline calls it, over a 120 Hz global stream with a
 local sample paired to every second one (3 ms lag), positions only with the filters' fixed noise; median over
 interleaved repeats of the mean per step. Baseline (same run, interleaved): the filter's general form, the tests'
 reference (``filters.FusionFilter`` for the paper's kinds, ``fullperc_reference.FullpercReference`` for
@@ -36,9 +36,11 @@ from benchlib import emit, emit_error, median_time
 from scipy.linalg.lapack import dgesv
 from scipy.spatial.transform import Rotation as Rot
 
+from fullperc_common.so3 import R_to_quat, so3_exp
 from fullperc_common.transforms import inv_T, make_T
 from fullperc_fusion.filters.api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement
-from fullperc_fusion.filters.fullperc_reference import FullpercParams, FullpercReference, R_to_quat, so3_exp
+from fullperc_fusion.filters.fullperc_params import FullpercParams
+from fullperc_fusion.filters.fullperc_reference import FullpercReference
 from fullperc_fusion.filters.measurement_models import local_covariance, omc_covariance, omc_systematic_var, rotate_cov
 from fullperc_fusion.filters.paper_family import FILTER_KINDS, FusionFilter, PassThrough
 from fullperc_fusion.filters.registry import FILTERS, make_filter
@@ -179,7 +181,7 @@ def filter_step_figures(zs, repeats=9) -> None:
     for label, name, its in runs:
         if name not in FILTERS:
             emit_error(f"filter_step_us[{label}]", "us", f"filter '{name}' is not registered in "
-                       f"filter_registry.FILTERS ({', '.join(FILTERS)})")
+                       f"filters.registry.FILTERS ({', '.join(FILTERS)})")
             continue
         ref = (lambda name=name: FusionFilter(name)) if name in FILTER_KINDS else REFERENCES.get(name)
         fast, base = [], []

@@ -20,7 +20,7 @@ import argparse
 
 import numpy as np
 
-import fullperc_fusion.pipeline.ordered as pipeline
+import fullperc_fusion.pipeline.measure as pipeline  # where the pipeline looks local_covariance up
 from fullperc_eval.evaluation.metrics import evaluate_bag
 from fullperc_fusion.filters.measurement_models import link_covariance_at
 

@@ -25,6 +25,9 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 MAX_LINES = 600
+# fullperc_fusion, in layers since it outgrew one folder: its modules stay smaller (a module is one job)
+FUSION_MAX_LINES = 500
+FUSION_SRC = "src/fullperc_fusion/fullperc_fusion"
 SOURCE_DIRS = ("src", "bench", "scripts", "test")
 
 
@@ -300,6 +303,22 @@ def test_no_source_module_over_600_lines():
     assert len(files) > 50
     too_long = long_modules(files)
     assert not too_long, f"modules over {MAX_LINES} lines (split them by job):\n  " + "\n  ".join(too_long)
+
+
+def test_no_fusion_module_over_500_lines():
+    files = [f for f in repo_files() if f.suffix == ".py" and f.is_relative_to(ROOT / FUSION_SRC)]
+    assert len(files) > 30
+    too_long = long_modules(files, FUSION_MAX_LINES)
+    assert not too_long, f"fullperc_fusion modules over {FUSION_MAX_LINES} lines (split them by job):\n  " + \
+        "\n  ".join(too_long)
+
+
+def test_fusion_top_level_holds_the_nodes_and_their_cores_only():
+    """At most 12 modules directly in fullperc_fusion (the nodes, their pure cores, the configuration); the rest
+    lives in the sub-packages of FUSION_LAYERS."""
+    top = sorted(f.name for f in (ROOT / FUSION_SRC).glob("*.py") if f.name != "__init__.py")
+    assert 0 < len(top) <= 12, top
+    assert {d.name for d in (ROOT / FUSION_SRC).iterdir() if (d / "__init__.py").is_file()} == set(FUSION_LAYERS)
 
 
 # ------------------------------------------------------------------------------------ (d) machine paths

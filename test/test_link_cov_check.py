@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-import fullperc_fusion.pipeline.ordered as pipeline
+import fullperc_fusion.pipeline.measure as pipeline  # where the pipeline looks local_covariance up
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from fullperc_eval.evaluation import sensor_stats
-from fullperc_fusion.filters.fullperc_reference import FullpercParams
+from fullperc_fusion.filters.fullperc_params import FullpercParams
 from fullperc_fusion.filters.measurement_models import LocalModelParams, OmcModelParams
 from fullperc_fusion.margin.layout import default_layout_path, load_layout
 

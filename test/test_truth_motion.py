@@ -50,7 +50,7 @@ def test_the_arm_held_tools_turn_model_is_its_truth_motion(load_script):
     `accel_noise` is its v_max * a_max; and far below the node-wide default, which is a hand-held instrument's."""
     import yaml
 
-    from fullperc_fusion.filters.fullperc import FullpercParams
+    from fullperc_fusion.filters.fullperc_params import FullpercParams
 
     mod = load_script("truth_motion")
     q = max(mod.motion_figures(str(bag), "tool")["q_turn"] for bag in sorted((ROOT / "bags" / "paper").iterdir())

@@ -215,3 +215,22 @@ def test_sample_bag_other_chains_batched_and_equal(chain):
     a = replay(SAMPLE, cfg, progress=False)
     assert a.path == "batched"
     _assert_same(a, replay(SAMPLE, cfg, progress=False, per_sample=True))
+
+
+def test_the_batched_replay_drives_the_pipeline_through_its_public_api():
+    """batch.py uses TargetPipeline's public stages (observe_*, enqueue, poll_items / flush_items, counts, stats):
+    no private attribute of it, and its synchronizer, chain and monitor are never operated directly (only read)."""
+    import ast
+
+    from fullperc_eval.evaluation import batch
+
+    reads = {"sync": {"pending", "counts"}, "chain": {"links"}}
+    tree = ast.parse(Path(batch.__file__).read_text())
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id == "pipe":
+            assert not node.attr.startswith("_"), f"pipe.{node.attr}"
+        if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Attribute) \
+                and isinstance(node.value.value, ast.Name) and node.value.value.id == "pipe":
+            assert node.attr in reads.get(node.value.attr, set()), f"pipe.{node.value.attr}.{node.attr}"
+    names = {n.id for n in ast.walk(tree) if isinstance(n, ast.Name)}
+    assert not names & {"sync", "monitor", "chain"}, "a pipeline part held beside the pipeline"

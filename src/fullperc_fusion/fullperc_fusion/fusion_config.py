@@ -7,20 +7,21 @@ Two users, one mapping, so live and offline cannot drift apart:
 * the offline evaluator calls :func:`load_fusion_config`: the same mapping over the node's params YAML
   (``config/fusion.yaml`` by default; ``fusion_node: ros__parameters:`` with nested keys for dotted names).
 
-Each :class:`Param` row holds the name (nested names use dots: ``noise.accel``), the default, the kind of
-value, the check and its explanation, the unit and a description. The mapping is pure: it gets raw values from a
-``get(name, default)`` callable, converts them by kind (an int is accepted for a float; nothing else is
-converted: ``"1"`` is not a number, ``1`` is not a bool), checks them and raises
-:class:`~fullperc_common.params.ParameterError` naming the parameter. A value ``None`` (an empty YAML key, an
-undeclared optional ROS parameter) means "not given": the default.
+Each :class:`~.pipeline.param_table.Param` row holds the name (nested names use dots: ``noise.accel``), the default,
+the kind of value, its one validity rule (:class:`~.pipeline.param_table.Rule`, named where several rows share it),
+the unit, a description and, for a filter parameter, the field of the filters' parameter dataclass it sets. The
+mapping is pure: it gets raw values from a ``get(name, default)`` callable and converts and checks them by the rows
+(:func:`~.pipeline.param_table.convert`); a wrong value raises :class:`~fullperc_common.params.ParameterError` naming
+the parameter. The filters' parameters are derived from the rows (:func:`filter_params`): the registry names each
+filter's parameter dataclass (``filters.registry.FilterSpec.params``), a row names its field, and nothing copies the
+fields by hand.
 """
 
 from __future__ import annotations
 
-import array
-import math
+import dataclasses
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -30,63 +31,59 @@ from fullperc_common.params import ParameterError
 from fullperc_fusion.calibration.io import load_calibration
 from fullperc_fusion.calibration.monitor import MonitorParams
 from fullperc_fusion.calibration.se3_stats import CalibrationError, CalibrationSettings, StaticThresholds
-from fullperc_fusion.filters.fullperc import FullpercParams
-from fullperc_fusion.filters.fullperc_reference import HOP_INTO
+from fullperc_fusion.filters.fullperc_params import HOP_INTO
+from fullperc_fusion.filters.paper_family import FilterParams
 from fullperc_fusion.filters.registry import FILTERS
 from fullperc_fusion.fusion_health import HealthParams
-from fullperc_fusion.pipeline.frame_chain import (
-    LOCAL_CHAINS,
-    STATIC_LINK_MODES,
-    BadSample,
-    ChainConfig,
-    pose_to_T,
-)
+from fullperc_fusion.pipeline.frame_chain import LOCAL_CHAINS, STATIC_LINK_MODES, ChainConfig
 from fullperc_fusion.pipeline.ordered import FILTER_NAMES, TargetConfig
-from fullperc_fusion.pipeline.sources import SOURCE_KEYS, read_source_values, source_set
+from fullperc_fusion.pipeline.param_table import (
+    COUNT,
+    NONEMPTY,
+    NONNEGATIVE,
+    POSITIVE,
+    UNIT_FRACTION,
+    Get,
+    Param,
+    at_least,
+    convert,
+    finite_at_least,
+    one_of,
+)
+from fullperc_fusion.pipeline.sources import SOURCE_KEYS, device_param, read_source_values, source_param, source_set
 
 # every method: the paper's five in the column order of its Table 1 (omc, kf, bkf, ckf, cbkf: the first five of
 # the registry reversed), then every further registered filter (fullperc) in registry order
 PAPER_ORDER = tuple(reversed(FILTER_NAMES[:5])) + FILTER_NAMES[5:]
-KINDS = ("str", "int", "float", "bool", "str_list", "pose7")
-
-Get = Callable[[str, Any], Any]
 
 
-@dataclass(frozen=True)
-class Param:
-    """One parameter: ``default`` None = optional without a value (``kind`` still says its type)."""
-
-    name: str
-    default: Any
-    kind: str
-    check: Callable[[Any], bool] | None = None
-    why: str = ""
-    unit: str = ""
-    doc: str = ""
-
-    @property
-    def description(self) -> str:
-        return f"{self.doc} [{self.unit}]" if self.unit else self.doc
+def _params_of_every_filter() -> type[FilterParams]:
+    """The registered parameter dataclass that every registered filter's is a base of (FullpercParams: the paper's
+    FilterParams plus fullperc's fields). One object of it serves every filter of a target (``TargetConfig.params``);
+    a filter reads its own dataclass's fields only."""
+    types = {s.params for s in FILTERS.values()}
+    top = [t for t in types if all(issubclass(t, u) for u in types)]
+    if len(top) != 1:
+        raise TypeError("no registered parameter dataclass extends every other one: "
+                        f"{sorted(t.__name__ for t in types)}")
+    return top[0]
 
 
-def _fin(v) -> bool:
-    return math.isfinite(v)
-
-
-def _pos(v) -> bool:
-    return math.isfinite(v) and v > 0
-
-
-def _nonneg(v) -> bool:
-    return math.isfinite(v) and v >= 0
-
-
-_F = FullpercParams()
+FILTER_PARAMS = _params_of_every_filter()
+_F = FILTER_PARAMS()
 _C = ChainConfig()
 _T = TargetConfig()
 _H = HealthParams()
 _S = CalibrationSettings()
 _M = MonitorParams()
+
+
+def _filter_row(name: str, field: str, kind: str, check: Callable[[Any], bool] | None = None, why: str = "",
+                unit: str = "", doc: str = "") -> Param:
+    """The row (a :class:`Param`'s arguments) of a parameter that sets the filters' ``field``: its default is the
+    dataclass's."""
+    return Param(name, getattr(_F, field), kind, check, why, unit, doc, field)
+
 
 PARAMS: tuple[Param, ...] = (
     Param("targets", ["tool"], "str_list", lambda v: len(v) > 0 and all(v), "at least one non-empty name", "",
@@ -94,15 +91,15 @@ PARAMS: tuple[Param, ...] = (
     Param("sources", None, "str_list", None, "", "",
           "measurement sources (sources.py): one global, one or more local, a block '<name>: {role: ...}' each; "
           "none = the built-in omc (global, /omc) + ots (local, /ots)"),
-    Param("omc_base_body", _C.omc_base, "str", bool, "must not be empty", "",
+    Param("omc_base_body", _C.omc_base, "str", *NONEMPTY, "",
           "OMC rigid body of the reference marker: the frame 'base' of every output"),
-    Param("omc_rig_body", _C.omc_rig, "str", bool, "must not be empty", "",
+    Param("omc_rig_body", _C.omc_rig, "str", *NONEMPTY, "",
           "OMC rigid body attached to the OTS (paper eq. 1 {Robot})"),
-    Param("ots_base_tool", _C.ots_base, "str", bool, "must not be empty", "",
+    Param("ots_base_tool", _C.ots_base, "str", *NONEMPTY, "",
           "OTS tool on the reference marker (eq. 2)"),
-    Param("local_chain", _C.local_chain, "str", lambda v: v in LOCAL_CHAINS, f"one of {LOCAL_CHAINS}", "",
+    Param("local_chain", _C.local_chain, "str", *one_of(LOCAL_CHAINS), "",
           "static (OTS on a stand) | tracked (OTS moves, eq. 1 live) | direct (eq. 2 live)"),
-    Param("init_samples", _C.init_samples, "int", lambda v: v > 0, "must be > 0", "samples",
+    Param("init_samples", _C.init_samples, "int", *COUNT, "samples",
           "samples per body averaged into the static links"),
     Param("T_rig_ots", None, "pose7", None, "", "m, quaternion x y z w",
           "optional hand-eye calibration rig -> ots [x y z qx qy qz qw]"),
@@ -110,90 +107,90 @@ PARAMS: tuple[Param, ...] = (
           "optional fixed calibration of a stationary OTS [x y z qx qy qz qw]"),
     Param("calibration_file", "", "str", None, "", "",
           "calibration YAML (calibrate executable, ~/calibrate) whose links are used from the start; '' = none"),
-    Param("static_links", _C.static_links, "str", lambda v: v in STATIC_LINK_MODES, f"one of {STATIC_LINK_MODES}",
+    Param("static_links", _C.static_links, "str", *one_of(STATIC_LINK_MODES),
           "", "links not in calibration_file: calibrate over calibration.duration (average meanwhile) | average"),
-    Param("calibration.duration", _C.calibration_duration_s, "float", _pos, "must be finite and > 0", "s",
+    Param("calibration.duration", _C.calibration_duration_s, "float", *POSITIVE, "s",
           "sightings collected per calibration (static_links calibrate, ~/calibrate, re-calibration)"),
-    Param("calibration.min_samples", _S.min_samples, "int", lambda v: v >= 2, "must be >= 2", "samples",
+    Param("calibration.min_samples", _S.min_samples, "int", *at_least(2), "samples",
           "fewer sightings of a body in a collection: refused"),
-    Param("calibration.max_drift", _S.static.max_drift_m, "float", _pos, "must be finite and > 0", "m",
+    Param("calibration.max_drift", _S.static.max_drift_m, "float", *POSITIVE, "m",
           "a body whose mean moved more than this (and significantly) during a collection: refused"),
-    Param("calibration.max_rot_drift", _S.static.max_drift_rad, "float", _pos, "must be finite and > 0", "rad",
+    Param("calibration.max_rot_drift", _S.static.max_drift_rad, "float", *POSITIVE, "rad",
           "the same for the rotation"),
     Param("calibration.output", "", "str", None, "", "",
           "~/calibrate writes its calibration YAML here; '' = not written"),
-    Param("calibration.timeout", 10.0, "float", _pos, "must be finite and > 0", "s",
+    Param("calibration.timeout", 10.0, "float", *POSITIVE, "s",
           "~/calibrate ends this long after calibration.duration even without enough sightings (then refused)"),
     Param("link_monitor.enabled", _M.enabled, "bool", None, "", "",
           "compare the OTS's live view of the base marker with the calibrated T_base_ots"),
-    Param("link_monitor.trans_max", _M.trans_max_m, "float", _pos, "must be finite and > 0", "m",
+    Param("link_monitor.trans_max", _M.trans_max_m, "float", *POSITIVE, "m",
           "window mean farther than this from the calibrated link: bumped"),
-    Param("link_monitor.rot_max", _M.rot_max_rad, "float", _pos, "must be finite and > 0", "rad",
+    Param("link_monitor.rot_max", _M.rot_max_rad, "float", *POSITIVE, "rad",
           "window mean turned more than this: bumped"),
-    Param("link_monitor.window", _M.window_s, "float", _pos, "must be finite and > 0", "s",
+    Param("link_monitor.window", _M.window_s, "float", *POSITIVE, "s",
           "sightings averaged per comparison (evaluated every half window)"),
     Param("link_monitor.recalibrate", _M.recalibrate, "bool", None, "", "",
           "a bump starts a re-calibration over calibration.duration (old links in use meanwhile)"),
-    Param("filter", "cbkf", "str", lambda v: v in FILTER_NAMES, f"one of {FILTER_NAMES}", "",
+    Param("filter", "cbkf", "str", *one_of(FILTER_NAMES), "",
           "primary filter (omc = raw OMC pass-through)"),
     Param("filters", None, "str_list", lambda v: all(f in FILTER_NAMES for f in v),
           f"every entry one of {FILTER_NAMES}", "", "side-by-side filters under /fullperc/<target>/<filter>/"),
-    Param("noise.accel", _F.accel_noise, "float", _nonneg, "must be finite and >= 0", "m^2/s^3",
+    _filter_row("noise.accel", "accel_noise", "float", *NONNEGATIVE, "m^2/s^3",
           "white-acceleration density q_a"),
-    Param("noise.bias_walk", _F.bias_walk, "float", _nonneg, "must be finite and >= 0", "m^2/s",
+    _filter_row("noise.bias_walk", "bias_walk", "float", *NONNEGATIVE, "m^2/s",
           "bias random walk q_b"),
-    Param("noise.global_std", _F.global_std, "float", _pos, "must be finite and > 0", "m", "OMC white noise per axis"),
-    Param("noise.local_std", _F.local_std, "float", _pos, "must be finite and > 0", "m", "OTS chain noise per axis"),
-    Param("init.pos_std", _F.init_pos_std, "float", _nonneg, "must be finite and >= 0", "m", "prior std of p"),
-    Param("init.vel_std", _F.init_vel_std, "float", _nonneg, "must be finite and >= 0", "m/s", "prior std of v"),
-    Param("init.bias_std", _F.init_bias_std, "float", _nonneg, "must be finite and >= 0", "m", "prior std of b"),
-    Param("hop_gate", _F.hop_gate, "float", _pos, "must be finite and > 0", "chi^2, 3 dof",
+    _filter_row("noise.global_std", "global_std", "float", *POSITIVE, "m", "OMC white noise per axis"),
+    _filter_row("noise.local_std", "local_std", "float", *POSITIVE, "m", "OTS chain noise per axis"),
+    _filter_row("init.pos_std", "init_pos_std", "float", *NONNEGATIVE, "m", "prior std of p"),
+    _filter_row("init.vel_std", "init_vel_std", "float", *NONNEGATIVE, "m/s", "prior std of v"),
+    _filter_row("init.bias_std", "init_bias_std", "float", *NONNEGATIVE, "m", "prior std of b"),
+    _filter_row("hop_gate", "hop_gate", "float", *POSITIVE, "chi^2, 3 dof",
           "gate on the global NIS; above it the update is flagged as a hop"),
-    Param("hop_to_bias", _F.hop_to_bias, "bool", None, "", "",
+    _filter_row("hop_to_bias", "hop_to_bias", "bool", None, "", "",
           "a flagged hop goes into the bias (compensated filters)"),
-    Param("max_gap", _F.max_gap_s, "float", _pos, "must be finite and > 0", "s",
+    _filter_row("max_gap", "max_gap_s", "float", *POSITIVE, "s",
           "longer silence of both sources re-initialises p and v"),
-    Param("fullperc.ang_accel_noise", _F.ang_accel_noise, "float", _nonneg, "must be finite and >= 0", "rad^2/s^3",
+    _filter_row("fullperc.ang_accel_noise", "ang_accel_noise", "float", *NONNEGATIVE, "rad^2/s^3",
           "fullperc: white angular-acceleration density q_alpha"),
-    Param("fullperc.rot_bias_walk", _F.rot_bias_walk, "float", _nonneg, "must be finite and >= 0", "rad^2/s",
+    _filter_row("fullperc.rot_bias_walk", "rot_bias_walk", "float", *NONNEGATIVE, "rad^2/s",
           "fullperc: random walk of the OMC's orientation bias"),
-    Param("fullperc.rot_global_std", _F.rot_global_std, "float", _pos, "must be finite and > 0", "rad",
+    _filter_row("fullperc.rot_global_std", "rot_global_std", "float", *POSITIVE, "rad",
           "fullperc: OMC orientation noise per axis when a sample has no covariance"),
-    Param("fullperc.rot_local_std", _F.rot_local_std, "float", _pos, "must be finite and > 0", "rad",
+    _filter_row("fullperc.rot_local_std", "rot_local_std", "float", *POSITIVE, "rad",
           "fullperc: OTS orientation noise per axis when a sample has no covariance"),
-    Param("fullperc.init_rot_std", _F.init_rot_std, "float", _nonneg, "must be finite and >= 0", "rad",
+    _filter_row("fullperc.init_rot_std", "init_rot_std", "float", *NONNEGATIVE, "rad",
           "fullperc: prior std of the orientation"),
-    Param("fullperc.init_angvel_std", _F.init_angvel_std, "float", _nonneg, "must be finite and >= 0", "rad/s",
+    _filter_row("fullperc.init_angvel_std", "init_angvel_std", "float", *NONNEGATIVE, "rad/s",
           "fullperc: prior std of the angular velocity"),
-    Param("fullperc.init_rot_bias_std", _F.init_rot_bias_std, "float", _nonneg, "must be finite and >= 0", "rad",
+    _filter_row("fullperc.init_rot_bias_std", "init_rot_bias_std", "float", *NONNEGATIVE, "rad",
           "fullperc: prior std of the OMC's orientation bias"),
-    Param("fullperc.sys_time", _F.sys_time, "float", _pos, "must be finite and > 0", "s",
+    _filter_row("fullperc.sys_time", "sys_time", "float", *POSITIVE, "s",
           "fullperc: correlation time of the OMC's systematic position error (Gauss-Markov bias part)"),
-    Param("fullperc.sys_std", _F.sys_std, "float", _pos, "must be finite and > 0", "m",
+    _filter_row("fullperc.sys_std", "sys_std", "float", *POSITIVE, "m",
           "fullperc: its per-axis std for an OMC sample without a model (no quality)"),
-    Param("fullperc.rot_sys_time", _F.rot_sys_time, "float", _nonneg, "must be finite and >= 0", "s",
+    _filter_row("fullperc.rot_sys_time", "rot_sys_time", "float", *NONNEGATIVE, "s",
           "fullperc: correlation time of the OMC orientation bias's Gauss-Markov part; 0 = random walk alone"),
-    Param("fullperc.rot_sys_std", _F.rot_sys_std, "float", _nonneg, "must be finite and >= 0", "rad",
+    _filter_row("fullperc.rot_sys_std", "rot_sys_std", "float", *NONNEGATIVE, "rad",
           "fullperc: stationary per-axis std of that part"),
-    Param("fullperc.rot_bias_length", _F.rot_bias_length, "float", _nonneg, "must be finite and >= 0", "m",
+    _filter_row("fullperc.rot_bias_length", "rot_bias_length", "float", *NONNEGATIVE, "m",
           "fullperc: distance over which the OMC orientation bias decays once the local source has lost the tool "
           "(0 = off)"),
-    Param("fullperc.local_lost_s", _F.local_lost_s, "float", _pos, "must be finite and > 0", "s",
+    _filter_row("fullperc.local_lost_s", "local_lost_s", "float", *POSITIVE, "s",
           "fullperc: time without a local sample after which the local source counts as having lost the tool"),
-    Param("fullperc.hop_into", _F.hop_into, "str", lambda v: v in HOP_INTO, f"one of {HOP_INTO}", "",
+    _filter_row("fullperc.hop_into", "hop_into", "str", *one_of(HOP_INTO), "",
           "the global bias part a position hop goes into: b (the lasting compensation, CBKF's rule) | g "
           "(Gauss-Markov, forgotten over fullperc.sys_time)"),
-    Param("fullperc.noise_adapt_time", _F.noise_adapt_time, "float", _nonneg, "must be finite and >= 0", "s",
+    _filter_row("fullperc.noise_adapt_time", "noise_adapt_time", "float", *NONNEGATIVE, "s",
           "time constant of the OMC white-noise scale learnt from its innovations (0 = off: the model as it is)"),
-    Param("fullperc.noise_adapt_max", _F.noise_adapt_max, "float", lambda v: _fin(v) and v >= 1.0,
-          "must be finite and >= 1", "", "largest scale of the OMC's white position variance"),
-    Param("fullperc.rot_noise_adapt_time", _F.rot_noise_adapt_time, "float", _nonneg, "must be finite and >= 0", "s",
+    _filter_row("fullperc.noise_adapt_max", "noise_adapt_max", "float", *finite_at_least(1.0), "",
+                "largest scale of the OMC's white position variance"),
+    _filter_row("fullperc.rot_noise_adapt_time", "rot_noise_adapt_time", "float", *NONNEGATIVE, "s",
           "time constant of the OMC rotation-noise scale learnt from (OMC, OTS) pairs (0 = off: the model as it is)"),
-    Param("fullperc.rot_noise_adapt_min", _F.rot_noise_adapt_min, "float", lambda v: _fin(v) and 0.0 < v <= 1.0,
-          "must be finite, > 0 and <= 1", "", "smallest scale of the OMC's rotation variance"),
-    Param("fullperc.rot_noise_adapt_max", _F.rot_noise_adapt_max, "float", lambda v: _fin(v) and v >= 1.0,
-          "must be finite and >= 1", "", "largest scale of the OMC's rotation variance"),
-    Param("fullperc.rot_noise_length", _F.rot_noise_length, "float", _nonneg, "must be finite and >= 0", "m",
+    _filter_row("fullperc.rot_noise_adapt_min", "rot_noise_adapt_min", "float", *UNIT_FRACTION, "",
+                "smallest scale of the OMC's rotation variance"),
+    _filter_row("fullperc.rot_noise_adapt_max", "rot_noise_adapt_max", "float", *finite_at_least(1.0), "",
+                "largest scale of the OMC's rotation variance"),
+    _filter_row("fullperc.rot_noise_length", "rot_noise_length", "float", *NONNEGATIVE, "m",
           "distance over which that scale returns to 1 once the local source has lost the tool (0 = kept)"),
     Param("fullperc.layout_file", "", "str", None, "", "",
           "fullperc: OR layout for the OMC model's view margin; '' = the installed or_layout.yaml, 'none' = none"),
@@ -201,45 +198,45 @@ PARAMS: tuple[Param, ...] = (
           "fullperc: noise model of this installation's OMC (written by fit_noise_model); '' = the built-in one. "
           "Its omc_bias values replace fullperc.sys_time, sys_std, rot_sys_time, rot_sys_std, rot_bias_walk, "
           "rot_bias_length"),
-    Param("slop", _T.slop_ns * 1e-9, "float", _nonneg, "must be finite and >= 0", "s",
+    Param("slop", _T.slop_ns * 1e-9, "float", *NONNEGATIVE, "s",
           "pair OMC and OTS samples closer than this"),
-    Param("reorder_delay", _T.delay_ns * 1e-9, "float", _nonneg, "must be finite and >= 0", "s",
+    Param("reorder_delay", _T.delay_ns * 1e-9, "float", *NONNEGATIVE, "s",
           "wait for late / reordered samples before processing"),
-    Param("clock", "stamps", "str", lambda v: v in ("stamps", "host"), "stamps or host", "",
+    Param("clock", "stamps", "str", *one_of(("stamps", "host"), "stamps or host"), "",
           "what 'now' is for the synchronizer: the newest stamp, or the node clock"),
-    Param("max_future", _T.max_future_ns * 1e-9, "float", _pos, "must be finite and > 0", "s",
+    Param("max_future", _T.max_future_ns * 1e-9, "float", *POSITIVE, "s",
           "a sample stamped more than this ahead of the node clock is rejected (named on /diagnostics)"),
-    Param("idle_flush", 0.5, "float", _pos, "must be finite and > 0", "s",
+    Param("idle_flush", 0.5, "float", *POSITIVE, "s",
           "without target samples for this long: process everything pending (arrival: the history becomes final)"),
-    Param("processing", _T.processing, "str", lambda v: v in ("arrival", "ordered"), "arrival or ordered", "",
+    Param("processing", _T.processing, "str", *one_of(("arrival", "ordered"), "arrival or ordered"), "",
           "arrival: fuse each sample when it arrives, rewind and replay for late ones | ordered: wait slop + "
           "reorder_delay, then fuse in stamp order"),
-    Param("history", _T.history_ns * 1e-9, "float", _pos, "must be finite and > 0", "s",
+    Param("history", _T.history_ns * 1e-9, "float", *POSITIVE, "s",
           "arrival: a sample up to this much older than the newest is still fused in order (rewind and replay); "
           "older: dropped, named on /diagnostics"),
-    Param("lag_warn", 0.2, "float", _pos, "must be finite and > 0", "s",
+    Param("lag_warn", 0.2, "float", *POSITIVE, "s",
           "processing lag (node clock - stamp of the newest fused sample) above this for a whole /diagnostics "
           "period -> WARN (overload; beyond `history` late samples are dropped)"),
     Param("publish_final", True, "bool", None, "", "",
           "arrival: publish /fullperc/<target>/final, the primary filter's estimates once final (= offline)"),
-    Param("status_rate", 0.0, "float", lambda v: math.isfinite(v) and v >= 0, "must be finite and >= 0", "Hz",
+    Param("status_rate", 0.0, "float", *NONNEGATIVE, "Hz",
           "most FusionStatus messages per second per target and filter, by fused stamp (0 = one per fused output); "
           "an output flagged as a hop, or whose link_bumped changed, always goes out"),
-    Param("stale_timeout", 1.0, "float", _pos, "must be finite and > 0", "s",
+    Param("stale_timeout", 1.0, "float", *POSITIVE, "s",
           "silence after which /diagnostics reports a source as silent"),
-    Param("problem_hold", _H.hold_s, "float", _pos, "must be finite and > 0", "s",
+    Param("problem_hold", _H.hold_s, "float", *POSITIVE, "s",
           "a problem or alarm stays on /diagnostics this long after it was last seen"),
-    Param("qos_reliability", "reliable", "str", lambda v: v in ("reliable", "best_effort"),
-          "reliable or best_effort", "", "QoS reliability of inputs and outputs"),
-    Param("qos_depth", 2000, "int", lambda v: v > 0, "must be > 0", "messages",
+    Param("qos_reliability", "reliable", "str", *one_of(("reliable", "best_effort"), "reliable or best_effort"), "",
+          "QoS reliability of inputs and outputs"),
+    Param("qos_depth", 2000, "int", *COUNT, "messages",
           "QoS history depth of inputs and outputs: > 3 s at 400 Hz, so a node stalled for seconds loses nothing"),
-    Param("alarm.hop_window", _H.hop_window_s, "float", _pos, "must be finite and > 0", "s",
+    Param("alarm.hop_window", _H.hop_window_s, "float", *POSITIVE, "s",
           "window of the hop-rate alarm"),
-    Param("alarm.hop_max", _H.hop_max, "int", lambda v: v >= 1, "must be >= 1", "hops",
+    Param("alarm.hop_max", _H.hop_max, "int", *at_least(1), "hops",
           "more hops than this within alarm.hop_window -> WARN"),
-    Param("alarm.bias_max", _H.bias_max_m, "float", _pos, "must be finite and > 0", "m",
+    Param("alarm.bias_max", _H.bias_max_m, "float", *POSITIVE, "m",
           "|bias| of the global source above this -> WARN"),
-    Param("alarm.reject_timeout", _H.reject_timeout_s, "float", _pos, "must be finite and > 0", "s",
+    Param("alarm.reject_timeout", _H.reject_timeout_s, "float", *POSITIVE, "s",
           "every sample of a source rejected for this long -> ERROR"),
     Param("tf.enabled", True, "bool", None, "", "",
           "broadcast /tf (base -> <target>) and /tf_static (omc -> base, base -> ots, base -> diana_base)"),
@@ -249,97 +246,48 @@ PARAMS: tuple[Param, ...] = (
 """Every node-wide parameter of fusion_node."""
 
 # Per target; the name is "<target>.<suffix>"; a string's default (None) is the target's name, a number's none
-# (the node-wide value applies).
+# (the node-wide value applies). A row with a ``field`` replaces the node-wide row of that field for the target.
 TARGET_PARAMS: tuple[Param, ...] = (
-    Param("omc_body", None, "str", bool, "must not be empty", "", "OMC rigid body of the target (global measurement)"),
-    Param("ots_tool", None, "str", bool, "must not be empty", "", "NDI tool of the target (local measurement)"),
-    Param("ang_accel_noise", None, "float", _pos, "must be finite and > 0", "rad^2/s^3",
+    Param("omc_body", None, "str", *NONEMPTY, "", "OMC rigid body of the target (global measurement)"),
+    Param("ots_tool", None, "str", *NONEMPTY, "", "NDI tool of the target (local measurement)"),
+    Param("ang_accel_noise", None, "float", *POSITIVE, "rad^2/s^3",
           "fullperc's white angular-acceleration density for this target (unset: fullperc.ang_accel_noise); how "
-          "the target turns: an arm-held tool far more smoothly than a hand-held one"),
-    Param("accel_noise", None, "float", _pos, "must be finite and > 0", "m^2/s^3",
+          "the target turns: an arm-held tool far more smoothly than a hand-held one",
+          field="ang_accel_noise"),
+    Param("accel_noise", None, "float", *POSITIVE, "m^2/s^3",
           "white-acceleration density q_a of every filter for this target (unset: noise.accel); how the target "
-          "moves: an arm-held tool at a few cm/s, a hand-held instrument at up to ~1 m/s"),
+          "moves: an arm-held tool at a few cm/s, a hand-held instrument at up to ~1 m/s",
+          field="accel_noise"),
     Param("hop_to_bias", None, "bool", None, "", "",
           "a flagged hop of this target goes into the bias (unset: hop_to_bias); false for a hand-held target, "
-          "whose own motion a hop cannot be told from"),
-    Param("init_vel_std", None, "float", _nonneg, "must be finite and >= 0", "m/s",
+          "whose own motion a hop cannot be told from",
+          field="hop_to_bias"),
+    Param("init_vel_std", None, "float", *NONNEGATIVE, "m/s",
           "prior std of this target's velocity at (re)initialisation (unset: init.vel_std): its top speed; a target "
-          "already moving when first seen otherwise puts its motion into the bias"),
+          "already moving when first seen otherwise puts its motion into the bias",
+          field="init_vel_std"),
 )
 
 BY_NAME = {p.name: p for p in PARAMS}
 
 
 def spec(name: str) -> Param:
-    """The row of parameter ``name``: one of :data:`PARAMS`, or ``<target>.<suffix>`` of :data:`TARGET_PARAMS`."""
+    """The row of parameter ``name``: one of :data:`PARAMS`, ``<target>.<suffix>`` of :data:`TARGET_PARAMS`, a
+    source block's ``<source>.<key>`` or a target's ``<target>.<source>`` device name (:mod:`.pipeline.sources`)."""
     if name in BY_NAME:
         return BY_NAME[name]
     target, _, suffix = name.rpartition(".")
     for tp in TARGET_PARAMS:
         if suffix == tp.name and target:
-            return Param(name, target if tp.kind == "str" else tp.default, tp.kind, tp.check, tp.why, tp.unit, tp.doc)
+            return replace(tp, name=name, default=target if tp.kind == "str" else tp.default)
     if target and suffix in SOURCE_KEYS:   # a source block (sources.py)
-        kind, unit, doc = SOURCE_KEYS[suffix]
-        return Param(name, None, kind, None, "", unit, f"source '{target}': {doc}")
+        return source_param(target, suffix)
     if target and "." not in target and "." not in suffix:   # <target>.<source>: the target's device of a source
-        return Param(name, None, "str", None, "", "", f"device name of target '{target}' for source '{suffix}'")
+        return device_param(target, suffix)
     raise KeyError(f"fusion_node has no parameter '{name}'")
 
 
 # ------------------------------------------------------------------------------------------------ mapping
-def _bad(p: Param, value: Any, why: str) -> ParameterError:
-    return ParameterError(f"parameter '{p.name}' = {value!r} is invalid: {why}")
-
-
-def convert(p: Param, value: Any) -> Any:
-    """``value`` as the Python value of ``p`` (default when None), checked; ParameterError naming ``p``."""
-    if value is None:
-        value = p.default
-        if value is None:
-            return [] if p.kind == "str_list" else None
-    k = p.kind
-    if k == "float":
-        if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
-            raise _bad(p, value, "must be a number")
-        out: Any = float(value)
-    elif k == "int":
-        if isinstance(value, float | np.floating) and float(value).is_integer():
-            value = int(value)
-        if isinstance(value, bool) or not isinstance(value, int | np.integer):
-            raise _bad(p, value, "must be an integer")
-        out = int(value)
-    elif k == "bool":
-        if not isinstance(value, bool | np.bool_):
-            raise _bad(p, value, "must be true or false")
-        out = bool(value)
-    elif k == "str":
-        if not isinstance(value, str):
-            raise _bad(p, value, "must be a string")
-        out = value
-    elif k == "str_list":
-        if isinstance(value, str) or not isinstance(value, list | tuple) or not all(isinstance(v, str) for v in value):
-            raise _bad(p, value, "must be a list of strings")
-        out = list(value)
-    elif k == "pose7":
-        if isinstance(value, str) or not isinstance(value, list | tuple | np.ndarray | array.array):
-            raise _bad(p, value, "must be [x y z qx qy qz qw]")
-        if len(value) == 0:
-            return None
-        if len(value) != 7:
-            raise _bad(p, list(value), "must be [x y z qx qy qz qw]")
-        try:
-            v = [float(x) for x in value]
-            pose_to_T((np.asarray(v[:3]), np.asarray(v[3:])))
-        except (TypeError, ValueError, BadSample) as e:
-            raise _bad(p, list(value), f"must be [x y z qx qy qz qw] with a unit quaternion ({e})") from None
-        out = v
-    else:  # pragma: no cover - the table is static
-        raise AssertionError(f"unknown kind {k!r} of parameter {p.name}")
-    if p.check is not None and not p.check(out):
-        raise _bad(p, out, p.why)
-    return out
-
-
 def read_values(get: Get, targets: list[str] | None = None) -> dict[str, Any]:
     """Every parameter of :data:`PARAMS` (and :data:`TARGET_PARAMS` of each target, by default those of the
     ``targets`` parameter) read through ``get(name, default)``, converted and checked."""
@@ -349,35 +297,22 @@ def read_values(get: Get, targets: list[str] | None = None) -> dict[str, Any]:
         for tp in TARGET_PARAMS:
             p = spec(f"{t}.{tp.name}")
             vals[p.name] = convert(p, get(p.name, p.default))
-    vals.update(read_source_values(get, vals, list(ts), _conv, {p.name.split(".")[0] for p in PARAMS}))
+    vals.update(read_source_values(get, vals, list(ts), source_name_clashes()))
     return vals
 
 
-def _conv(name: str, kind: str, default: Any, raw: Any) -> Any:
-    """One value of a source block (sources.py) by the table's rules."""
-    return convert(Param(name, default, kind), raw)
+def source_name_clashes() -> set[str]:
+    """The names a source may not take (sources.py): the first component of every node parameter's name (``noise``,
+    ``alarm`` ...) and every per-target suffix (``omc_body`` ...), whose dotted names a source block would share."""
+    return {p.name.split(".")[0] for p in PARAMS} | {tp.name for tp in TARGET_PARAMS}
 
 
-def filter_params(vals: dict[str, Any]) -> FullpercParams:
-    """The filters' parameters: the paper's (:class:`FilterParams`) and fullperc's orientation ones in one object
-    (:class:`FullpercParams` is a FilterParams; the paper's filters read only their own fields)."""
-    return FullpercParams(
-        accel_noise=vals["noise.accel"], bias_walk=vals["noise.bias_walk"], global_std=vals["noise.global_std"],
-        local_std=vals["noise.local_std"], init_pos_std=vals["init.pos_std"], init_vel_std=vals["init.vel_std"],
-        init_bias_std=vals["init.bias_std"], hop_gate=vals["hop_gate"], hop_to_bias=vals["hop_to_bias"],
-        max_gap_s=vals["max_gap"], ang_accel_noise=vals["fullperc.ang_accel_noise"],
-        rot_bias_walk=vals["fullperc.rot_bias_walk"], rot_global_std=vals["fullperc.rot_global_std"],
-        rot_local_std=vals["fullperc.rot_local_std"], init_rot_std=vals["fullperc.init_rot_std"],
-        init_angvel_std=vals["fullperc.init_angvel_std"],
-        init_rot_bias_std=vals["fullperc.init_rot_bias_std"], sys_time=vals["fullperc.sys_time"],
-        sys_std=vals["fullperc.sys_std"], rot_sys_time=vals["fullperc.rot_sys_time"],
-        rot_sys_std=vals["fullperc.rot_sys_std"], rot_bias_length=vals["fullperc.rot_bias_length"],
-        local_lost_s=vals["fullperc.local_lost_s"], hop_into=vals["fullperc.hop_into"],
-        noise_adapt_time=vals["fullperc.noise_adapt_time"], noise_adapt_max=vals["fullperc.noise_adapt_max"],
-        rot_noise_adapt_time=vals["fullperc.rot_noise_adapt_time"],
-        rot_noise_adapt_min=vals["fullperc.rot_noise_adapt_min"],
-        rot_noise_adapt_max=vals["fullperc.rot_noise_adapt_max"],
-        rot_noise_length=vals["fullperc.rot_noise_length"]).validate()
+def filter_params(vals: dict[str, Any], params_type: type[FilterParams] = FILTER_PARAMS) -> FilterParams:
+    """The filters' parameters of dataclass ``params_type`` (by default :data:`FILTER_PARAMS`, the one object every
+    filter of a target gets; a registry entry's own ``FILTERS[name].params`` gives that filter's alone): every
+    field that a row of :data:`PARAMS` sets, from that row's value; the dataclass's defaults for the rest."""
+    fields = {f.name for f in dataclasses.fields(params_type)}
+    return params_type(**{p.field: vals[p.name] for p in PARAMS if p.field in fields}).validate()
 
 
 def model_layout(vals: dict[str, Any], filters: tuple[str, ...]):
@@ -433,11 +368,11 @@ def primary_and_extra(vals: dict[str, Any]) -> tuple[str, list[str]]:
 
 
 def target_overrides(vals: dict[str, Any], target: str) -> dict[str, Any]:
-    """The filter parameters ``target`` sets for itself: each :data:`TARGET_PARAMS` row named like a
-    :class:`FullpercParams` field (the target's own motion model, prior and hop rule), given a value. They replace
-    the node-wide ones for that target only, so an arm-held tool and a hand-held instrument can share one node."""
-    return {tp.name: vals[f"{target}.{tp.name}"] for tp in TARGET_PARAMS
-            if tp.name in FullpercParams.__dataclass_fields__ and vals.get(f"{target}.{tp.name}") is not None}
+    """The filter parameters ``target`` sets for itself: each :data:`TARGET_PARAMS` row with a ``field`` (the
+    target's own motion model, prior and hop rule), given a value. They replace the node-wide ones for that target
+    only, so an arm-held tool and a hand-held instrument can share one node."""
+    return {tp.field: vals[f"{target}.{tp.name}"] for tp in TARGET_PARAMS
+            if tp.field and vals.get(f"{target}.{tp.name}") is not None}
 
 
 def _pose(v: list[float] | None):

@@ -43,9 +43,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from fullperc_fusion.filters.api import Role
+
 OK, WARN, ERROR = 0, 1, 2
-GLOBAL, LOCAL = "global", "local"
-_BITS = {GLOBAL: 1, LOCAL: 2}   # fullperc_msgs/FusionStatus SOURCE_GLOBAL / SOURCE_LOCAL
+GLOBAL, LOCAL = Role.GLOBAL.label, Role.LOCAL.label   # the per-source keys (filters.api.Role)
+_BITS = {r.label: r.bit for r in Role}   # fullperc_msgs/FusionStatus SOURCE_GLOBAL / SOURCE_LOCAL
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,5 @@
-"""batch_filter.run_closed_form against the per-sample ClosedFormFilter, stepped as the pipeline steps it.
+"""paper_batch.run_closed_form against the per-sample ClosedFormFilter (paper_fast), stepped as the pipeline steps it,
+and the per-axis kernel both run on (paper_kernel).
 
 Item streams with pairs (lagged older sample), global-only and local-only items, gaps longer than max_gap
 (re-initialisation with the bias kept), hops of the global source (bias inflation) and the biased estimator:
@@ -10,10 +11,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fullperc_fusion.filters import paper_batch, paper_fast, paper_kernel
 from fullperc_fusion.filters.api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement
 from fullperc_fusion.filters.paper_batch import BatchUnsupported, run_closed_form
 from fullperc_fusion.filters.paper_family import FILTER_KINDS, FilterParams
 from fullperc_fusion.filters.paper_fast import ClosedFormFilter
+from fullperc_fusion.filters.paper_kernel import axis_form, init_axes, update_axes
 
 
 def _items(seed: int, n: int = 600):
@@ -82,3 +85,62 @@ def test_time_going_backwards_is_refused_not_guessed():
 def test_unknown_kind_is_refused():
     with pytest.raises(BatchUnsupported, match="no batched form"):
         run_closed_form(["fullperc"], FilterParams(), [], [], [], [], [])
+
+
+def test_both_forms_step_through_the_one_kernel():
+    """The per-sample and the batched closed form call the same functions: no second copy of the arithmetic."""
+    for name in ("axis_form", "initial_axes", "predict_axes", "init_axes", "update_axes"):
+        kernel_fn = getattr(paper_kernel, name)
+        assert getattr(paper_batch, name) is kernel_fn and getattr(paper_fast, name) is kernel_fn, name
+
+
+def _state(rng, has_bias: bool):
+    X = (0.3 + 0.1 * rng.standard_normal(9 if has_bias else 6)).tolist()
+    C = []
+    for _ in range(3):
+        A = rng.standard_normal((3, 3)) * [[1e-3], [1e-2], [1e-3]]
+        P = A @ A.T + 1e-8 * np.eye(3)
+        if not has_bias:
+            P[2, :] = P[:, 2] = 0.0
+        C.append(P[np.triu_indices(3)].tolist())   # pp pv pb vv vb bb
+    return X, C
+
+
+@pytest.mark.parametrize("kind", FILTER_KINDS)
+def test_kernel_update_without_diagnostics_gives_the_same_state(kind):
+    """``full=False`` (the batched replay) skips NIS, innovation and M only: state, hop flag and the hop test's
+    NIS_global are bit-identical."""
+    rng = np.random.default_rng(7)
+    form = axis_form(kind, FilterParams(hop_gate=3.0))
+    t = 10 * 10**9
+    hops = 0
+    for k in range(300):
+        X, C = _state(rng, form.has_bias)
+        zg = (np.array(X[0:3]) + 2e-3 * rng.standard_normal(3)).tolist() if k % 3 != 1 else None
+        zl = (np.array(X[0:3]) + 1e-4 * rng.standard_normal(3)).tolist() if k % 3 != 0 else None
+        tg, tl = t - int(rng.integers(0, 4_000_000)), t - int(rng.integers(0, 4_000_000))
+        full = update_axes(form, X, C, t, tg, zg, form.global_var, tl, zl, form.local_var)
+        lean = update_axes(form, X, C, t, tg, zg, form.global_var, tl, zl, form.local_var, False)
+        assert full[0:3] == lean[0:3] and full[4] == lean[4]
+        assert lean[3] == 0.0 and lean[5:] == (None, None) and full[3] > 0.0 and len(full[5]) == 3
+        assert (full[6] is not None) == form.biased
+        hops += full[2]
+    assert 0 < hops < 300
+
+
+def test_kernel_leaves_its_input_alone():
+    """update_axes and init_axes return new lists: a refused or a successful step leaves the state it was given
+    (the per-sample filter's snapshot copies only the outer lists; a refused update keeps the predicted state)."""
+    rng = np.random.default_rng(8)
+    form = axis_form("cbkf", FilterParams())
+    X, C = _state(rng, True)
+    X0, C0 = list(X), [list(c) for c in C]
+    t = 10 * 10**9
+    update_axes(form, X, C, t, t, [0.3, 0.3, 0.3], form.global_var, t - 10**6, [0.3, 0.3, 0.3], form.local_var)
+    with pytest.raises(ValueError, match="older than the filter time"):
+        update_axes(form, X, C, t, t - 10**9, [0.3, 0.3, 0.3], form.global_var, None, None, None)
+    Xi, Ci = init_axes(form, X, C, 0.7, [0.5, 0.5, 0.5], None)
+    assert X == X0 and C == C0
+    # the re-initialisation keeps the bias and walks its variance over the gap; p is the global sample minus it
+    assert Xi[6:9] == X[6:9] and Xi[0:3] == [0.5 - b for b in X[6:9]] and Xi[3:6] == [0.0] * 3
+    assert [c[5] for c in Ci] == [c[5] + form.bias_walk * 0.7 for c in C]

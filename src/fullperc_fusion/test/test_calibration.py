@@ -15,6 +15,8 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from fullperc_common.transforms import T_to_pq, inv_T, make_T, mean_T
+from fullperc_fusion.calibration.collector import Collector
+from fullperc_fusion.calibration.links import link_bump, link_T_base_ots, link_T_omc_base, link_T_rig_ots, pair_by_stamp
 from fullperc_fusion.calibration.se3_stats import (
     COV_FLOOR,
     LINK_NAMES,
@@ -22,22 +24,15 @@ from fullperc_fusion.calibration.se3_stats import (
     CalibrationBodies,
     CalibrationError,
     CalibrationSettings,
-    Collector,
     LinkEstimate,
     StaticThresholds,
-    check_static,
     compose_jacobian,
-    hotelling_threshold,
-    link_bump,
-    link_T_base_ots,
-    link_T_omc_base,
-    link_T_rig_ots,
     mean_estimate,
-    pair_by_stamp,
     robust_se3_mean,
     se3_residuals,
     se3_retract,
 )
+from fullperc_fusion.calibration.static_check import check_static, hotelling_threshold
 
 S = 1_000_000_000  # ns per s
 MS = 1_000_000

@@ -85,8 +85,8 @@ def _fusion_node_refuses_a_bad_calibration_file(procs, ros_env, tmp_path):
 
 def _write_true_calibration(path):
     """A calibration file with the synthetic scene's true links (noise-free sightings through the Collector)."""
+    from fullperc_fusion.calibration.collector import Collector
     from fullperc_fusion.calibration.io import save_calibration
-    from fullperc_fusion.calibration.se3_stats import Collector
 
     col = Collector(("T_omc_base", "T_base_ots"), duration_s=1.0)
     for k in range(121):

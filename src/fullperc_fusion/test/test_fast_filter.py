@@ -1,4 +1,4 @@
-"""The closed-form per-axis filter (fast_filter) against the general FusionFilter, the reference (issue 16 item 3).
+"""The closed-form per-axis filter (paper_fast) against the general FusionFilter, the reference (issue 16 item 3).
 
 Agreement, stated once: state x, innovation, covariance P and M's diagonal to 1e-12 absolute in SI units (m, m/s,
 m^2, ...); with the default settings P also to 1e-12 of its largest entry (P_pp ~ 2e-8 m^2: the absolute figure

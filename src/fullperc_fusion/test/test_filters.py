@@ -107,7 +107,7 @@ def test_cbkf_applies_M_after_update_eq14():
     m = 25 / 27.5
     assert np.allclose(st.m, np.kron([m, 1, 1], np.ones(3)))
     assert np.allclose(st.p, 5 * m) and np.allclose(st.v, 1.0) and np.allclose(st.b, 4.0)
-    # P = M P_updated M^T (our reading of eq. 14, see filters.py)
+    # P = M P_updated M^T (our reading of eq. 14, see paper_family.py)
     expect = np.array([[2.5 * m * m, 0.5 * m, -2.0 * m],
                        [0.5 * m, 0.9, -0.4],
                        [-2.0 * m, -0.4, 2.4]])
@@ -302,7 +302,7 @@ def test_uncompensated_filters_follow_the_global_offset(kind):
 
 
 def test_bkf_default_stays_within_micrometres_of_kf():
-    # M on the position block only: m_p = 1 - var_p / p^2 (see filters.py); same noise seed.
+    # M on the position block only: m_p = 1 - var_p / p^2 (see paper_family.py); same noise seed.
     # Right after initialization var_p = (5 mm)^2 and p ~ 0.5 m: a shift of var/p ~ 50 um per step,
     # which vanishes once var_p has converged to ~1e-7 m^2.
     a, b = _run("kf"), _run("bkf")

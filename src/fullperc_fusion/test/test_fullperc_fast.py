@@ -1,4 +1,4 @@
-"""The fast ``fullperc`` filter (fullperc_filter) against its general form, the reference (fullperc_reference).
+"""The fast ``fullperc`` filter (filters.fullperc) against its general form, the reference (fullperc_reference).
 
 Agreement, stated once, checked after every step of long randomised streams: position, velocity, bias (b + g),
 the global position innovation and the orientation quaternion to 1e-12 absolute (m, m/s, unit quaternion); every
@@ -12,7 +12,8 @@ covariances with position-rotation terms (the lever-arm form of measurement_mode
 extras (valid and invalid), gaps beyond ``max_gap_s`` (re-initialisation), position hops and rotation jumps, fast
 turns (rotations past 120 deg: the other branch of the quaternion conversion), snapshot/restore, the frame
 changing every 250 items (``express_in``, with and without a local sample in the item), the global rotation-noise
-scale mu (``rot_noise_scale``) learnt both below and above 1.
+scale mu (``rot_noise_scale``) learnt both below and above 1. The fast form's SO(3) on floats (so3_float) against the
+shared ``fullperc_common.so3``.
 """
 
 from __future__ import annotations
@@ -20,10 +21,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fullperc_common import so3
+from fullperc_common.so3 import R_to_quat, so3_exp
 from fullperc_fusion.filters.api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement
 from fullperc_fusion.filters.fullperc import FullpercFilter
-from fullperc_fusion.filters.fullperc_reference import FullpercParams, FullpercReference, R_to_quat, so3_exp
+from fullperc_fusion.filters.fullperc_params import FullpercParams
+from fullperc_fusion.filters.fullperc_reference import FullpercReference
 from fullperc_fusion.filters.registry import make_filter
+from fullperc_fusion.filters.so3_float import R9_to_quat, exp9, log9, mul9, mul9_t, quat_to_R9
 
 S = 1_000_000_000
 TOL = 1e-12
@@ -43,7 +48,7 @@ def _cov(rng, mode: str | None) -> np.ndarray | None:
     link = A @ A.T + np.diag([1e-9] * 3 + [1e-7] * 3)          # correlated, ~0.05 mm and ~0.5 mrad
     lx, ly, lz = rng.normal(0, 0.5, 3)
     J = np.eye(6)
-    J[0:3, 3:6] = -np.array([[0, -lz, ly], [lz, 0, -lx], [-ly, lx, 0]])
+    J[0:3, 3:6] = -so3.skew(np.array([lx, ly, lz]))
     C = C + J @ link @ J.T
     return 0.5 * (C + C.T)
 
@@ -286,4 +291,27 @@ def test_refusals_and_resets_are_the_references():
 
 def test_the_registry_serves_the_fast_form():
     f = make_filter("fullperc", FullpercParams(rot_global_std=1e-3))
-    assert isinstance(f, FullpercFilter) and f.params.rot_global_std == 1e-3 and f.uses_models
+    assert isinstance(f, FullpercFilter) and f.params.rot_global_std == 1e-3
+
+
+def test_float_so3_equals_the_shared_module():
+    """so3_float, the fast form's copy of fullperc_common.so3 on 9-tuples, gives the shared functions' results: Exp
+    on both sides of its series threshold, Log near 0, in general and near pi (delegated), both branches of the
+    quaternion conversion (trace > 0 and <= 0), the products."""
+    rng = np.random.default_rng(3)
+    ws = [rng.normal(size=3) / np.sqrt(3) * s for s in (1e-10, 1e-7, 1e-3, 0.5, 2.0, 3.1) for _ in range(25)]
+    ws += [np.array([np.pi - 1e-5, 0.0, 0.0]), np.array([0.0, -(np.pi - 2e-5), 0.0]), np.zeros(3)]
+    for w in ws:
+        R = so3.so3_exp(w)
+        R9 = exp9(*w.tolist())
+        np.testing.assert_allclose(np.array(R9).reshape(3, 3), R, rtol=0, atol=1e-15)
+        R = np.array(R9).reshape(3, 3)
+        np.testing.assert_allclose(log9(R9), so3.so3_log(R), rtol=0, atol=1e-14)
+        q = so3.R_to_quat(R)
+        np.testing.assert_allclose(R9_to_quat(R9), q, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(quat_to_R9(q * 1.7), so3.quat_to_R(q * 1.7).ravel(), rtol=0, atol=1e-15)
+        B = so3.so3_exp(rng.normal(size=3))
+        B9 = tuple(B.ravel().tolist())
+        np.testing.assert_allclose(mul9(R9, B9), (R @ B).ravel(), rtol=0, atol=1e-15)
+        np.testing.assert_allclose(mul9_t(R9, B9), (R @ B.T).ravel(), rtol=0, atol=1e-15)
+    assert sum(np.trace(so3.so3_exp(w)) <= 0 for w in ws) >= 20    # the other quaternion branch was exercised

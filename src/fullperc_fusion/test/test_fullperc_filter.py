@@ -1,6 +1,6 @@
 """fullperc filter (issue 18 item 4): SO(3) helpers, orientation update, error-state reset, NEES consistency on
 data simulated from the filter's own model, hop handling, snapshot/restore. Run on the filter the pipeline uses
-(fullperc_filter, the fast form); the hand-made update of one step is checked on the general form
+(filters.fullperc, the fast form); the hand-made update of one step is checked on the general form
 (fullperc_reference, which has the matrices to hand) and on the fast one; test_fullperc_fast.py holds the two
 together at every step."""
 
@@ -13,8 +13,10 @@ import pytest
 from scipy.spatial.transform import Rotation as Rot
 from scipy.stats import chi2
 
+from fullperc_common.so3 import R_to_quat, quat_to_R, skew, so3_exp, so3_log
 from fullperc_fusion.filters.api import SOURCE_GLOBAL, SOURCE_LOCAL, BadMeasurement, Filter, Measurement
-from fullperc_fusion.filters.fullperc import FullpercFilter, FullpercParams, N, R_to_quat, quat_to_R, so3_exp, so3_log
+from fullperc_fusion.filters.fullperc import FullpercFilter, N
+from fullperc_fusion.filters.fullperc_params import FullpercParams
 from fullperc_fusion.filters.fullperc_reference import FullpercReference
 from fullperc_fusion.filters.registry import make_filter
 
@@ -23,6 +25,7 @@ DT = 1 / 120
 
 
 def test_so3_helpers_match_scipy():
+    """fullperc_common.so3, the project's SO(3), against scipy (and skew against the cross product)."""
     rng = np.random.default_rng(0)
     for w in [*rng.normal(size=(20, 3)), np.zeros(3), np.array([1e-9, 0, 0]), np.array([0, 0, np.pi - 1e-6])]:
         R = so3_exp(w)
@@ -32,11 +35,12 @@ def test_so3_helpers_match_scipy():
         ref = Rot.from_matrix(R).as_quat()
         assert min(np.abs(q - ref).max(), np.abs(q + ref).max()) < 1e-12 and q[3] >= 0
         np.testing.assert_allclose(quat_to_R(q), R, atol=1e-12)
+        np.testing.assert_allclose(skew(w) @ R[:, 0], np.cross(w, R[:, 0]), rtol=0, atol=1e-15)
 
 
 def test_registered_and_implements_the_seam():
     f = make_filter("fullperc")
-    assert isinstance(f, Filter) and isinstance(f, FullpercFilter) and f.kind == "fullperc" and f.uses_models
+    assert isinstance(f, Filter) and isinstance(f, FullpercFilter) and f.kind == "fullperc"
     assert isinstance(f.params, FullpercParams)
     with pytest.raises(ValueError, match="rot_global_std"):
         FullpercParams(rot_global_std=0.0).validate()
@@ -199,7 +203,7 @@ def test_error_state_reset_of_one_update():
     Pp = IKH @ P0 @ IKH.T + K @ Rm @ K.T
     G = np.eye(N)
     d = dx[9:12]
-    G[9:12, 9:12] = np.eye(3) - 0.5 * np.array([[0, -d[2], d[1]], [d[2], 0, -d[0]], [-d[1], d[0], 0]])
+    G[9:12, 9:12] = np.eye(3) - 0.5 * skew(d)
     f.update(m)
     fast.update(m)
     for s in (f.s, fast.state):
@@ -227,7 +231,7 @@ class _Gaussian:
 
 
 def _simulate(seed, seconds=30.0):
-    """Truth and measurements drawn from the filter's own model (module docstring of fullperc_filter)."""
+    """Truth and measurements drawn from the filter's own model (module docstring of fullperc_reference)."""
     pr = FullpercParams()
     rng = np.random.default_rng(seed)
     A = rng.normal(size=(6, 6))

@@ -12,7 +12,7 @@ import yaml
 from fullperc_common.params import ParameterError
 from fullperc_fusion import fusion_config as fc
 from fullperc_fusion.calibration.monitor import MonitorParams
-from fullperc_fusion.filters.fullperc import FullpercParams
+from fullperc_fusion.filters.fullperc_params import FullpercParams
 from fullperc_fusion.filters.paper_family import FilterParams
 from fullperc_fusion.fusion_health import HealthParams
 from fullperc_fusion.pipeline.frame_chain import ChainConfig
@@ -200,8 +200,8 @@ def test_calibration_and_link_monitor_rows_are_mapped(tmp_path):
 
 def _calibration_file(tmp_path):
     from fullperc_common.transforms import make_T
+    from fullperc_fusion.calibration.collector import Collector
     from fullperc_fusion.calibration.io import save_calibration
-    from fullperc_fusion.calibration.se3_stats import Collector
 
     rng = np.random.default_rng(0)
     col = Collector(("T_omc_base", "T_base_ots"), duration_s=1.0)
@@ -331,12 +331,89 @@ def test_a_targets_own_motion_model_and_hop_rule(tmp_path):
     assert fc.spec("x.hop_to_bias").default is None and fc.spec("x.accel_noise").default is None
 
 
-def test_target_parameter_names_cannot_be_source_names():
-    """sources.py refuses a source named like a per-target parameter (it cannot import this table: the import
-    would be circular), so its reserved names must hold every TARGET_PARAMS name."""
-    from fullperc_fusion.pipeline import sources
+@pytest.mark.parametrize("name", [tp.name for tp in fc.TARGET_PARAMS] + ["alarm", "noise", "fullperc", "global"])
+def test_target_parameter_names_cannot_be_source_names(tmp_path, name):
+    """A source named like a per-target parameter or a parameter group would share its dotted names: refused.
+    sources.py sits below this table, so the table passes the names in (fc.source_name_clashes)."""
+    p = _write(tmp_path, {"sources": ["omc", "ots", name], "omc": {"role": "global"}, "ots": {"role": "local"},
+                          name: {"role": "local"}})
+    with pytest.raises(fc.FusionConfigError, match=f"'{name}' clashes"):
+        fc.load_fusion_config(p, filters=("cbkf",))
+    assert {tp.name for tp in fc.TARGET_PARAMS} <= fc.source_name_clashes()
 
-    assert {tp.name for tp in fc.TARGET_PARAMS} <= sources._RESERVED
+
+# the filter parameters the node does not expose: the paper's ablations (shrink_blocks, eq14_covariance), set in code
+NOT_NODE_PARAMETERS = {"shrink_blocks", "eq14_covariance"}
+
+
+def test_every_filter_field_is_set_by_exactly_one_row_with_the_dataclass_default():
+    """The field mapping is the table's: every field of every registered parameter dataclass is set by one row of
+    PARAMS (a new field without a row fails here), whose default is the dataclass's; a per-target row replaces a
+    node-wide row of the same field and kind."""
+    from fullperc_fusion.filters.registry import FILTERS
+
+    assert all(issubclass(fc.FILTER_PARAMS, s.params) for s in FILTERS.values())
+    rows = [p for p in fc.PARAMS if p.field]
+    assert len({p.field for p in rows}) == len(rows)
+    fields = {f.name for f in dataclasses.fields(fc.FILTER_PARAMS)}
+    assert {p.field for p in rows} == fields - NOT_NODE_PARAMETERS
+    for p in rows:
+        assert p.default == getattr(fc.FILTER_PARAMS(), p.field), p.name
+    by_field = {p.field: p for p in rows}
+    for tp in fc.TARGET_PARAMS:
+        if tp.field:
+            assert tp.field in by_field and by_field[tp.field].kind == tp.kind, tp.name
+
+
+def test_filter_params_builds_each_registered_filters_own_dataclass():
+    """``filter_params(vals, FILTERS[name].params)``: that filter's dataclass from the same rows; the paper's get
+    exactly the FilterParams fields of the one object every filter of a target gets."""
+    from fullperc_fusion.filters.registry import FILTERS
+
+    vals = fc.read_values(lambda n, d: {"noise.accel": 0.2, "max_gap": 0.7, "fullperc.sys_time": 2.5}.get(n))
+    every = fc.filter_params(vals)
+    assert type(every) is fc.FILTER_PARAMS and (every.accel_noise, every.max_gap_s, every.sys_time) == (0.2, 0.7, 2.5)
+    for name, s in FILTERS.items():
+        own = fc.filter_params(vals, s.params)
+        assert type(own) is s.params, name
+        assert all(getattr(own, f.name) == getattr(every, f.name) for f in dataclasses.fields(s.params)), name
+
+
+@pytest.mark.parametrize("value", [-1.0, 0.0, 0.5, 1.0, 2.0, float("inf"), float("nan")])
+def test_a_filter_rows_rule_accepts_what_the_filters_dataclass_accepts(value):
+    """The node's rule of a filter parameter and the dataclass's own check (for direct callers) agree on every
+    float row, so a value the node accepts never fails later in the filter, nor the other way round."""
+    for p in fc.PARAMS:
+        if not p.field or p.kind != "float":
+            continue
+        try:
+            fc.convert(p, value)
+            node_ok = True
+        except ParameterError:
+            node_ok = False
+        try:
+            dataclasses.replace(fc.FILTER_PARAMS(), **{p.field: value}).validate()
+            dataclass_ok = True
+        except ValueError:
+            dataclass_ok = False
+        assert node_ok == dataclass_ok, (p.name, value)
+
+
+def test_rules_are_named_once_and_explain_the_error():
+    from fullperc_fusion.pipeline import param_table as pt
+
+    cases = [(pt.POSITIVE, 0.0, "must be finite and > 0"), (pt.NONNEGATIVE, float("nan"), "must be finite and >= 0"),
+             (pt.COUNT, 0, "must be > 0"), (pt.at_least(2), 1, "must be >= 2"), (pt.NONEMPTY, "", "must not be empty"),
+             (pt.finite_at_least(1.0), 0.5, "must be finite and >= 1"),
+             (pt.UNIT_FRACTION, 1.5, "must be finite, > 0 and <= 1"), (pt.one_of(("a", "b")), "c", "one of ('a', 'b')"),
+             (pt.one_of(("a", "b"), "a or b"), "c", "a or b")]
+    for rule, bad, why in cases:
+        assert not rule.check(bad) and rule.why == why
+        kind = "str" if isinstance(bad, str) else "int" if isinstance(bad, int) else "float"
+        with pytest.raises(ParameterError, match=re.escape(f"parameter 'x' = {bad!r} is invalid: {why}")):
+            pt.convert(pt.Param("x", None, kind, *rule), bad)
+    assert fc.spec("noise.global_std").check is pt.POSITIVE.check        # the rows name the shared rule
+    assert fc.spec("hop_gate").why == pt.POSITIVE.why
 
 
 def test_the_shipped_fusion_yaml_gives_the_instrument_its_own_model(tmp_path):

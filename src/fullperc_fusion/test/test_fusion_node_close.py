@@ -58,11 +58,11 @@ def _send(pubs, n: int) -> None:
 def test_close_fuses_every_sample_still_queued_and_counts_none_lost(node_and_feeder):
     node, pubs = node_and_feeder
     _send(pubs, N)
-    pipe = node.pipes["tool"]
+    pipe = node.core.pipes["tool"]
     assert pipe.counts["global_in"] == 0, "never spun: nothing taken yet"
     node.close()
     assert pipe.counts["global_in"] == N
-    loss = node._loss[("omc", "tool")]
+    loss = node.core.book.loss[("omc", "tool")]
     assert (loss.samples_lost, loss.frames_lost, loss.pending) == (0, 0, 0)
 
 
@@ -84,5 +84,5 @@ def test_close_settles_and_publishes_the_final_diagnostics(node_and_feeder):
     node.close()
     assert node._diag.published == sent + 1
     values = {kv.key: kv.value for kv in node._diag._status["target tool"].values}
-    assert node._loss[("omc", "tool")].samples_lost == 1
+    assert node.core.book.loss[("omc", "tool")].samples_lost == 1
     assert values["omc_samples_lost"] == "1", values

@@ -54,6 +54,6 @@ def test_on_time_timers_leave_the_input_path_nothing_to_do(node):
     does neither (the timers stay the normal path; no double reports)."""
     node._update_diagnostics()
     node._diag.publish()
-    sent, evaluated = node._diag.published, node._diag_eval_at
+    sent, evaluated = node._diag.published, node.core.diag_eval_at
     node._on_input("omc", "tool", _omc_pose(time.time_ns()), {})
-    assert node._diag.published == sent and node._diag_eval_at == evaluated
+    assert node._diag.published == sent and node.core.diag_eval_at == evaluated

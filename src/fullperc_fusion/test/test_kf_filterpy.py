@@ -2,17 +2,17 @@
 
 filterpy (R. Labbe, "Kalman and Bayesian Filters in Python") is an independent implementation of the textbook
 filter: ``predict(F, Q)`` gives x' = F x, P' = F P F^T + Q and ``update(z, R, H)`` the gain K = P' H^T S^-1 and
-the Joseph-form covariance (I - K H) P' (I - K H)^T + K R K^T -- the same equations as filters.py eq. (9)-(13) for
-the kind without bias and shrinkage. Fed the same F, Q, H (lag row included) and R from filters.py's own
+the Joseph-form covariance (I - K H) P' (I - K H)^T + K R K^T -- the same equations as paper_family.py eq. (9)-(13) for
+the kind without bias and shrinkage. Fed the same F, Q, H (lag row included) and R from paper_family.py's own
 functions, filterpy must give the same state and covariance at every step as
 
 * ``FusionFilter("kf")`` -- the general form, and
-* ``make_filter("kf")`` -- what the node and the evaluator run (fast_filter's closed form per axis),
+* ``make_filter("kf")`` -- what the node and the evaluator run (paper_fast's closed form per axis),
 
 over long random streams: global only, local only, pairs with either sample older (the lag row), device
 covariances (isotropic, anisotropic, correlated), and gaps beyond ``max_gap_s`` (which re-initialise p and v from
 the next sample: filterpy has no such rule, so the reference re-creates its state there exactly as the docstring of
-filters.py says). Tolerance 1e-12 absolute in SI units (m, m/s) and of the largest entry of P.
+paper_family.py says). Tolerance 1e-12 absolute in SI units (m, m/s) and of the largest entry of P.
 """
 
 from __future__ import annotations
@@ -71,7 +71,7 @@ def _stream(seed: int, n: int, cov_mode: str) -> list[list[Measurement]]:
 
 
 class FilterpyKF:
-    """filterpy's KalmanFilter driven with filters.py's F, Q, H and R, plus the one rule it lacks (re-initialise
+    """filterpy's KalmanFilter driven with paper_family.py's F, Q, H and R, plus the one rule it lacks (re-initialise
     p, v from the next sample before the first sample and after a gap longer than max_gap_s)."""
 
     def __init__(self, params: FilterParams) -> None:

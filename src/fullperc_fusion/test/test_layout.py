@@ -9,17 +9,9 @@ import numpy as np
 import pytest
 import yaml
 
-from fullperc_fusion.margin.layout import (
-    NDI_PYRAMID_PLANES,
-    Box,
-    LayoutError,
-    default_layout_path,
-    eq17_theta_prime_deg,
-    load_layout,
-    look_at_R,
-    look_at_R_ndi,
-    parse_layout,
-)
+from fullperc_fusion.margin import geometry, layout
+from fullperc_fusion.margin.geometry import NDI_PYRAMID_PLANES, Box, eq17_theta_prime_deg, look_at_R, look_at_R_ndi
+from fullperc_fusion.margin.layout import LayoutError, default_layout_path, load_layout, parse_layout
 
 
 def minimal(**over) -> dict:
@@ -272,3 +264,12 @@ def test_unreadable_and_non_yaml_files(tmp_path):
     p.write_text("- just\n- a list\n")
     with pytest.raises(LayoutError, match="expected a mapping"):
         load_layout(p)
+
+
+def test_the_geometry_stays_importable_from_layout():
+    """The view-margin model, the simulator and the emulators import the geometry's names from ``layout`` (the file
+    they load it with): the same objects as :mod:`~fullperc_fusion.margin.geometry`'s, and every name ``layout``
+    exports exists."""
+    for name in ("SEGMENT_END", "NDI_PYRAMID_PLANES", "Box", "Frustum", "Camera", "Ots", "look_at_R", "look_at_R_ndi"):
+        assert getattr(layout, name) is getattr(geometry, name), name
+    assert all(hasattr(layout, name) for name in layout.__all__)

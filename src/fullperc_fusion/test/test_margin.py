@@ -9,7 +9,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from fullperc_fusion.margin import view_margin as M
-from fullperc_fusion.margin.layout import default_layout_path, load_layout, look_at_R, look_at_R_ndi, parse_layout
+from fullperc_fusion.margin.geometry import look_at_R, look_at_R_ndi
+from fullperc_fusion.margin.layout import default_layout_path, load_layout, parse_layout
 
 P = np.array([0.0, 0.0, 1.0])  # the test point
 

@@ -14,7 +14,7 @@ import yaml
 
 from fullperc_common.params import ParameterError
 from fullperc_fusion.filters.api import SOURCE_GLOBAL
-from fullperc_fusion.filters.fullperc_reference import FullpercParams
+from fullperc_fusion.filters.fullperc_params import FullpercParams
 from fullperc_fusion.filters.measurement_models import OmcModelParams, omc_covariance, omc_systematic_var
 from fullperc_fusion.filters.noise_model_file import (
     BIAS_KEYS,

@@ -291,3 +291,35 @@ def test_invalid_target_config_is_named():
         TargetConfig(filters=("ukf",))
     with pytest.raises(ValueError, match="duplicate"):
         TargetConfig(filters=("kf", "kf"))
+
+
+def test_the_stages_of_push_give_what_push_gives():
+    """push_* = validation (pose_to_T) + observe_* (links, link monitor) + enqueue (synchronizer, stamp rules): the
+    stages the batched evaluator runs after validating a whole bag at once give exactly push_*'s outputs."""
+    from fullperc_fusion.pipeline.frame_chain import pose_to_T
+    from fullperc_fusion.pipeline.synchronizer import GLOBAL, LOCAL
+
+    ev = stream(duration=3.0)
+    cfg = TargetConfig(filters=ALL, chain=ChainConfig(static_links="average"))
+    pushed = run(TargetPipeline(cfg), ev)
+    pipe = TargetPipeline(cfg)
+    c = cfg.chain
+    staged = []
+    for dev, body, ns, T in ev:
+        T = pose_to_T(T)
+        if dev == "omc":
+            pipe.observe_omc(body, ns, T)
+            if body == c.omc_target:
+                assert pipe.enqueue(GLOBAL, ns, (T, None), f"OMC body '{body}'") == "ok"
+        else:
+            pipe.observe_ots(body, ns, T)
+            if body == c.ots_target:
+                assert pipe.enqueue(LOCAL, ns, (T, None), f"OTS tool '{body}'") == "ok"
+        staged += pipe.poll()
+    staged += pipe.flush()
+    assert len(staged) == len(pushed) > 1000
+    for a, b in zip(pushed, staged, strict=True):
+        assert (a.filter, a.t_ns, a.sources) == (b.filter, b.t_ns, b.sources)
+        assert np.array_equal(a.p, b.p) and np.array_equal(a.cov, b.cov) and np.array_equal(a.q, b.q)
+    assert pipe.enqueue(GLOBAL, ev[0][2], (np.eye(4), None), "OMC body 'tool'") == "late"
+    assert pipe.counts["late"] == 1 and "OMC body 'tool'" in pipe.problems["late"]

@@ -166,3 +166,55 @@ def test_one_registry_entry_adds_a_filter_to_the_pipeline(monkeypatch):
     with pytest.raises(ValueError, match="not one of"):
         TargetConfig(filters=("hold",))
     assert SOURCE_GLOBAL not in {o.sources for o in held}
+
+
+class _Seen(_Hold):
+    """_Hold that records what it is given and answers with a fused orientation; ``uses_models`` and ``express_in``
+    as attributes (the old way of guessing): only its registry entry's declaration may count."""
+
+    uses_models = True
+
+    def reset(self) -> None:
+        super().reset()
+        self.got: list = []
+        self.frames = 0
+
+    def express_in(self, T_frame, local=True):
+        self.frames += 1
+
+    def update(self, *measurements) -> Step | None:
+        self.got.extend(measurements)
+        st = super().update(*measurements)
+        if st is not None:
+            st.q, st.pose_cov = np.array([0.0, 0.0, 0.0, 1.0]), np.eye(6) * 1e-6
+        return st
+
+
+def test_the_pipeline_acts_on_declared_capabilities_not_on_attributes(monkeypatch):
+    """``models`` (model covariances, the local chain's frame) and ``orientation`` (the Step's fused orientation is
+    output) come from the registry entry: the same filter class under two declarations behaves as declared."""
+    caps = filter_registry.Capabilities
+    monkeypatch.setitem(filter_registry.FILTERS, "plain", filter_registry.FilterSpec(_Seen))
+    monkeypatch.setitem(filter_registry.FILTERS, "modelled",
+                        filter_registry.FilterSpec(_Seen, caps=caps(models=True, orientation=True)))
+    pipe = TargetPipeline(TargetConfig(filters=("plain", "modelled")))
+    outs = run(pipe, stream(1.0))
+    plain, modelled = pipe.filters["plain"], pipe.filters["modelled"]
+    assert plain.got and all(m.cov is None for m in plain.got), "no model covariances without the declaration"
+    assert modelled.got and all(m.cov is not None for m in modelled.got)
+    assert plain.frames == 0 and modelled.frames > 0
+    by = {name: [o for o in outs if o.filter == name] for name in ("plain", "modelled")}
+    assert by["plain"] and {o.orientation_source for o in by["plain"]} <= {SOURCE_GLOBAL, SOURCE_LOCAL}   # a source's
+    assert by["modelled"] and {o.orientation_source for o in by["modelled"]} == {SOURCE_GLOBAL | SOURCE_LOCAL}
+
+
+def test_rotation_stds_are_the_parameters_own_when_they_model_orientation():
+    """The orientation part of a source's fixed covariance (noise_std / noise_model std): FullpercParams' rot_*_std,
+    else the outputs' orientation_std_* (declared by the parameter type, not looked up by attribute name)."""
+    from fullperc_fusion.filters.fullperc_params import FullpercParams
+    from fullperc_fusion.pipeline.target import rotation_stds
+
+    fp = FullpercParams(rot_global_std=4e-3, rot_local_std=3e-3)
+    assert rotation_stds(TargetConfig(filters=("fullperc",), params=fp)) == (4e-3, 3e-3)
+    cfg = TargetConfig(orientation_std_global=0.02, orientation_std_local=0.003)
+    assert rotation_stds(cfg) == (0.02, 0.003)

@@ -6,9 +6,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation as Rot
 
+from fullperc_common.so3 import quat_to_R, so3_log
 from fullperc_common.transforms import inv_T, make_T
 from fullperc_fusion.filters.api import SOURCE_GLOBAL, SOURCE_LOCAL
-from fullperc_fusion.filters.fullperc import FullpercFilter, quat_to_R, so3_log
+from fullperc_fusion.filters.fullperc import FullpercFilter
 from fullperc_fusion.filters.measurement_models import omc_covariance
 from fullperc_fusion.pipeline.ordered import TargetConfig, TargetPipeline
 
@@ -146,7 +147,7 @@ def test_malformed_quality_means_the_defaults():
     pipe = TargetPipeline(TargetConfig(filters=("fullperc",)))
     pipe.push_omc_quality("tool", T0, {"fit_error": "much"})
     pipe.push_omc_quality("base", T0, {"fit_error": 1e-3})      # not the target body: ignored
-    assert pipe._omc_quality == {}
+    assert len(pipe.omc_quality) == 0
     outs = run(pipe, stream(seconds=0.5), quality=lambda k: {"fit_error": float("nan")})
     assert outs and all(np.all(np.isfinite(o.cov)) for o in outs)
     assert any(o.sources & SOURCE_LOCAL for o in outs)

@@ -15,16 +15,11 @@ import math
 import numpy as np
 import pytest
 
+from fullperc_common.so3 import R_to_quat, quat_to_R, so3_exp, so3_log
 from fullperc_fusion.filters.api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement
 from fullperc_fusion.filters.fullperc import FullpercFilter
-from fullperc_fusion.filters.fullperc_reference import (
-    FullpercParams,
-    FullpercReference,
-    R_to_quat,
-    quat_to_R,
-    so3_exp,
-    so3_log,
-)
+from fullperc_fusion.filters.fullperc_params import FullpercParams
+from fullperc_fusion.filters.fullperc_reference import FullpercReference
 from fullperc_fusion.filters.rot_noise_scale import pair_estimate, scale_decay, scale_step, scaled_cov
 
 S = 1_000_000_000

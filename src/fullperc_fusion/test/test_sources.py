@@ -92,6 +92,37 @@ def test_shipped_two_local_example_loads():
     assert len(cfg.sources.locals) == 2 and cfg.sources.extras[0].topic_prefix == "/atracsys"
 
 
+def test_a_source_blocks_keys_are_rows_with_their_rule(tmp_path):
+    """--help / docs and the check read the same row: a source key's row carries its unit, description and rule,
+    a device name's row refuses ''."""
+    from fullperc_fusion.pipeline.param_table import POSITIVE
+
+    row = fc.spec("atracsys.noise_std")
+    assert (row.name, row.kind, row.unit, row.check) == ("atracsys.noise_std", "float", "m", POSITIVE.check)
+    assert row.doc.startswith("source 'atracsys': ")
+    with pytest.raises(ParameterError, match="'tool.atracsys'"):
+        fc.load_fusion_config(_write(tmp_path, {**TWO_LOCAL, "tool": {"atracsys": ""}}), filters=("cbkf",))
+
+
+def test_global_and_local_are_one_role_in_three_encodings():
+    """filters.api.Role is the one definition: the synchronizer's stream index, the bit of Measurement.source and
+    of FusionStatus on the wire (values unchanged), and the text of a source's role, the stream names and the
+    health keys."""
+    from fullperc_fusion import fusion_health
+    from fullperc_fusion.filters import api
+    from fullperc_fusion.pipeline import sources, synchronizer
+    from fullperc_msgs.msg import FusionStatus
+
+    R = api.Role
+    assert (int(R.GLOBAL), int(R.LOCAL)) == (synchronizer.GLOBAL, synchronizer.LOCAL) == (0, 1)
+    assert (api.SOURCE_GLOBAL, api.SOURCE_LOCAL) == (R.GLOBAL.bit, R.LOCAL.bit) == \
+        (FusionStatus.SOURCE_GLOBAL, FusionStatus.SOURCE_LOCAL) == (1, 2)
+    assert type(api.SOURCE_GLOBAL) is int and type(synchronizer.GLOBAL) is int   # plain ints on the hot paths
+    assert api.ROLE_LABELS == sources.ROLES == ApproxSync().names == SourceSet().stream_names == ("global", "local")
+    assert (fusion_health.GLOBAL, fusion_health.LOCAL) == (R.GLOBAL.label, R.LOCAL.label)
+    assert fusion_health._BITS == {"global": 1, "local": 2}
+
+
 # ---------------------------------------------------------------------------------------------- synchronizer
 def _samples(ts):
     return [Sample(int(t), None) for t in ts]
@@ -315,9 +346,9 @@ def test_a_calibration_file_gives_the_further_sources_link_by_its_name(tmp_path)
 
 
 def test_model_covariance_per_source_for_filters_that_use_models(events3):
-    """fullperc (uses_models): an Atracsys with noise_model vega gets the Vega distance model through its own chain,
+    """fullperc (declares models): an Atracsys with noise_model vega gets the Vega distance model through its own chain,
     one with noise_std its diagonal -- a 1 cm std makes the fused position variance far larger than the model's."""
-    from fullperc_fusion.filters.fullperc import FullpercParams
+    from fullperc_fusion.filters.fullperc_params import FullpercParams
 
     ev = [e for e in events3(ots=(0, 0)) if not (e[0] == "omc" and e[1] == "tool")]
     var = {}

@@ -13,7 +13,8 @@ import pytest
 from scipy.spatial.transform import Rotation as Rot
 
 from fullperc_common.transforms import inv_T, make_T, mean_T
-from fullperc_fusion.calibration.se3_stats import COV_FLOOR, Calibration, Collector, se3_residuals, se3_retract
+from fullperc_fusion.calibration.collector import Collector
+from fullperc_fusion.calibration.se3_stats import COV_FLOOR, Calibration, se3_residuals, se3_retract
 from fullperc_fusion.pipeline.frame_chain import ChainConfig, FrameChain, links_needed
 
 S = 1_000_000_000

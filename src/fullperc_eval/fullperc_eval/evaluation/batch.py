@@ -10,12 +10,13 @@ Offline, the whole recording is known at once, so most of that work can be done 
    arrays; nothing is built per message;
 2. validation of every pose at once (stamp > 0, finite, quaternion within 1e-2 of unit norm: the tests of
    :func:`~fullperc_fusion.calibration.poses.pose_to_T`), and the target samples' matrices with pose_to_T's formulas;
-3. the control flow in bag order, as the per-sample replay runs it, but only what decides something: the
-   pipeline's own static-link estimation and link monitor (its ``FrameChain.observe_omc`` / ``observe_ots`` and
-   ``LinkMonitor.add`` with the matrices of step 2 -- the same code, so the links come from exactly the same
-   samples; once the links are final, OMC base / rig samples change nothing and are skipped, the OTS's base
-   sightings still feed the monitor), the pipeline's own synchronizer (``pipe.sync``, payload = the sample's
-   index) with the idle flush, and for each item the links in use when it came out;
+3. the control flow in bag order, as the per-sample replay runs it, but only what decides something, through
+   the pipeline's own stages (``TargetPipeline``'s "Stages": ``push_*`` without the validation done in step 2):
+   its static-link estimation and link monitor (``observe_omc`` / ``observe_ots`` with the matrices of step 2 --
+   the same code, so the links come from exactly the same samples; once the links are final, OMC base / rig
+   samples change nothing and are skipped, the OTS's base sightings still feed the monitor), its synchronizer
+   under its stamp rules (``enqueue``, payload = the sample's index; ``poll_items`` / ``flush_items``) with the
+   idle flush, and for each item the links in use when it came out;
 4. mapping into ``base``: one stacked matrix product per link estimate and stream (``inv(T_omc_base) @ T``,
    ``T_base_ots @ T``), quaternions with :func:`~fullperc_common.transforms.T_to_pq`'s closed form vectorised;
 5. filtering: :func:`fullperc_fusion.filters.paper_batch.run_closed_form` (KF/BKF/CKF/CBKF in one loop on floats) and
@@ -45,9 +46,8 @@ from fullperc_eval.bag.fast_decode import DecodeError, decode_joint_states, deco
 from fullperc_eval.bag.reader import _raw_messages
 from fullperc_fusion.filters.api import SOURCE_GLOBAL, SOURCE_LOCAL
 from fullperc_fusion.filters.paper_batch import BatchUnsupported, run_closed_form
-from fullperc_fusion.filters.paper_family import FILTER_KINDS, PassThrough
-from fullperc_fusion.filters.paper_fast import ClosedFormFilter
-from fullperc_fusion.filters.registry import make_filter
+from fullperc_fusion.filters.paper_family import FILTER_KINDS
+from fullperc_fusion.filters.registry import capabilities
 from fullperc_fusion.pipeline.ordered import TargetConfig, TargetPipeline
 from fullperc_fusion.pipeline.synchronizer import GLOBAL, LOCAL
 
@@ -59,23 +59,22 @@ __all__ = ["BatchUnsupported", "batch_replay", "split_filters", "unsupported_rea
 _UNIT_TOL = 1e-2   # pose_to_T's default
 
 
-def _batched(f: str, config: TargetConfig) -> bool:
-    """True for the paper's five filters as registered (a name registered to another implementation: False)."""
-    if f != "omc" and f not in FILTER_KINDS:
-        return False
-    return type(make_filter(f, config.params)) is (PassThrough if f == "omc" else ClosedFormFilter)
+def _batched(f: str) -> bool:
+    """True for a filter whose registry entry declares ``batch`` (the paper's five; a name registered to another
+    implementation declares what that one supports)."""
+    return capabilities(f).batch
 
 
 def split_filters(config: TargetConfig) -> tuple[tuple[str, ...], tuple[str, ...]]:
     """(filters with a batched form, the others) of ``config``, each in the configured order."""
-    fast = tuple(f for f in config.filters if _batched(f, config))
+    fast = tuple(f for f in config.filters if _batched(f))
     return fast, tuple(f for f in config.filters if f not in fast)
 
 
 def unsupported_reason(config: TargetConfig) -> str:
     """Why the batched replay cannot run ``config`` ('' when it can): see the module docstring."""
     for f in config.filters:
-        if not _batched(f, config):
+        if not _batched(f):
             return f"filter '{f}' has no batched form"
     c = config.chain
     if c.local_chain != "static":
@@ -84,15 +83,13 @@ def unsupported_reason(config: TargetConfig) -> str:
         return "link monitor re-calibration (links may change on a bump)"
     if c.omc_target in (c.omc_base, c.omc_rig) or c.ots_target == c.ots_base:
         return "a target body that is also a link body"
-    src = getattr(config, "sources", None)   # sources by configuration: the built-in omc + ots pair only
-    if src is not None:
-        if src.extras:
-            return "further local sources"
-        if any(getattr(s, "noise_std", None) is not None for s in (src.glob, *src.locals)):
-            return "a source with its own noise_std"
-        if (getattr(src.glob, "topic_prefix", "/omc"), getattr(src.locals[0], "topic_prefix", "/ots")) != \
-                ("/omc", "/ots"):
-            return "sources on other topics"
+    src = config.sources   # sources by configuration: the built-in omc + ots pair only
+    if src.extras:
+        return "further local sources"
+    if any(s.noise_std is not None for s in (src.glob, *src.locals)):
+        return "a source with its own noise_std"
+    if (src.glob.topic_prefix, src.locals[0].topic_prefix) != ("/omc", "/ots"):
+        return "sources on other topics"
     return ""
 
 
@@ -191,24 +188,6 @@ def _to_pq(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return P, q
 
 
-class _Order:
-    """Counter keys in the order of their first increment (the per-sample pipeline's Counter order)."""
-
-    def __init__(self) -> None:
-        self.keys: list[str] = []
-        self.own: Counter[str] = Counter()
-
-    def seen(self, keys) -> None:
-        for k in keys:
-            if k not in self.keys:
-                self.keys.append(k)
-
-    def add(self, key: str) -> None:
-        if key not in self.own:
-            self.seen([key])
-        self.own[key] += 1
-
-
 def batch_replay(prep: Prepared, config: TargetConfig, idle_flush_s: float, t_start: float) -> Replay:
     """The per-sample replay's :class:`Replay` of the prepared bag, batched (module docstring); BatchUnsupported
     when it cannot be (the caller then runs the per-sample replay)."""
@@ -261,8 +240,9 @@ def batch_replay(prep: Prepared, config: TargetConfig, idle_flush_s: float, t_st
     # ---- control flow in bag order: links (the pipeline's own estimation and monitor), synchronizer, idle flush
     pipe = TargetPipeline(config)
     links = pipe.chain.links
-    sync = pipe.sync
-    order = _Order()
+    # what fusing the items would count (TargetPipeline.poll), in the order of the first increment as a
+    # Counter keeps it: the per-sample pipeline's key order
+    counted: Counter[str] = Counter()
     kind_of = []   # per topic index: 0 joint, 1 target global, 2 target local, 3 omc link body, 4 ots base
     for t in topic_names:
         if t == JOINT_TOPIC:
@@ -288,16 +268,15 @@ def batch_replay(prep: Prepared, config: TargetConfig, idle_flush_s: float, t_st
             use_g = ig >= 0 and Tob is not None
             use_l = il >= 0 and Tbo is not None
             if ig >= 0 and not use_g:
-                order.add("waiting_for_links")
+                counted["waiting_for_links"] += 1
             if il >= 0 and not use_l:
-                order.add("waiting_for_links")
+                counted["waiting_for_links"] += 1
             if not (use_g or use_l):
                 continue
-            order.add("items")
+            counted["items"] += 1
             emitted.append((ig if use_g else -1, il if use_l else -1, Tob if use_g else None, Tbo if use_l else None))
 
-    chain, monitor = pipe.chain, pipe.monitor
-    mon_src: np.ndarray | None = None
+    what = {1: f"OMC body '{c.omc_target}'", 2: f"OTS tool '{c.ots_target}'"}
     mats = {k: list(_matrices(poses[t].p, poses[t].q)) for k, t in enumerate(topic_names) if kind_of[k] >= 3}
     ts_list = raw.timestamp.tolist()
     topic_list = raw.topic.tolist()
@@ -309,44 +288,38 @@ def batch_replay(prep: Prepared, config: TargetConfig, idle_flush_s: float, t_st
         j = within_list[pos]
         if kind <= 2:
             recv = ts_list[pos]
-            if last_recv is not None and sync.pending and recv - last_recv > idle_ns:
-                take(sync.flush())
+            if last_recv is not None and pipe.sync.pending and recv - last_recv > idle_ns:
+                take(pipe.flush_items())
             last_recv = recv
-            r = sync.push(GLOBAL if kind == 1 else LOCAL, stamps[k][j], j)
+            r = pipe.enqueue(GLOBAL if kind == 1 else LOCAL, stamps[k][j], j, what[kind])
             if r != "ok":
                 raise BatchUnsupported(f"a {r} sample")
-            take(sync.poll())
+            take(pipe.poll_items())
             continue
         if kind == 3 and not links.collecting:
             continue   # final links: an OMC base / rig sample changes nothing any more
         name = topic_names[k]
         t, T = stamps[k][j], mats[k][j]
-        # TargetPipeline.push_omc / push_ots of a link body, minus the validation done above: the chain's own
-        # link estimation, then (OTS base) the link monitor as _watch_link feeds it (static chain: reference
-        # inv(T_base_ots), set when the link changes)
+        # push_omc / push_ots of a link body, minus the validation done above: the chain's own link estimation,
+        # then (OTS base) the link monitor
         if kind == 3:
-            chain.observe_omc(role[name][1], t, T)
+            pipe.observe_omc(role[name][1], t, T)
         else:
-            if links.collecting:
-                chain.observe_ots(role[name][1], t, T)
-            if links.T_base_ots is not mon_src:
-                mon_src = links.T_base_ots
-                monitor.set_reference(None if mon_src is None else inv_T(mon_src))
-            chk = monitor.add(t, T)
-            if chk is not None and chk.bumped:
+            pipe.observe_ots(role[name][1], t, T)
+            if pipe.counts["link_bumped_checks"]:
                 raise BatchUnsupported("the link monitor saw a bump of the static link")
         if links.refusals:
             raise BatchUnsupported("a static-link calibration was refused")
-    take(sync.flush())
-    if sync.counts.get("forced_by_overflow"):
+    take(pipe.flush_items())
+    if pipe.sync.counts.get("forced_by_overflow"):
         raise BatchUnsupported("synchronizer overflow")
     if pipe.counts:
         raise BatchUnsupported(f"pipeline events {sorted(pipe.counts)}")
-    return _assemble(prep, config, pipe, order, emitted, poses, per, jb, warnings, raw, t_start, reader)
+    return _assemble(prep, config, pipe, counted, emitted, poses, per, jb, warnings, raw, t_start, reader)
 
 
-def _assemble(prep: Prepared, config: TargetConfig, pipe: TargetPipeline, order: _Order, emitted, poses, per, jb,
-              warnings: list[str], raw, t_start: float, reader) -> Replay:
+def _assemble(prep: Prepared, config: TargetConfig, pipe: TargetPipeline, counted: Counter[str], emitted, poses,
+              per, jb, warnings: list[str], raw, t_start: float, reader) -> Replay:
     """Mapping, filters, outputs, tap, counts (steps 4-6 of the module docstring)."""
     c = config.chain
     pg = poses[prep.target_omc]
@@ -388,15 +361,10 @@ def _assemble(prep: Prepared, config: TargetConfig, pipe: TargetPipeline, order:
         o = np.argsort(t_sel, kind="stable")
         single[role_name] = {"t_ns": t_sel[o].astype(np.int64), "p": pp[has][o].reshape(-1, 3),
                              "q": qq[has][o].reshape(-1, 4)}
-    # ---- counts and stats as the per-sample pipeline keeps them (key order = order of the first increment)
-    merged: Counter[str] = Counter()
-    for k in order.keys:
-        merged[k] = pipe.counts[k] + order.own[k]
-    pipe.counts = merged
-    stats = pipe.stats()
+    # ---- stats as the per-sample pipeline gives them: its own, then its counters (none of its own here: any
+    # event made the batched replay give up), in the order of their first increment
+    stats = {**pipe.stats(), **counted}
     stats = {k: (v if isinstance(v, int | float | str | bool) else str(v)) for k, v in stats.items()}
-    for key, why in pipe.problems.items():
-        warnings.append(f"pipeline {key} ({pipe.counts[key]}x): {why}")
     counts = {t: int(len(per[t][0])) for t in prep.present}
     base_t = f"/omc/{c.omc_base}/pose"
     base_poses = list(zip(poses[base_t].p, poses[base_t].q, strict=True)) if base_t in poses else []
@@ -413,7 +381,7 @@ def filter_outputs(config: TargetConfig, filters, has_g: np.ndarray, has_l: np.n
                    lq: np.ndarray) -> dict[str, dict[str, np.ndarray]]:
     """The outputs (:meth:`.replay.Outputs.arrays`) of ``filters`` (the paper's five) over the items, given per
     item which samples were fused (``has_g`` / ``has_l``), their stamps and positions / quaternions in base:
-    what TargetPipeline._process_item makes of each filter's step (orientation and its covariance from the local
+    what TargetPipeline.poll makes of each filter's step (orientation and its covariance from the local
     sample when there is one, else the global one; ``omc`` only where a global sample was fused)."""
     n = len(has_g)
     t_item = np.maximum(np.where(has_g, g_t, np.iinfo(np.int64).min), np.where(has_l, l_t, np.iinfo(np.int64).min))

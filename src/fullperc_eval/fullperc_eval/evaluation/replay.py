@@ -35,7 +35,7 @@ PROGRESS_EVERY_S = 2.0
 
 def omc_quality_by_stamp(reader: BagReader, config: TargetConfig) -> dict[int, dict[str, float]]:
     """H3 hook (issue 18, fullperc): the OMC target body's TrackingQuality by header stamp, for
-    ``push_omc(quality=...)``, so a filter with ``uses_models`` gets the OMC model covariance offline as live.
+    ``push_omc(quality=...)``, so a filter that declares ``models`` gets the OMC model covariance offline as live.
     Empty when no configured filter uses the models or the bag has no quality topic."""
     from fullperc_fusion.filters.registry import FILTERS
 

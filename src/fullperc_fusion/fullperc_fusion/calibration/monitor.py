@@ -7,7 +7,7 @@ compares the Vega's live view with the calibrated link:
 
 * reference: the calibrated link in the OTS's direction, T_ots_base = inv(T_base_ots), where a frame's noise is
   small (~0.2 mm; the other direction carries the rotation noise times the 2 m lever; see
-  :func:`~fullperc_fusion.calibration.se3_stats.link_bump`);
+  :func:`~fullperc_fusion.calibration.links.link_bump`);
 * live: the robust SE(3) mean (:func:`~fullperc_fusion.calibration.se3_stats.robust_se3_mean`, outliers rejected) of the
   sightings in the last ``window_s`` seconds of stamps, evaluated every ``window_s / 2`` once the window holds
   ``min_samples`` sightings -- a step is seen in full at most 1.5 windows after it happened, and earlier when most
@@ -35,7 +35,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fullperc_fusion.calibration.se3_stats import BumpThresholds, CalibrationError, link_bump, robust_se3_mean
+from fullperc_fusion.calibration.links import link_bump
+from fullperc_fusion.calibration.se3_stats import BumpThresholds, CalibrationError, robust_se3_mean
 
 
 @dataclass(frozen=True)

@@ -1,6 +1,6 @@
 """Pose validation shared by the frame chain and the calibration: :func:`pose_to_T` and :class:`BadSample`.
 
-Its own module so that :mod:`fullperc_fusion.calibration.se3_stats` (which validates sightings) and
+Its own module so that :mod:`fullperc_fusion.calibration.collector` (which validates sightings) and
 :mod:`fullperc_fusion.pipeline.frame_chain` (whose static links are estimated with the calibration) can both import it
 without an import cycle; ``frame_chain`` re-exports both names.
 """

@@ -1,5 +1,5 @@
 """One live calibration of the static links, as the ``calibrate`` executable and ``fusion_node``'s ``~/calibrate``
-run it: a :class:`~.se3_stats.Collector` plus a bound on host time, then the result or the reason
+run it: a :class:`~.collector.Collector` plus a bound on host time, then the result or the reason
 it was refused, and a one-line summary. ROS-free; the caller passes ``now`` (a monotonic clock [s]).
 
 The collection ends by the sensor stamps (``duration_s`` after the first sighting, :attr:`Collector.complete`), or
@@ -12,12 +12,12 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+from fullperc_fusion.calibration.collector import Collector
 from fullperc_fusion.calibration.se3_stats import (
     Calibration,
     CalibrationBodies,
     CalibrationError,
     CalibrationSettings,
-    Collector,
 )
 
 

@@ -33,27 +33,20 @@ Robust mean (:func:`robust_se3_mean`):
    the mean larger than Σ. With alpha = 1e-3 the truncation of Gaussian samples shrinks C by ~0.5 %
    (P(chi^2_5 <= q) / P(chi^2_3 <= q) = 0.995); not corrected.
 
-Static check (:func:`check_static`): the collection is cut into ``n_windows`` equal time windows; each window's
-robust mean is compared with every other's. A pair of windows shows motion when the difference exceeds the
-absolute limit (``max_drift_m`` / ``max_drift_rad``) *and* is significant against the noise (Hotelling T^2
-with the noise covariance pooled within the windows). The first condition lets through the OMC's
-sub-millimetre hops, which are significant but are noise of the sensor, not motion; the second keeps a short,
-noisy collection from being refused for noise.
-
-YAML reading and writing are in :mod:`fullperc_fusion.calibration.io`.
+The static check of a collection (:mod:`.static_check`), the links estimated from the sightings (:mod:`.links`),
+the collection itself (:mod:`.collector`) and YAML reading and writing (:mod:`.io`) build on this module.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial.transform import Rotation
-from scipy.special import chdtri, fdtri  # the chi^2 and F quantiles: scipy.stats costs a node ~0.6 s of start-up
+from scipy.special import chdtri  # the chi^2 quantile: scipy.stats costs a node ~0.6 s of start-up
 
-from fullperc_common.transforms import T_to_pq, inv_T, make_T, mean_T
-from fullperc_fusion.calibration.poses import BadSample, pose_to_T
+from fullperc_common.so3 import skew
+from fullperc_common.transforms import T_to_pq, make_T, mean_T
 
 CALIBRATION_VERSION = 1
 LINK_NAMES = ("T_omc_base", "T_base_ots", "T_rig_ots")
@@ -136,6 +129,21 @@ class BumpThresholds:
     rot_rad: float = 3.0e-3
 
 
+
+@dataclass
+class CalibrationBodies:
+    """Body names on the driver topics that a :class:`~.collector.Collector` collects; same fields and defaults as
+    ``ChainConfig``."""
+
+    omc_base: str = "base"
+    ots_base: str = "base"
+    omc_rig: str = "ots_rig"
+
+    @classmethod
+    def from_chain_config(cls, cfg) -> CalibrationBodies:
+        return cls(cfg.omc_base, cfg.ots_base, cfg.omc_rig)
+
+
 # ------------------------------------------------------------------------------------------ tangent space
 
 def se3_residuals(T_ref: np.ndarray, Ts: np.ndarray) -> np.ndarray:
@@ -152,10 +160,6 @@ def se3_retract(T_ref: np.ndarray, delta: np.ndarray) -> np.ndarray:
     return make_T(T_ref[:3, 3] + delta[:3], R=Rotation.from_rotvec(delta[3:]).as_matrix() @ T_ref[:3, :3])
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
 def compose_jacobian(A: np.ndarray, X: np.ndarray, B: np.ndarray) -> np.ndarray:
     """d δ(A X B) / d δX, first order, for the parent-frame tangent convention.
 
@@ -165,7 +169,7 @@ def compose_jacobian(A: np.ndarray, X: np.ndarray, B: np.ndarray) -> np.ndarray:
     RA = A[:3, :3]
     J = np.zeros((6, 6))
     J[:3, :3] = RA
-    J[:3, 3:] = -RA @ _skew(X[:3, :3] @ B[:3, 3])
+    J[:3, 3:] = -RA @ skew(X[:3, :3] @ B[:3, 3])
     J[3:, 3:] = RA
     return J
 
@@ -278,310 +282,3 @@ def _estimate(Tm: np.ndarray, Ts: np.ndarray, mask: np.ndarray, source: str) -> 
     p, q = T_to_pq(Tm)
     return LinkEstimate(p, q, cov, len(Ts), n_in, float(np.sqrt(np.mean(et**2))), float(et.max()),
                         float(np.sqrt(np.mean(er**2))), float(er.max()), source, mask)
-
-
-# ------------------------------------------------------------------------------------------ static check
-
-def hotelling_threshold(alpha: float, dof: int, p: int = 3) -> float:
-    """Upper 1 - alpha quantile of Hotelling's T^2 (p dims, covariance estimated with ``dof`` degrees of freedom).
-
-    T^2 = p dof / (dof - p + 1) F(p, dof - p + 1); tends to chi^2_p(1 - alpha) as dof grows. With a covariance
-    estimated from few samples, chi^2 would be far too small: E[S^-1] = Sigma^-1 dof / (dof - p - 1).
-    """
-    if dof < p:
-        return float("inf")
-    return float(p * dof / (dof - p + 1) * fdtri(p, dof - p + 1, 1.0 - alpha))
-
-
-def check_static(label: str, stamps_ns, poses, thresholds: StaticThresholds | None = None,
-                 alpha: float = 1e-3) -> None:
-    """Raise :class:`CalibrationError` naming ``label`` when the body moved during the collection.
-
-    ``poses`` are the raw sightings (sensor frame, e.g. T_omc_base_i or T_ots_base_i) at ``stamps_ns``;
-    ``alpha`` is the outlier gate of the windows' robust means. Each window k (``n_windows`` equal spans of
-    the stamps, at least ``min_window_samples`` sightings) gives a robust mean T_k over n_k inliers. The noise
-    covariance C is pooled over the windows (inlier residuals about their own window's mean, dof
-    nu = sum n_k - K), so motion between windows does not count as noise. Windows a and b differ by
-    Δ = residual of T_b about T_a; per block, with S = C (1/n_a + 1/n_b), the difference is significant when
-    Δ^T S^-1 Δ exceeds :func:`hotelling_threshold` (thresholds.alpha, nu). Moved = |Δp| > max_drift_m and
-    significant, or |Δθ| > max_drift_rad and significant. Also refuses when fewer than two windows are
-    usable: then nothing tells whether the body stayed still.
-    """
-    th = thresholds or StaticThresholds()
-    Ts = as_pose_stack(poses, label)
-    t = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
-    if t.shape != (len(Ts),):
-        raise CalibrationError(f"{label}: {t.shape[0]} stamps for {len(Ts)} poses")
-    t0 = int(t.min()) if len(t) else 0
-    span = int(t.max()) - t0 if len(t) else 0
-    nw = int(th.n_windows)
-    w = np.minimum((t - t0) * nw // max(span, 1), nw - 1) if span > 0 else np.zeros(len(t), dtype=int)
-    wins, resid = [], []
-    for k in range(nw):
-        sel = w == k
-        if sel.sum() >= max(th.min_window_samples, 2):
-            try:
-                e = robust_se3_mean(Ts[sel], alpha=alpha, what=label)
-            except CalibrationError:
-                continue
-            r = se3_residuals(e.T, Ts[sel][e.inliers])
-            resid.append(r - r.mean(axis=0))
-            wins.append((k, e))
-    if len(wins) < 2:
-        raise CalibrationError(
-            f"{label}: sightings fill only {len(wins)} of {nw} time windows of the {span / 1e9:.1f} s collection "
-            f"(need >= {th.min_window_samples} in at least 2) - cannot tell whether it stayed still")
-    R = np.vstack(resid)
-    dof = len(R) - len(wins)
-    C = R.T @ R / dof + np.diag(np.repeat(np.square(COV_FLOOR), 3))
-    q = hotelling_threshold(th.alpha, dof)
-    worst = None
-    for i in range(len(wins)):
-        for j in range(i + 1, len(wins)):
-            (ka, a), (kb, b) = wins[i], wins[j]
-            d = se3_residuals(a.T, b.T[None])[0]
-            S = C * (1.0 / a.n_inliers + 1.0 / b.n_inliers)
-            dt, dr = float(np.linalg.norm(d[:3])), float(np.linalg.norm(d[3:]))
-            sig_t = d[:3] @ np.linalg.solve(S[:3, :3], d[:3]) > q
-            sig_r = d[3:] @ np.linalg.solve(S[3:, 3:], d[3:]) > q
-            moved = (dt > th.max_drift_m and sig_t) or (dr > th.max_drift_rad and sig_r)
-            score = max(dt / th.max_drift_m, dr / th.max_drift_rad)
-            if moved and (worst is None or score > worst[0]):
-                worst = (score, ka, kb, dt, dr)
-    if worst is not None:
-        _, ka, kb, dt, dr = worst
-        ws = span / 1e9 / nw
-        raise CalibrationError(
-            f"{label} moved during the collection: {dt * 1e3:.2f} mm / {dr * 1e3:.2f} mrad between its mean over "
-            f"{ka * ws:.1f}-{(ka + 1) * ws:.1f} s and over {kb * ws:.1f}-{(kb + 1) * ws:.1f} s of the "
-            f"{span / 1e9:.1f} s collection (allowed {th.max_drift_m * 1e3:.2f} mm / "
-            f"{th.max_drift_rad * 1e3:.2f} mrad); keep the setup still and calibrate again")
-
-
-# ------------------------------------------------------------------------------------------ links
-
-def _check_inliers(est: LinkEstimate, label: str, settings: CalibrationSettings) -> LinkEstimate:
-    if est.n_inliers < settings.min_inlier_fraction * est.n_samples:
-        raise CalibrationError(
-            f"{label}: only {est.n_inliers} of {est.n_samples} samples are mutually consistent "
-            f"(need {settings.min_inlier_fraction:.0%}); the body may have moved or the sensor is hopping")
-    return est
-
-
-def link_T_omc_base(T_omc_base_samples, settings: CalibrationSettings | None = None,
-                    label: str = "OMC body 'base'") -> LinkEstimate:
-    """T_omc_base: the robust mean of the OMC's sightings of the base body."""
-    s = settings or CalibrationSettings()
-    est = robust_se3_mean(T_omc_base_samples, alpha=s.alpha, source=label, what=label)
-    return _check_inliers(est, label, s)
-
-
-def link_T_base_ots(T_ots_base_samples, settings: CalibrationSettings | None = None,
-                    label: str = "OTS tool 'base'") -> LinkEstimate:
-    """T_base_ots (eq. 2): the robust mean of the inverted OTS sightings inv(T_ots_base_i), as ``StaticLinks``."""
-    s = settings or CalibrationSettings()
-    Ts = as_pose_stack(T_ots_base_samples, label)
-    inv = np.stack([inv_T(T) for T in Ts]) if len(Ts) else Ts
-    est = robust_se3_mean(inv, alpha=s.alpha, source=f"inverse of {label} (eq. 2)", what=label)
-    return _check_inliers(est, label, s)
-
-
-def pair_by_stamp(t_a, t_b, tol_ns: int) -> tuple[np.ndarray, np.ndarray]:
-    """Indices (ia, ib) of mutual-nearest pairs of two stamp lists with |t_a - t_b| <= tol_ns.
-
-    Mutual nearest: each sample is used at most once, so the pairs' noise stays independent when one
-    stream is faster than the other. Ties go to the earlier sample.
-    """
-    ta = np.asarray(t_a, dtype=np.int64)
-    tb = np.asarray(t_b, dtype=np.int64)
-    if len(ta) == 0 or len(tb) == 0:
-        return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
-    oa, ob = np.argsort(ta, kind="stable"), np.argsort(tb, kind="stable")
-    sa, sb = ta[oa], tb[ob]
-
-    def nearest(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-        i = np.clip(np.searchsorted(dst, src), 1, len(dst) - 1) if len(dst) > 1 else np.zeros(len(src), int)
-        if len(dst) == 1:
-            return i
-        left = np.abs(src - dst[i - 1]) <= np.abs(dst[i] - src)
-        return np.where(left, i - 1, i)
-
-    a_of_b = nearest(sb, sa)
-    b_of_a = nearest(sa, sb)
-    jb = np.arange(len(sb))
-    keep = (b_of_a[a_of_b] == jb) & (np.abs(sa[a_of_b] - sb) <= tol_ns)
-    return oa[a_of_b[keep]], ob[jb[keep]]
-
-
-def link_T_rig_ots(t_rig, T_omc_rig_samples, t_ots, T_ots_base_samples, T_omc_base: LinkEstimate,
-                   settings: CalibrationSettings | None = None, rig_label: str = "OMC body 'ots_rig'",
-                   ots_label: str = "OTS tool 'base'") -> LinkEstimate:
-    """T_rig_ots (eq. 1) from stamp-paired rig and base sightings and the calibrated T_omc_base.
-
-    Samples T_rig_ots_i = inv(T_omc_rig_i) · T_omc_base · inv(T_ots_base_i) over the pairs
-    (:func:`pair_by_stamp`); robust mean. Covariance to first order: the pairs' own term (covariance of the
-    mean of the samples) plus J Σ_omc_base J^T with J = :func:`compose_jacobian`(inv(T̄_omc_rig),
-    T_omc_base, T̄_base_ots), since the one T_omc_base is shared by every sample and does not average out.
-    The base and rig sightings are treated as independent (an error common to one OMC frame is not modelled).
-    """
-    s = settings or CalibrationSettings()
-    R = as_pose_stack(T_omc_rig_samples, rig_label)
-    O = as_pose_stack(T_ots_base_samples, ots_label)
-    for lab, t, P in ((rig_label, t_rig, R), (ots_label, t_ots, O)):
-        if np.shape(t) != (len(P),):
-            raise CalibrationError(f"{lab}: {np.shape(t)} stamps for {len(P)} poses")
-    ia, ib = pair_by_stamp(t_rig, t_ots, s.pair_tol_ns)
-    label = f"{rig_label} x {ots_label} pairs"
-    if len(ia) < s.min_samples:
-        raise CalibrationError(
-            f"{label}: {len(ia)} pairs within {s.pair_tol_ns / 1e6:g} ms ({len(R)} rig, {len(O)} OTS sightings), "
-            f"need >= {s.min_samples}")
-    X = T_omc_base.T
-    Ob = np.stack([inv_T(T) for T in O[ib]])
-    samples = np.stack([inv_T(Ra) @ X @ Bi for Ra, Bi in zip(R[ia], Ob, strict=True)])
-    src = f"inv({rig_label}) T_omc_base inv({ots_label}), pairs within {s.pair_tol_ns / 1e6:g} ms (eq. 1)"
-    est = _check_inliers(robust_se3_mean(samples, alpha=s.alpha, source=src, what=label), label, s)
-    m = est.inliers
-    J = compose_jacobian(inv_T(mean_T(list(R[ia][m]))), X, mean_T(list(Ob[m])))
-    cov = est.cov + J @ T_omc_base.cov @ J.T
-    est.cov = 0.5 * (cov + cov.T)
-    return est
-
-
-def link_bump(cal_link, live_T: np.ndarray, thresholds: BumpThresholds | None = None) -> tuple[bool, float, float]:
-    """(bumped, dtrans_m, drot_rad) of a live pose of a link against its calibration.
-
-    ``cal_link``: a :class:`LinkEstimate` or a 4x4; ``live_T`` the same link (same direction) measured now.
-    dtrans = |p_live - p_cal|, drot = |Log(R_live R_cal^T)|; bumped when either is strictly beyond its
-    threshold. One frame of a Vega's view of the base carries ~0.2 mm and a few mrad of noise, so feed a
-    short-window mean (:func:`robust_se3_mean`), and compare in the direction where the noise is small:
-    the OTS's view T_ots_base = inv(T_base_ots), not T_base_ots, whose translation carries rotation noise
-    times the 2 m lever.
-    """
-    th = thresholds or BumpThresholds()
-    Tc = cal_link.T if isinstance(cal_link, LinkEstimate) else np.asarray(cal_link, dtype=float)
-    d = se3_residuals(Tc, np.asarray(live_T, dtype=float)[None])[0]
-    dt, dr = float(np.linalg.norm(d[:3])), float(np.linalg.norm(d[3:]))
-    return bool(dt > th.trans_m or dr > th.rot_rad), dt, dr
-
-
-# ------------------------------------------------------------------------------------------ collector
-
-@dataclass
-class CalibrationBodies:
-    """Body names on the driver topics; same fields and defaults as ``ChainConfig``."""
-
-    omc_base: str = "base"
-    ots_base: str = "base"
-    omc_rig: str = "ots_rig"
-
-    @classmethod
-    def from_chain_config(cls, cfg) -> CalibrationBodies:
-        return cls(cfg.omc_base, cfg.ots_base, cfg.omc_rig)
-
-
-class Collector:
-    """Accumulates timestamped sightings for ``duration_s`` and turns them into a :class:`Calibration`.
-
-    Feed every pose with :meth:`add` (device 'omc' or 'ots'); sightings of other bodies are ignored. The
-    window starts at ``start_ns`` or the first accepted stamp and holds stamps in [start, start + duration];
-    :attr:`complete` turns true once a stamp at or beyond its end arrives. :meth:`finish` checks counts and
-    stillness of every body it needs, then estimates ``links`` (T_rig_ots brings T_omc_base with it).
-    """
-
-    def __init__(self, links: Sequence[str] = ("T_omc_base", "T_base_ots"),
-                 bodies: CalibrationBodies | None = None, duration_s: float = 10.0,
-                 settings: CalibrationSettings | None = None, start_ns: int | None = None) -> None:
-        bad = [x for x in links if x not in LINK_NAMES]
-        if bad or not links:
-            raise ValueError(f"links {list(links)}: each must be one of {LINK_NAMES}")
-        if not duration_s > 0:
-            raise ValueError(f"duration_s must be > 0, got {duration_s}")
-        self.links = tuple(x for x in LINK_NAMES if x in links or (x == "T_omc_base" and "T_rig_ots" in links))
-        self.bodies = bodies or CalibrationBodies()
-        self.settings = settings or CalibrationSettings()
-        self.duration_ns = int(round(duration_s * 1e9))
-        self.start_ns = start_ns
-        self.last_ns: int | None = None
-        b = self.bodies
-        need = {"T_omc_base": [("omc", b.omc_base)], "T_base_ots": [("ots", b.ots_base)],
-                "T_rig_ots": [("omc", b.omc_rig), ("ots", b.ots_base)]}
-        self._buf: dict[tuple[str, str], list[tuple[int, np.ndarray]]] = {}
-        for ln in self.links:
-            for key in need[ln]:
-                self._buf.setdefault(key, [])
-        self.n_bad: dict[tuple[str, str], int] = {k: 0 for k in self._buf}
-
-    @staticmethod
-    def label(device: str, body: str) -> str:
-        return f"OMC body '{body}'" if device == "omc" else f"OTS tool '{body}'"
-
-    @property
-    def complete(self) -> bool:
-        return self.start_ns is not None and self.last_ns is not None and \
-            self.last_ns >= self.start_ns + self.duration_ns
-
-    def counts(self) -> dict[str, int]:
-        return {f"{d}:{b}": len(v) for (d, b), v in self._buf.items()}
-
-    def add(self, device: str, body: str, stamp_ns: int, position, quat_xyzw=None) -> bool:
-        """One sighting (position [m] + quaternion x y z w, or a 4x4 as ``position`` with ``quat_xyzw`` None);
-        True when it was collected (a needed body, valid pose, inside the window)."""
-        key = (device, body)
-        if key not in self._buf:
-            return False
-        stamp_ns = int(stamp_ns)
-        self.last_ns = stamp_ns if self.last_ns is None else max(self.last_ns, stamp_ns)
-        try:
-            T = pose_to_T(position if quat_xyzw is None else (position, quat_xyzw))
-        except BadSample:
-            self.n_bad[key] += 1
-            return False
-        if self.start_ns is None:
-            self.start_ns = stamp_ns
-        if not self.start_ns <= stamp_ns <= self.start_ns + self.duration_ns:
-            return False
-        self._buf[key].append((stamp_ns, T))
-        return True
-
-    def samples(self, device: str, body: str) -> tuple[np.ndarray, np.ndarray]:
-        """(stamps [ns] (N,), poses (N, 4, 4)) collected of one body, in stamp order."""
-        v = sorted(self._buf[(device, body)], key=lambda x: x[0])
-        return np.array([s for s, _ in v], dtype=np.int64), np.array([T for _, T in v]).reshape(-1, 4, 4)
-
-    def finish(self, stamp_ns: int | None = None, source: str = "") -> Calibration:
-        """The calibration, or :class:`CalibrationError` listing every body that was too sparse or moved."""
-        s = self.settings
-        problems = []
-        data = {}
-        for key in self._buf:
-            lab = self.label(*key)
-            t, Ts = self.samples(*key)
-            data[key] = (t, Ts)
-            if len(t) < s.min_samples:
-                bad = f", {self.n_bad[key]} invalid poses dropped" if self.n_bad[key] else ""
-                problems.append(f"too few sightings of {lab}: {len(t)} in {self.duration_ns / 1e9:g} s{bad}, "
-                                f"need >= {s.min_samples}")
-                continue
-            try:
-                check_static(lab, t, Ts, s.static, s.alpha)
-            except CalibrationError as e:
-                problems.append(str(e))
-        if problems:
-            raise CalibrationError("calibration refused: " + "; ".join(problems))
-        b = self.bodies
-        out: dict[str, LinkEstimate] = {}
-        try:
-            if "T_omc_base" in self.links:
-                out["T_omc_base"] = link_T_omc_base(data[("omc", b.omc_base)][1], s, self.label("omc", b.omc_base))
-            if "T_base_ots" in self.links:
-                out["T_base_ots"] = link_T_base_ots(data[("ots", b.ots_base)][1], s, self.label("ots", b.ots_base))
-            if "T_rig_ots" in self.links:
-                (tr, Tr), (to, To) = data[("omc", b.omc_rig)], data[("ots", b.ots_base)]
-                out["T_rig_ots"] = link_T_rig_ots(tr, Tr, to, To, out["T_omc_base"], s,
-                                                  self.label("omc", b.omc_rig), self.label("ots", b.ots_base))
-        except CalibrationError as e:
-            raise CalibrationError(f"calibration refused: {e}") from e
-        first = min(int(t[0]) for t, _ in data.values())
-        last = max(int(t[-1]) for t, _ in data.values())
-        return Calibration(out, int(stamp_ns) if stamp_ns is not None else last, (last - first) / 1e9, source)

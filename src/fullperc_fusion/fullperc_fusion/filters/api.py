@@ -27,12 +27,38 @@ they did before the seam existed, so default results are bit-identical.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import IntEnum
 from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-SOURCE_GLOBAL = 1  # bit values as in fullperc_msgs/FusionStatus
-SOURCE_LOCAL = 2
+
+class Role(IntEnum):
+    """What a measurement source is to the filters: THE global one (drift-free room frame; the filters carry one
+    bias state for it) or a local one. The one definition of the three encodings that name a role:
+
+    * ``int(role)`` -- the synchronizer stream index (``pipeline.synchronizer.GLOBAL`` / ``LOCAL``);
+    * :attr:`bit` = 1 << index -- :attr:`Measurement.source` and :attr:`Step.sources` (:data:`SOURCE_GLOBAL`,
+      :data:`SOURCE_LOCAL`), on the wire fullperc_msgs/FusionStatus ``SOURCE_GLOBAL`` = 1 / ``SOURCE_LOCAL`` = 2;
+    * :attr:`label` -- the text: a source's ``role:`` in the params (``pipeline.sources``), the synchronizer's
+      stream names and the keys of ``fusion_health``'s per-source state.
+    """
+
+    GLOBAL = 0
+    LOCAL = 1
+
+    @property
+    def bit(self) -> int:
+        return 1 << int(self)
+
+    @property
+    def label(self) -> str:
+        return self.name.lower()
+
+
+SOURCE_GLOBAL = Role.GLOBAL.bit   # 1: the bit values of fullperc_msgs/FusionStatus
+SOURCE_LOCAL = Role.LOCAL.bit     # 2
+ROLE_LABELS = tuple(r.label for r in Role)   # ("global", "local"), in stream order
 
 SYMMETRY_RTOL = 1e-9   # |C - C^T| allowed, relative to the largest |C_ij|
 
@@ -173,7 +199,8 @@ class Capabilities:
 
     * ``models``: for every sample without a device covariance the pipeline computes the model covariance of
       :mod:`~.measurement_models` (OMC quality and view margin, Vega distance, calibrated link) and passes it in
-      :attr:`Measurement.cov`; filters without it get ``cov=None`` and use their fixed noise.
+      :attr:`Measurement.cov`, and tells the filter the local chain's frame (``express_in(T_frame, local)``, which
+      such a filter must have); filters without it get ``cov=None`` and use their fixed noise.
     * ``orientation``: its :class:`Step` carries a fused orientation (``q``, ``pose_cov``); the pipeline outputs it
       instead of copying a source's.
     * ``snapshot``: ``snapshot()`` returns the whole state as a value and ``restore(snap)`` puts it back (rewind and

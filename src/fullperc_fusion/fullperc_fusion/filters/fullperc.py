@@ -1,17 +1,19 @@
-"""``fullperc``, the filter the pipeline runs: the general form of :mod:`fullperc_reference`, restructured for speed.
+"""``fullperc``, the filter the pipeline runs: the general form of :mod:`.fullperc_reference`, restructured for speed.
 
 Issue 16 item 3 (``filter_step_us[fullperc]``). The model, its equations and every rule (hops, gaps, position-only
-samples, the error-state reset) are those of :class:`fullperc_reference.FullpercReference`, the reference; this
+samples, the error-state reset) are those of :class:`.fullperc_reference.FullpercReference`, the reference; this
 module changes how they are computed, never what: ``test_fullperc_fast.py`` runs both on long randomised streams
 (gaps, hops, resets, local only / global only / pairs, lags, full 6x6 covariances, snapshot/restore) and fails when
-they differ by more than 1e-12 (module docstring there). Registered as ``"fullperc"`` in :mod:`filter_registry`.
+they differ by more than 1e-12 (module docstring there). Registered as ``"fullperc"`` in :mod:`.registry`; its
+parameters are :class:`.fullperc_params.FullpercParams`.
 
 Why each change (the reference runs each step as well over 100 numpy operations on 21x21 arrays, 3x3 helpers and
 single elements; at these sizes an operation's ~1-2 us overhead, not the arithmetic, is the cost):
 
 * the nominal state is a list of 21 Python floats (rotation slots 9:12 always 0) and R a 9-tuple: the injection,
-  the prediction of p and g and the SO(3) functions (Exp, Log, quaternion <-> matrix) are a few float operations
-  each instead of one numpy call per 3-vector;
+  the prediction of p and g and the SO(3) functions (Exp, Log, quaternion <-> matrix: :mod:`.so3_float`, the
+  shared ``fullperc_common.so3`` specialised to floats, which its docstring shows to cost measurably less) are a
+  few float operations each instead of one numpy call per 3-vector;
 * predict is P = F P F^T + Q with F from a template cached by dt (only Exp(w dt) written into a copy) and Q cached
   by (dt, sys_var): two matmuls and an add instead of ~30 row/column operations and 33 scalar writes;
 * the measurement matrix H comes from a per-layout template (global/local, with/without orientation, single or
@@ -30,7 +32,7 @@ model covariances on every sample (reference 168.0 us). The floor of this form i
 operations of one step alone (``fullperc_array_floor_us`` in the same benchmark) take about half of that, so the
 issue's 20 us is out of reach for the joint 21-state form in numpy.
 
-Why not two small filters (position per axis, orientation apart) as the paper's kinds (fast_filter): they are
+Why not two small filters (position per axis, orientation apart) as the paper's kinds (:mod:`.paper_kernel`): they are
 exact only while the covariance has no entry between the position and orientation errors or between position
 axes, and the pipeline's measurements always bring such entries: the local sample's covariance carries the
 calibrated link's rotation error through the lever arm (position-rotation terms, and cross-axis position terms up
@@ -57,21 +59,12 @@ from fullperc_fusion.filters.api import (
     predict_interval,
     split_update,
 )
-from fullperc_fusion.filters.fullperc_reference import (
-    FullpercParams,
-    FullpercReference,
-    N,
-    R_to_quat,
-    _State,
-    noise_scale_step,
-    quat_to_R,
-    so3_exp,
-    so3_log,
-)
+from fullperc_fusion.filters.fullperc_reference import FullpercReference, N, _State, noise_scale_step
 from fullperc_fusion.filters.paper_family import FilterParams
 from fullperc_fusion.filters.rot_noise_scale import pair_estimate, scale_decay, scale_step, scaled_cov
+from fullperc_fusion.filters.so3_float import R9_IDENT, R9_to_quat, exp9, log9, mul9, mul9_t, quat_to_R9
 
-__all__ = ["FullpercFilter", "FullpercParams", "N", "R_to_quat", "quat_to_R", "so3_exp", "so3_log"]
+__all__ = ["FullpercFilter", "N"]
 
 _I21 = np.eye(N)
 _POSE = np.array([21 * r + c for r in (0, 1, 2, 9, 10, 11) for c in (0, 1, 2, 9, 10, 11)])   # [p, theta] of P.ravel()
@@ -81,84 +74,6 @@ _F_GG = ([18, 19, 20], [18, 19, 20])
 _F_BB = ([15, 16, 17], [15, 16, 17])
 _F_TH = np.array([21 * r + c for r in (9, 10, 11) for c in (9, 10, 11)])   # F[theta, theta] in F.ravel()
 _CACHE_MAX = 64     # entries per cache; cleared when full (a stream with jittering dt still reuses most keys)
-
-
-# ---------------------------------------------------------------------------------------------- SO(3) in floats
-# The reference's formulas (fullperc_reference.so3_exp / so3_log / quat_to_R / R_to_quat) on 9-tuples (row-major).
-def _exp(a: float, b: float, c: float) -> tuple:
-    """Exp of the rotation vector (a, b, c): I + s K + k K^2 (Rodrigues), the series below 1e-8 rad."""
-    th = math.sqrt(a * a + b * b + c * c)
-    if th < 1e-8:
-        s, k = 1.0, 0.5
-    else:
-        s, k = math.sin(th) / th, (1.0 - math.cos(th)) / (th * th)
-    aa, bb, cc, ab, ac, bc = a * a, b * b, c * c, a * b, a * c, b * c
-    return (1.0 - k * (bb + cc), -s * c + k * ab, s * b + k * ac,
-            s * c + k * ab, 1.0 - k * (aa + cc), -s * a + k * bc,
-            -s * b + k * ac, s * a + k * bc, 1.0 - k * (aa + bb))
-
-
-def _mul(A: tuple, B: tuple) -> tuple:
-    """A B of two row-major 3x3 tuples."""
-    a0, a1, a2, a3, a4, a5, a6, a7, a8 = A
-    b0, b1, b2, b3, b4, b5, b6, b7, b8 = B
-    return (a0 * b0 + a1 * b3 + a2 * b6, a0 * b1 + a1 * b4 + a2 * b7, a0 * b2 + a1 * b5 + a2 * b8,
-            a3 * b0 + a4 * b3 + a5 * b6, a3 * b1 + a4 * b4 + a5 * b7, a3 * b2 + a4 * b5 + a5 * b8,
-            a6 * b0 + a7 * b3 + a8 * b6, a6 * b1 + a7 * b4 + a8 * b7, a6 * b2 + a7 * b5 + a8 * b8)
-
-
-def _mul_t(A: tuple, B: tuple) -> tuple:
-    """A B^T of two row-major 3x3 tuples."""
-    a0, a1, a2, a3, a4, a5, a6, a7, a8 = A
-    b0, b1, b2, b3, b4, b5, b6, b7, b8 = B
-    return (a0 * b0 + a1 * b1 + a2 * b2, a0 * b3 + a1 * b4 + a2 * b5, a0 * b6 + a1 * b7 + a2 * b8,
-            a3 * b0 + a4 * b1 + a5 * b2, a3 * b3 + a4 * b4 + a5 * b5, a3 * b6 + a4 * b7 + a5 * b8,
-            a6 * b0 + a7 * b1 + a8 * b2, a6 * b3 + a7 * b4 + a8 * b5, a6 * b6 + a7 * b7 + a8 * b8)
-
-
-def _log(R: tuple) -> list[float]:
-    """Log of a rotation (|w| <= pi); the reference's branch near pi (rare) on arrays."""
-    c = max(-1.0, min(1.0, 0.5 * (R[0] + R[4] + R[8] - 1.0)))
-    v = [R[7] - R[5], R[2] - R[6], R[3] - R[1]]
-    th = math.acos(c)
-    if th < 1e-6:
-        return [0.5 * v[0], 0.5 * v[1], 0.5 * v[2]]
-    if th > math.pi - 1e-4:
-        return so3_log(np.array(R).reshape(3, 3)).tolist()
-    f = th / (2.0 * math.sin(th))
-    return [f * v[0], f * v[1], f * v[2]]
-
-
-def _quat_R(q: np.ndarray) -> tuple:
-    """Rotation of a quaternion x y z w, normalised first (quat_to_R)."""
-    x, y, z, w = q.tolist()
-    n = math.sqrt(x * x + y * y + z * z + w * w)
-    x, y, z, w = x / n, y / n, z / n, w / n
-    return (1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
-            2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
-            2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y))
-
-
-def _R_quat(R: tuple) -> np.ndarray:
-    """Quaternion x y z w (w >= 0) of a rotation (Shepperd, as R_to_quat)."""
-    t = R[0] + R[4] + R[8]
-    if t > 0:
-        s = 2.0 * math.sqrt(t + 1.0)
-        q = [(R[7] - R[5]) / s, (R[2] - R[6]) / s, (R[3] - R[1]) / s, 0.25 * s]
-    else:
-        d = (R[0], R[4], R[8])
-        i = 0 if d[0] >= d[1] and d[0] >= d[2] else 1 if d[1] >= d[2] else 2   # np.argmax: first maximum
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * math.sqrt(max(1.0 + d[i] - d[j] - d[k], 1e-300))
-        q = [0.0, 0.0, 0.0, 0.0]
-        q[i] = 0.25 * s
-        q[j] = (R[3 * j + i] + R[3 * i + j]) / s
-        q[k] = (R[3 * k + i] + R[3 * i + k]) / s
-        q[3] = (R[3 * k + j] - R[3 * j + k]) / s
-    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-    if q[3] < 0:
-        n = -n
-    return np.array([q[0] / n, q[1] / n, q[2] / n, q[3] / n])
 
 
 def _nis3(S: list, y0: float, y1: float, y2: float) -> float:
@@ -185,18 +100,14 @@ def _solve(S: np.ndarray, y: np.ndarray, U: np.ndarray) -> np.ndarray:
     return Z
 
 
-_R_IDENT = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
-
-
 class FullpercFilter(StepCompat):
-    """The ``fullperc`` filter (:class:`filter_api.Filter`); the model is :mod:`fullperc_reference`'s.
+    """The ``fullperc`` filter (:class:`~.api.Filter`); the model is :mod:`.fullperc_reference`'s.
 
     State: ``_x`` 21 floats in the error-state layout of the reference (p v b | theta(=0) w beta | g), ``_R``
     the orientation (9-tuple), ``_P`` the 21x21 covariance, stamps and flags as the reference's ``_State``.
     """
 
     kind = "fullperc"
-    uses_models = True
 
     def __init__(self, params: FilterParams | None = None) -> None:
         self._ref = FullpercReference(params)   # re-initialisation and the non-finite reset are delegated to it
@@ -300,8 +211,8 @@ class FullpercFilter(StepCompat):
             hit = self._fcache[dt] = (F0, phi, phb)
         F0, phi, phb = hit
         if w[0] == 0.0 and w[1] == 0.0 and w[2] == 0.0:
-            return _R_IDENT, F0, phi, phb
-        Rw = _exp(w[0] * dt, w[1] * dt, w[2] * dt)
+            return R9_IDENT, F0, phi, phb
+        Rw = exp9(w[0] * dt, w[1] * dt, w[2] * dt)
         F = F0.copy()
         F.put(_F_TH, Rw)
         return Rw, F, phi, phb
@@ -345,7 +256,7 @@ class FullpercFilter(StepCompat):
         if phb != 1.0:
             x[15], x[16], x[17] = phb * x[15], phb * x[16], phb * x[17]
         self._x = x
-        self._R = _mul(Rw, self._R)
+        self._R = mul9(Rw, self._R)
         Q = self._qcache.get((dt, self._sys_var))
         P = F @ self._P @ F.T + (Q if Q is not None else self._noise(dt, self._sys_var))
         ra, pr = self._ra, self.params
@@ -406,8 +317,8 @@ class FullpercFilter(StepCompat):
         if not self._has_R:   # first sample with an orientation after a position-only start: take it as is
             m = ml if ml is not None and ml.q is not None else mg if mg is not None and mg.q is not None else None
             if m is not None:
-                Rq = _quat_R(m.q)
-                self._R = Rq if m is ml else _mul(_exp(-x[15], -x[16], -x[17]), Rq)
+                Rq = quat_to_R9(m.q)
+                self._R = Rq if m is ml else mul9(exp9(-x[15], -x[16], -x[17]), Rq)
                 self._has_R = True
         pr = self.params
         ms = [m for m in (mg, ml) if m is not None]
@@ -430,15 +341,15 @@ class FullpercFilter(StepCompat):
             else:
                 y += [z0 - (x[0] - lag * x[3]), z1 - (x[1] - lag * x[4]), z2 - (x[2] - lag * x[5])]
             if rot:
-                Rq = _quat_R(m.q)
-                A = _exp(-lag * x[12], -lag * x[13], -lag * x[14]) if lag > 0 else _R_IDENT
+                Rq = quat_to_R9(m.q)
+                A = exp9(-lag * x[12], -lag * x[13], -lag * x[14]) if lag > 0 else R9_IDENT
                 if glob:
-                    Rq_g, Eb = Rq, _exp(x[15], x[16], x[17])
-                    A = _mul(Eb, A)
+                    Rq_g, Eb = Rq, exp9(x[15], x[16], x[17])
+                    A = mul9(Eb, A)
                 else:
                     Rq_l = Rq
                 H.put(a_flat, A)
-                y += _log(_mul_t(Rq, self._R if A is _R_IDENT else _mul(A, self._R)))
+                y += log9(mul9_t(Rq, self._R if A is R9_IDENT else mul9(A, self._R)))
             c = m.cov
             Rblocks.append(self._fixed[(m.source, rot)] if c is None else c if rot else c[0:3, 0:3])
         mu = None
@@ -495,7 +406,7 @@ class FullpercFilter(StepCompat):
         P = 0.5 * (P + P.T)
         xn = list(map(add, x, dx))
         xn[9] = xn[10] = xn[11] = 0.0
-        Rn = _mul(_exp(d0, d1, d2), self._R)
+        Rn = mul9(exp9(d0, d1, d2), self._R)
         if not (math.isfinite(float(P.sum())) and math.isfinite(sum(xn[0:3])) and math.isfinite(sum(Rn))) and not (
                 np.all(np.isfinite(P)) and all(math.isfinite(v) for v in xn[0:3] + list(Rn))):
             self.reset()
@@ -518,8 +429,8 @@ class FullpercFilter(StepCompat):
         if ml is None or ml.q is None:
             return mu, mu, t_mu
         dl = (mg.t_ns - ml.t_ns) * 1e-9   # the local sample at the global's stamp
-        Rl = Rq_l if dl == 0.0 else _mul(_exp(dl * x[12], dl * x[13], dl * x[14]), Rq_l)
-        d = _log(_mul_t(Rq_g, _mul(Eb, Rl)))
+        Rl = Rq_l if dl == 0.0 else mul9(exp9(dl * x[12], dl * x[13], dl * x[14]), Rq_l)
+        d = log9(mul9_t(Rq_g, mul9(Eb, Rl)))
         Rg, Rl_, P = Rblocks[0], Rblocks[1], self._P
         est = pair_estimate(d, Rl_[3, 3] + Rl_[4, 4] + Rl_[5, 5], P[15, 15] + P[16, 16] + P[17, 17],
                             Rg[3, 3] + Rg[4, 4] + Rg[5, 5])
@@ -539,5 +450,5 @@ class FullpercFilter(StepCompat):
         src = (SOURCE_GLOBAL if mg is not None else 0) | (SOURCE_LOCAL if ml is not None else 0)
         has_R = self._has_R
         return Step(t, np.array(x[0:3]), np.array(x[3:6]), np.array([x[6] + x[18], x[7] + x[19], x[8] + x[20]]),
-                    P, src, q=_R_quat(self._R) if has_R else None,
+                    P, src, q=R9_to_quat(self._R) if has_R else None,
                     pose_cov=P.ravel()[_POSE].reshape(6, 6) if has_R else None, reset=kw.pop("reset", False), **kw)

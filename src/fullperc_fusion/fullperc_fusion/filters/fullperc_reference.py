@@ -1,18 +1,19 @@
 """``fullperc`` in its general form, the reference: CBKF's compensated position model with per-measurement
 covariance, plus orientation on SO(3).
 
-Issue 18 item 4. This is the model's definition, written as the textbook 21-state error-state filter in numpy
-matrix form; the filter the pipeline runs (``"fullperc"`` in :mod:`filter_registry`) is
-:class:`fullperc_filter.FullpercFilter`, the same filter restructured for speed (issue 16 item 3), which
-``test_fullperc_fast.py`` holds to this one at 1e-12. ``uses_models`` asks the pipeline for the model covariances
-of :mod:`measurement_models` (the paper's four keep their fixed noise).
+This is the model's definition, written as the textbook 21-state error-state filter in numpy matrix form, and the
+tests' reference; the pipeline runs :class:`.fullperc.FullpercFilter` (``"fullperc"`` in :mod:`.registry`), the same
+filter restructured for speed, which ``test_fullperc_fast.py`` holds to this one at 1e-12. The parameters are
+:class:`.fullperc_params.FullpercParams`. Its registry entry declares ``models`` (:class:`~.api.Capabilities`):
+the pipeline gives it the model covariances of :mod:`.measurement_models` (the paper's four keep their fixed
+noise).
 
 Nominal state (``base``, SI): position p, velocity v, the global source's position bias in two parts -- b, CBKF's
 compensation term (random walk: the part that stays, e.g. the error of the calibrated global link), and g, a
 Gauss-Markov part (the OMC's systematic error that decorrelates over ~``sys_time`` of motion: distortion along
 the path, camera-set changes) --, orientation R (tool -> base), angular velocity w (base axes) and the global
 source's orientation bias beta (a rotation vector: the OMC reports R_omc = Exp(beta) R). Error state, 21 dims,
-rotation errors on the left about the base axes (the :mod:`filter_api` convention, R_true = Exp(dtheta) R):
+rotation errors on the left about the base axes (the :mod:`.api` convention, R_true = Exp(dtheta) R):
 
     dx = [dp dv db | dtheta dw dbeta | dg]      (indices 0:3 3:6 6:9 | 9:12 12:15 15:18 | 18:21)
 
@@ -59,7 +60,7 @@ a Gauss-Markov process forgets it at the rate the sensor's error does, and the m
 * the global source's rotation noise, scaled by mu (``rot_noise_adapt_time`` > 0): R_rot used as mu R_rot, mu learnt
   from the disagreement of (global, local) pairs, back to 1 over the distance beta decays over (:mod:`rot_noise_scale`).
 * hops: NIS of the global position rows above ``hop_gate`` -> the variance of b (``hop_into: b``, the default:
-  CBKF's rule, :mod:`filters`) or of g (``hop_into: g``) is raised by y_p^2 per axis before the gain, so a step of
+  CBKF's rule, :mod:`.paper_family`) or of g (``hop_into: g``) is raised by y_p^2 per axis before the gain, so a step of
   the global source goes into its bias, not into the pose. In b a camera-set change is kept for as long as that
   set sees the body, but so is anything else that crossed the gate: the gate cannot tell such a step from a
   sample the motion model did not expect (a noisy velocity between local samples, a hand accelerating). In g it
@@ -79,9 +80,9 @@ a Gauss-Markov process forgets it at the rate the sensor's error does, and the m
   are kept (propagated over the gap: b's walk, beta's decay and walk, g's decay).
 
 CBKF's biased estimator M is left out: on the position block it is a shrinkage towards the origin of ``base``
-with m = 1 - O(1e-7) (see :mod:`filters`), i.e. micrometres, and on the other blocks it breaks the filter.
+with m = 1 - O(1e-7) (see :mod:`.paper_family`), i.e. micrometres, and on the other blocks it breaks the filter.
 
-Output: :class:`filter_api.Step` with ``q`` (x y z w) and ``pose_cov`` (6x6, [p, theta], base).
+Output: :class:`~.api.Step` with ``q`` (x y z w) and ``pose_cov`` (6x6, [p, theta], base).
 """
 
 from __future__ import annotations
@@ -90,9 +91,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import block_diag
 
-from fullperc_common.so3 import R_to_quat, quat_to_R, so3_exp, so3_log
-from fullperc_common.so3 import skew as _skew
+from fullperc_common.so3 import R_to_quat, quat_to_R, skew, so3_exp, so3_log
 from fullperc_fusion.filters.api import (
     SOURCE_GLOBAL,
     SOURCE_LOCAL,
@@ -102,114 +103,17 @@ from fullperc_fusion.filters.api import (
     predict_interval,
     split_update,
 )
+from fullperc_fusion.filters.fullperc_params import FullpercParams
 from fullperc_fusion.filters.paper_family import FilterParams
 from fullperc_fusion.filters.rot_noise_scale import pair_estimate, scale_decay, scale_step, scaled_cov
 
-__all__ = ["HOP_INTO", "FullpercParams", "FullpercReference", "so3_exp", "so3_log", "quat_to_R", "R_to_quat"]
+__all__ = ["N", "FullpercReference", "noise_scale_step"]
 
 N = 21
-HOP_INTO = ("b", "g")   # FullpercParams.hop_into: the bias part a position hop goes into
 _I3 = np.eye(3)
 _IN = np.eye(N)
 P_, V_, B_, TH, W_, BE, G_ = (slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15), slice(15, 18),
                               slice(18, 21))
-
-
-@dataclass
-class FullpercParams(FilterParams):
-    """The position parameters of CBKF (:class:`filters.FilterParams`, same meaning) plus the orientation's.
-
-    ang_accel_noise  q_alpha, white angular-acceleration density [rad^2/s^3]: 0.5 lets a hand-held tool change its
-                     turn rate by ~0.7 rad/s within a second.
-    rot_bias_walk    q_beta, random walk of the OMC's orientation bias [rad^2/s]: 1e-6 -> ~1 mrad per sqrt(s) as
-                     the camera set and the distortion change along the path.
-    rot_global_std   OMC orientation noise per axis [rad] without a covariance (5 mrad: raw OMC, spec bags).
-    rot_local_std    Vega orientation noise per axis [rad] without a covariance (2.2 mrad: raw Vega, spec bags).
-    init_rot_std, init_angvel_std, init_rot_bias_std  prior stds of theta [rad], w [rad/s], beta [rad].
-    sys_time         correlation time of the OMC's systematic position error [s] (3.06 s: Gauss-Markov fit of the
-                     raw OMC error's structure function, spec bags, measurement_models).
-    sys_std          its per-axis std [m] for a global sample without ``sys_var`` (0.21 mm: raw OMC, spec bags).
-    rot_sys_time     correlation time of beta's Gauss-Markov part [s]; 0: beta is the random walk alone.
-    rot_bias_length  L [m], beta's decay length once the local source has lost the tool (0: off); 0.0527: the raw
-                     OMC rotation error over distance, white + Gauss-Markov (``paper`` bags; ``sensor_stats``).
-    local_lost_s     no local sample for this long [s]: it has lost the tool (0.1: the evaluation's split).
-    hop_into         "b" (default) or "g": the bias part a position hop goes into (module docstring).
-    noise_adapt_time tau of the global white-noise scale lambda [s] (module docstring; 0 = off). 0.4 s: the
-                     scale follows a change of the camera set within about half a second (~50 OMC frames at
-                     120 Hz), long enough that a single outlier moves it little.
-    noise_adapt_max  the largest lambda (25: the OMC's white std at most 5x the model's).
-    rot_noise_adapt_time  tau of the global rotation-noise scale mu [s] (:mod:`rot_noise_scale`; 0 = off): 1 s,
-                     ~60 (OMC, Vega) pairs, a few centimetres of a hand-held tool's path.
-    rot_noise_adapt_min, rot_noise_adapt_max  mu's bounds (0.05 and 25: the OMC's rotation std 0.22x to 5x the model's).
-    rot_noise_length L [m] over which mu returns to 1 once the local source has lost the tool, by the distance beta
-                     decays over (0.0527: ``rot_bias_length``'s fit; 0: mu kept).
-    rot_sys_std      stationary per-axis std of that part [rad]. 3.38 s and 8.94 mrad: the slow part of the raw
-                     OMC rotation error's structure function fitted as white + two Gauss-Markov processes
-                     (``paper`` bags: fast 5.3 mrad / 0.33 s, slow 8.94 mrad / 3.38 s; the fast part reverts within
-                     frames and stays noise of the sample, :func:`measurement_models.omc_covariance`). On the
-                     ``spec`` bags the slow part is 1.44 mrad / 2.8 s, whose short-lag increments 2 s^2 / tau ~
-                     1.5e-6 rad^2/s are ``rot_bias_walk``'s order.
-    """
-
-    ang_accel_noise: float = 0.5
-    rot_bias_walk: float = 1e-6
-    rot_global_std: float = 5e-3
-    rot_local_std: float = 2.2e-3
-    init_rot_std: float = 0.05
-    init_angvel_std: float = 0.5
-    init_rot_bias_std: float = 0.02
-    sys_time: float = 3.06
-    sys_std: float = 0.210e-3
-    rot_sys_time: float = 3.38
-    rot_sys_std: float = 8.94e-3
-    rot_bias_length: float = 0.0527
-    local_lost_s: float = 0.1
-    hop_into: str = "b"
-    noise_adapt_time: float = 0.4
-    noise_adapt_max: float = 25.0
-    rot_noise_adapt_time: float = 1.0
-    rot_noise_adapt_min: float = 0.05
-    rot_noise_adapt_max: float = 25.0
-    rot_noise_length: float = 0.0527
-
-    def validate(self) -> FullpercParams:
-        super().validate()
-        if self.hop_into not in HOP_INTO:
-            raise ValueError(f"filter parameter hop_into must be one of {HOP_INTO}, got {self.hop_into!r}")
-        for name in ("ang_accel_noise", "rot_bias_walk", "init_rot_std", "init_angvel_std", "init_rot_bias_std",
-                     "rot_sys_time", "rot_sys_std", "noise_adapt_time", "rot_bias_length", "rot_noise_adapt_time",
-                     "rot_noise_length"):
-            v = float(getattr(self, name))
-            if not (np.isfinite(v) and v >= 0):
-                raise ValueError(f"filter parameter {name} must be finite and >= 0, got {v!r}")
-        for name in ("rot_global_std", "rot_local_std", "sys_time", "sys_std", "local_lost_s"):
-            v = float(getattr(self, name))
-            if not (np.isfinite(v) and v > 0):
-                raise ValueError(f"filter parameter {name} must be finite and > 0, got {v!r}")
-        if not (np.isfinite(float(self.noise_adapt_max)) and self.noise_adapt_max >= 1.0):
-            raise ValueError(f"filter parameter noise_adapt_max must be finite and >= 1, got {self.noise_adapt_max!r}")
-        lo, hi = float(self.rot_noise_adapt_min), float(self.rot_noise_adapt_max)
-        if not (np.isfinite(lo) and np.isfinite(hi) and 0.0 < lo <= 1.0 <= hi):
-            raise ValueError(f"filter parameters rot_noise_adapt_min/max must be finite with 0 < min <= 1 <= max, got "
-                             f"{lo!r} / {hi!r}")
-        return self
-
-    def rot_decay(self, dt: float) -> tuple[float, float]:
-        """(phi_beta, q_beta) of beta over dt: phi_beta = exp(-dt / rot_sys_time) (1 when that is 0) and the
-        process variance per axis q_beta = rot_bias_walk dt + rot_sys_std^2 (1 - phi_beta^2)."""
-        if self.rot_sys_time <= 0.0:
-            return 1.0, self.rot_bias_walk * dt
-        phi = math.exp(-dt / self.rot_sys_time)
-        return phi, self.rot_bias_walk * dt + self.rot_sys_std**2 * (1.0 - phi * phi)
-
-    @classmethod
-    def from_params(cls, params: FilterParams | None) -> FullpercParams:
-        """``params`` itself when it already is one; else its position fields with the orientation defaults."""
-        if isinstance(params, FullpercParams):
-            return params
-        if params is None:
-            return cls()
-        return cls(**{k: getattr(params, k) for k in FilterParams.__dataclass_fields__})
 
 
 def noise_scale_step(lam: float, t_prev_ns: int | None, t_ns: int, nis_g: float, pr: FullpercParams) -> float:
@@ -258,10 +162,9 @@ def _copy(s: _State) -> _State:
 
 
 class FullpercReference(StepCompat):
-    """The ``fullperc`` filter in general form; implements :class:`filter_api.Filter` (module docstring)."""
+    """The ``fullperc`` filter in general form; implements :class:`~.api.Filter` (module docstring)."""
 
     kind = "fullperc"
-    uses_models = True   # the pipeline gives this filter the model covariances (measurement_models)
 
     def __init__(self, params: FilterParams | None = None) -> None:
         self.params = FullpercParams.from_params(params).validate()
@@ -515,13 +418,7 @@ class FullpercReference(StepCompat):
         blocks = [self._rows(m, t) for m in (mg, ml) if m is not None]
         H = np.vstack([b[0] for b in blocks])
         y = np.concatenate([b[1] for b in blocks])
-        k = len(y)
-        Rm = np.zeros((k, k))
-        i = 0
-        for b in blocks:
-            n = len(b[1])
-            Rm[i:i + n, i:i + n] = b[2]
-            i += n
+        Rm = block_diag(*[b[2] for b in blocks])
         mu = None
         if mg is not None and mg.q is not None and pr.rot_noise_adapt_time > 0.0:   # mu R_rot (rot_noise_scale)
             mu = self._rot_scale(t, mg, ml, blocks)
@@ -563,7 +460,7 @@ class FullpercReference(StepCompat):
         s.w = s.w + dx[W_]
         s.beta = s.beta + dx[BE]
         s.g = s.g + dx[G_]
-        Gt = _I3 - 0.5 * _skew(dx[TH])     # reset Jacobian G = I except G_thth: P = G P G^T on those rows/columns
+        Gt = _I3 - 0.5 * skew(dx[TH])     # reset Jacobian G = I except G_thth: P = G P G^T on those rows/columns
         P[TH, :] = Gt @ P[TH, :]
         P[:, TH] = P[:, TH] @ Gt.T
         s.P = 0.5 * (P + P.T)
@@ -595,11 +492,7 @@ class FullpercReference(StepCompat):
     def _step(self, t: int, mg, ml, **kw) -> Step:
         s = self.s
         src = (SOURCE_GLOBAL if mg is not None else 0) | (SOURCE_LOCAL if ml is not None else 0)
-        pose_cov = np.zeros((6, 6))
-        pose_cov[0:3, 0:3] = s.P[P_, P_]
-        pose_cov[0:3, 3:6] = s.P[P_, TH]
-        pose_cov[3:6, 0:3] = s.P[TH, P_]
-        pose_cov[3:6, 3:6] = s.P[TH, TH]
+        pose_cov = s.P[np.ix_(np.r_[P_, TH], np.r_[P_, TH])]   # the [p, theta] rows and columns
         return Step(t, s.p.copy(), s.v.copy(), s.b + s.g, s.P.copy(), src,
                     q=R_to_quat(s.R) if s.has_R else None, pose_cov=pose_cov if s.has_R else None,
                     reset=kw.pop("reset", False), **kw)

@@ -1,10 +1,11 @@
 """Measurement noise models (issue 18 item 2): the 6x6 pose covariance of an OMC and of a local (Vega) sample.
 
-Only the ``fullperc`` filter uses these (``uses_models``); the paper's four keep their fixed noise. Every model is
-a small pure function with its equation in the docstring; the constants are device specifications or statistics of
-the RAW sensors against the Diana ground truth (never of a filter's output), each with its origin below.
+Only the ``fullperc`` filter uses these (its registry entry declares ``models``); the paper's four keep their fixed
+noise. Every model is a small pure function with its equation in the docstring; the constants are device
+specifications or statistics of the RAW sensors against the Diana ground truth (never of a filter's output), each
+with its origin below.
 
-Convention (:mod:`filter_api`): ROS order [x y z, rx ry rz]; position in metres in the parent frame, rotation a
+Convention (:mod:`.api`): ROS order [x y z, rx ry rz]; position in metres in the parent frame, rotation a
 small rotation vector about the parent's axes, R_true = Exp(dtheta) R_est.
 
 Raw-sensor statistics used below ("raw stats"): the 6 ``bags/spec`` twin bags (device-specification noise),
@@ -194,12 +195,6 @@ def rotate_cov(cov: np.ndarray, R: np.ndarray) -> np.ndarray:
     return 0.5 * (out + out.T)
 
 
-def skew(a) -> np.ndarray:
-    """[a]x, the cross-product matrix: skew(a) @ b = a x b."""
-    x, y, z = (float(v) for v in a)
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-
-
 def link_covariance_at(link_cov: np.ndarray, lever_arm) -> np.ndarray:
     """Covariance a static link T_a_b (6x6, tangent of :mod:`calibration`) adds to a pose T_a_b · T_b_c.
 
@@ -212,7 +207,7 @@ def link_covariance_at(link_cov: np.ndarray, lever_arm) -> np.ndarray:
     so the chained pose's error is J [dp; dphi] with J = [[I, -[l]x], [0, I]] and C = J C_link J^T. The link's
     rotation error times the lever arm is what dominates a Vega 1.5 m from the tool.
     """
-    x, y, z = (float(v) for v in lever_arm)   # J written out: one array call instead of eye + skew + a write
+    x, y, z = (float(v) for v in lever_arm)   # J written out: one array call instead of eye + so3.skew + a write
     J = np.array([[1.0, 0.0, 0.0, 0.0, z, -y], [0.0, 1.0, 0.0, -z, 0.0, x], [0.0, 0.0, 1.0, y, -x, 0.0],
                   [0.0, 0.0, 0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 0.0, 0.0, 1.0]])
     out = J @ np.asarray(link_cov, dtype=float) @ J.T

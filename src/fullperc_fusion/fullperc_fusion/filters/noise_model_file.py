@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from fullperc_fusion.filters.fullperc_reference import FullpercParams
+from fullperc_fusion.filters.fullperc_params import FullpercParams
 from fullperc_fusion.filters.measurement_models import OmcModelParams
 
 VERSION = 1

@@ -1,7 +1,9 @@
 """One Kalman filter, four configurations: KF, BKF, CKF, CBKF (paper §3.2, eq. 3-14).
 
-This is the general (matrix) form and the reference; ``filter_registry`` serves the same filters in closed form per
-axis (:mod:`fast_filter`, equal to rounding, falls back to this form when a covariance couples the axes).
+This is the general (matrix) form and the reference, written independently of the closed form: the registry
+(:mod:`.registry`) serves the same filters in closed form per axis (:mod:`.paper_fast`, one sample at a time, and
+:mod:`.paper_batch`, a whole replay, both on the one per-axis kernel :mod:`.paper_kernel`), which the tests hold to
+this form (test_fast_filter.py, 1e-12) and which falls back to it when a covariance couples the axes.
 
 State per target (all in ``base``, metres): x = [p v b] (9 states) with the compensation (bias) term b
 of the global source, or x = [p v] (6 states) without it.
@@ -26,7 +28,7 @@ Equations, with dt from the sample stamps:
   one and the older sample, taken ``lag`` seconds earlier, is modelled exactly under constant velocity
   as p(t - lag) = p(t) - lag v(t): its H row gets -lag I in the velocity block (lag = 0 gives eq. 11).
 * R (block-diagonal, one 3x3 block per measurement): the position block ``cov[:3, :3]`` of the measurement's
-  covariance (:class:`filter_api.Measurement`), or the paper's fixed noise ``global_std^2 I`` / ``local_std^2 I``
+  covariance (:class:`~.api.Measurement`), or the paper's fixed noise ``global_std^2 I`` / ``local_std^2 I``
   when it has none (the default; bit-identical to the filters before the seam).
 * gain and update (eq. 12, 13): G = P' H^T (H P' H^T + R)^-1, x'' = x' + G (y - H x'), and
   P = (I - G H) P' (I - G H)^T + G R G^T (Joseph form: equal to eq. 12's (I - G H) P' for the optimal
@@ -196,10 +198,10 @@ def kalman_update(x: np.ndarray, P: np.ndarray, z: np.ndarray, H: np.ndarray, R:
 # ---------------------------------------------------------------------------------------------
 
 class FusionFilter(StepCompat):
-    """The configurable filter; ``kind`` is one of :data:`FILTER_KINDS`. Implements :class:`filter_api.Filter`.
+    """The configurable filter; ``kind`` is one of :data:`FILTER_KINDS`. Implements :class:`~.api.Filter`.
 
     :meth:`predict` moves the state to a stamp (eq. 9-10); :meth:`update` fuses one
-    :class:`~filter_api.Measurement` or a synchronised (global, local) pair in one stacked update (eq. 11-14).
+    :class:`~.api.Measurement` or a synchronised (global, local) pair in one stacked update (eq. 11-14).
     R of a measurement is the position block ``cov[:3, :3]`` of its covariance, or ``global_std**2 I`` /
     ``local_std**2 I`` when it has none. ``step(z_global, t_global, z_local, t_local)`` is predict + update.
     Stamps must be non-decreasing; the synchronizer guarantees it, a direct caller gets ValueError otherwise.

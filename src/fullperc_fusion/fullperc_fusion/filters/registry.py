@@ -15,7 +15,7 @@ from functools import partial
 
 from fullperc_fusion.filters.api import Capabilities, Filter
 from fullperc_fusion.filters.fullperc import FullpercFilter
-from fullperc_fusion.filters.fullperc_reference import FullpercParams
+from fullperc_fusion.filters.fullperc_params import FullpercParams
 from fullperc_fusion.filters.paper_family import FilterParams, PassThrough
 from fullperc_fusion.filters.paper_fast import ClosedFormFilter
 

@@ -4,7 +4,7 @@ Issue 18. The OMC model's rotation covariance (:func:`measurement_models.omc_cov
 where the Vega sees the tool -- near the OR table, where the OMC's cameras see it well too -- the OMC scatters far
 less (``spec`` seed 0 P-G-B, ``scripts/orientation_phases.py --raw``: 0.47-0.71 mrad per axis, below the model's
 1.64 mrad floor alone), so a filter that takes the model at face value leans on the Vega there and its orientation
-is no better than the Vega's. Both :mod:`fullperc_reference` and :mod:`fullperc_filter` use the global sample's
+is no better than the Vega's. Both :mod:`.fullperc_reference` and :mod:`.fullperc` use the global sample's
 covariance with its rotation block scaled by mu (and its position-rotation blocks by sqrt(mu), so the matrix stays a
 covariance), with mu from these rules:
 

@@ -35,7 +35,7 @@ the OMC pose of its ``rig_body`` and ``T_rig_<name>``; ``direct``) and gets its 
 Noise: ``noise_std`` [m, per axis] gives the source's samples the covariance diag(std^2 x3, rot_std^2 x3) for
 every filter (the paper's filters use its position block: the same as ``noise.global_std`` / ``local_std`` for
 that source). Without it: ``noise_model: vega`` (default of the first local source) uses the Vega's distance
-model plus the link covariance (:func:`measurement_models.local_covariance`) for filters with ``uses_models``
+model plus the link covariance (:func:`measurement_models.local_covariance`) for filters that declare ``models``
 and the fixed ``noise.local_std`` for the paper's; ``omc`` (the global default) the OMC model; ``std`` (default
 of a further local source) the diagonal of ``noise.local_std`` / ``global_std``.
 """
@@ -43,7 +43,6 @@ of a further local source) the diagonal of ``noise.local_std`` / ``global_std``.
 from __future__ import annotations
 
 import re
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple
 
@@ -51,30 +50,57 @@ import numpy as np
 
 from fullperc_common.params import ParameterError
 from fullperc_fusion.calibration.se3_stats import LINK_NAMES, Calibration
+from fullperc_fusion.filters.api import ROLE_LABELS, Role
 from fullperc_fusion.pipeline.frame_chain import LOCAL_CHAINS, ChainConfig
+from fullperc_fusion.pipeline.param_table import NONEMPTY, POSITIVE, Get, Param, Rule, bad_value, convert, one_of
 
-ROLES = ("global", "local")
+ROLES = ROLE_LABELS   # a source's ``role``: filters.api.Role's labels
+GLOBAL, LOCAL = Role.GLOBAL.label, Role.LOCAL.label
 GLOBAL_MODELS = ("omc", "std")
 LOCAL_MODELS = ("vega", "std")
 DEFAULT_NAMES = ("omc", "ots")
 _NAME = re.compile(r"^[a-z][a-z0-9_]*$")
-_RESERVED = {"global", "local", "sources", "base", "omc_body", "ots_tool", "ang_accel_noise", "accel_noise",
-             "hop_to_bias", "init_vel_std"}   # + TARGET_PARAMS
+# names no source may take beyond the caller's (the node's parameters and per-target suffixes): the synchronizer's
+# stream names of the two roles, and the reference frame (its links are T_base_<source>)
+_RESERVED = {*ROLE_LABELS, "base"}
 
-# the keys of a source block: kind (fusion_config's kinds), unit, description (what --help and docs/nodes.md show)
-SOURCE_KEYS: dict[str, tuple[str, str, str]] = {
-    "role": ("str", "", "global (exactly one) | local (one or more)"),
-    "topic_prefix": ("str", "", "pose topic <prefix>/<device>/pose, quality .../quality; default /<name>"),
-    "noise_std": ("float", "m", "per-axis position noise of its samples (replaces noise.global_std / local_std)"),
-    "noise_model": ("str", "", "omc | std (global); vega | std (local): the covariance of filters with uses_models"),
-    "chain": ("str", "", "local: static | tracked | direct (first local: local_chain, further: static)"),
-    "base_tool": ("str", "", "local: its tool on the reference marker (first local: ots_base_tool, further: base)"),
-    "rig_body": ("str", "", "local: the OMC body on the tracker (first local: omc_rig_body, further: <name>_rig)"),
-    "T_base": ("pose7", "m, quaternion x y z w", "local: fixed link base -> tracker (static chain)"),
-    "T_rig": ("pose7", "m, quaternion x y z w", "local: hand-eye link rig -> tracker (tracked chain)"),
-}
+# the keys of a source block, each a row of fusion_config's kind (what --help and docs/nodes.md show) with its rule;
+# noise_model's rule depends on the role (_MODEL_RULE)
+SOURCE_KEYS: dict[str, Param] = {p.name: p for p in (
+    Param("role", None, "str", *one_of(ROLES), "", "global (exactly one) | local (one or more)"),
+    Param("topic_prefix", None, "str", lambda v: v.startswith("/") and v.rstrip("/") != "",
+          "an absolute topic prefix such as /atracsys", "",
+          "pose topic <prefix>/<device>/pose, quality .../quality; default /<name>"),
+    Param("noise_std", None, "float", *POSITIVE, "m",
+          "per-axis position noise of its samples (replaces noise.global_std / local_std)"),
+    Param("noise_model", None, "str", None, "", "",
+          "omc | std (global); vega | std (local): the covariance of filters that declare models"),
+    Param("chain", None, "str", *one_of(LOCAL_CHAINS), "",
+          "local: static | tracked | direct (first local: local_chain, further: static)"),
+    Param("base_tool", None, "str", None, "", "",
+          "local: its tool on the reference marker (first local: ots_base_tool, further: base)"),
+    Param("rig_body", None, "str", None, "", "",
+          "local: the OMC body on the tracker (first local: omc_rig_body, further: <name>_rig)"),
+    Param("T_base", None, "pose7", None, "", "m, quaternion x y z w",
+          "local: fixed link base -> tracker (static chain)"),
+    Param("T_rig", None, "pose7", None, "", "m, quaternion x y z w",
+          "local: hand-eye link rig -> tracker (tracked chain)"),
+)}
+_MODEL_RULE = {GLOBAL: Rule(lambda v: v in GLOBAL_MODELS, f"one of {GLOBAL_MODELS} for the global source"),
+               LOCAL: Rule(lambda v: v in LOCAL_MODELS, f"one of {LOCAL_MODELS} for a local source")}
 
-Conv = Callable[[str, str, Any, Any], Any]   # (name, kind, default, raw value) -> checked value (fusion_config)
+
+def source_param(source: str, key: str, default: Any = None) -> Param:
+    """The row of ``<source>.<key>`` (a key of :data:`SOURCE_KEYS`) with ``default``."""
+    row = SOURCE_KEYS[key]
+    return replace(row, name=f"{source}.{key}", default=default, doc=f"source '{source}': {row.doc}")
+
+
+def device_param(target: str, source: str) -> Param:
+    """The row of ``<target>.<source>``: the target's device name on that source (default: resolved by
+    :func:`read_source_values`)."""
+    return Param(f"{target}.{source}", None, "str", *NONEMPTY, "", f"device name of target '{target}' for source "
+                 f"'{source}'")
 
 
 @dataclass(frozen=True, eq=False)
@@ -97,8 +123,8 @@ class SourceSpec:
 class SourceSet:
     """The sources of one target: ``glob`` and ``locals`` (``locals[0]`` pairs with the global source)."""
 
-    glob: SourceSpec = field(default_factory=lambda: SourceSpec("omc", "global", "/omc", None, "omc"))
-    locals: tuple[SourceSpec, ...] = field(default_factory=lambda: (SourceSpec("ots", "local", "/ots", None, "vega"),))
+    glob: SourceSpec = field(default_factory=lambda: SourceSpec("omc", GLOBAL, "/omc", None, "omc"))
+    locals: tuple[SourceSpec, ...] = field(default_factory=lambda: (SourceSpec("ots", LOCAL, "/ots", None, "vega"),))
 
     @property
     def extras(self) -> tuple[SourceSpec, ...]:
@@ -108,20 +134,17 @@ class SourceSet:
     @property
     def stream_names(self) -> tuple[str, ...]:
         """Synchronizer stream names: global, local (the first local source), then the further sources' names."""
-        return ("global", "local", *(s.name for s in self.extras))
+        return (*ROLE_LABELS, *(s.name for s in self.extras))
 
 
-def _err(name: str, value: Any, why: str) -> ParameterError:
-    return ParameterError(f"parameter '{name}' = {value!r} is invalid: {why}")
-
-
-def read_source_values(get: Callable[[str, Any], Any], vals: dict[str, Any], targets: list[str],
-                       conv: Conv, groups: set[str]) -> dict[str, Any]:
+def read_source_values(get: Get, vals: dict[str, Any], targets: list[str], taken: set[str]) -> dict[str, Any]:
     """The values of every source block (``<source>.<key>``) and per-target device name (``<target>.<source>``)
-    when ``sources`` is given, checked; {} without it (the built-in omc + ots, nothing more is read).
+    when ``sources`` is given, converted and checked by their rows (:data:`SOURCE_KEYS`); {} without it (the
+    built-in omc + ots, nothing more is read).
 
-    ``conv(name, kind, default, raw)`` converts and checks one value (fusion_config's table rules); ``groups``:
-    the first components of the node's parameter names, which a source name must not take.
+    ``taken``: the names a source must not take beyond its own reserved ones -- the first components of the node's
+    parameter names (``noise``, ``alarm`` ...) and the per-target parameter suffixes (``omc_body`` ...); the caller
+    derives them from its table.
     """
     names = vals.get("sources") or []
     if not names:
@@ -130,63 +153,53 @@ def read_source_values(get: Callable[[str, Any], Any], vals: dict[str, Any], tar
     seen: set[str] = set()
     for s in names:
         if not _NAME.match(s):
-            raise _err("sources", names, f"'{s}' is not a lower-case identifier ([a-z][a-z0-9_]*)")
+            raise bad_value("sources", names, f"'{s}' is not a lower-case identifier ([a-z][a-z0-9_]*)")
         if s in seen:
-            raise _err("sources", names, f"'{s}' is listed twice")
-        if s in targets or s in groups or s in _RESERVED:
-            raise _err("sources", names, f"'{s}' clashes with a target or a parameter name; rename the source")
+            raise bad_value("sources", names, f"'{s}' is listed twice")
+        if s in targets or s in taken or s in _RESERVED:
+            raise bad_value("sources", names, f"'{s}' clashes with a target or a parameter name; rename the source")
         seen.add(s)
     roles = {}
     for s in names:
-        role = conv(f"{s}.role", "str", None, get(f"{s}.role", None))
+        role = convert(source_param(s, "role"), get(f"{s}.role", None))
         if role is None:
             raise ParameterError(f"source '{s}' (parameter 'sources') has no block: give '{s}: {{role: global|local, "
                                  "...}'")
-        if role not in ROLES:
-            raise _err(f"{s}.role", role, f"one of {ROLES}")
         roles[s] = role
-    glob = [s for s in names if roles[s] == "global"]
-    loc = [s for s in names if roles[s] == "local"]
+    glob = [s for s in names if roles[s] == GLOBAL]
+    loc = [s for s in names if roles[s] == LOCAL]
     if len(glob) != 1:
-        raise _err("sources", names, f"exactly one source needs role global (the filters carry one bias state for "
-                                     f"it), got {glob or 'none'}")
+        raise bad_value("sources", names, f"exactly one source needs role global (the filters carry one bias state "
+                                          f"for it), got {glob or 'none'}")
     if not loc:
-        raise _err("sources", names, "at least one source needs role local")
+        raise bad_value("sources", names, "at least one source needs role local")
     if "ots" in names and "ots" != loc[0] or "omc" in names and "omc" != glob[0]:
-        raise _err("sources", names, "the names omc and ots are kept for the global and the first local source "
-                                     "(the legacy parameters are theirs)")
+        raise bad_value("sources", names, "the names omc and ots are kept for the global and the first local source "
+                                          "(the legacy parameters are theirs)")
     out["_global"], out["_locals"] = glob[0], loc
 
-    def rd(s: str, key: str, kind: str, default: Any) -> Any:
-        name = f"{s}.{key}"
-        v = conv(name, kind, default, get(name, default))
-        out[name] = v
+    def rd(s: str, key: str, default: Any, rule: Rule | None = None) -> Any:
+        p = source_param(s, key, default)
+        if rule is not None:
+            p = replace(p, check=rule.check, why=rule.why)
+        v = convert(p, get(p.name, default))
+        out[p.name] = v
         return v
 
     for s in names:
         out[f"{s}.role"] = roles[s]
-        pre = rd(s, "topic_prefix", "str", f"/{s}")
-        if not pre.startswith("/") or pre.rstrip("/") == "":
-            raise _err(f"{s}.topic_prefix", pre, "an absolute topic prefix such as /atracsys")
-        std = rd(s, "noise_std", "float", None)
-        if std is not None and not (np.isfinite(std) and std > 0):
-            raise _err(f"{s}.noise_std", std, "must be finite and > 0")
+        rd(s, "topic_prefix", f"/{s}")
+        rd(s, "noise_std", None)
         first = s == loc[0]
-        if roles[s] == "global":
-            m = rd(s, "noise_model", "str", "omc")
-            if m not in GLOBAL_MODELS:
-                raise _err(f"{s}.noise_model", m, f"one of {GLOBAL_MODELS} for the global source")
+        if roles[s] == GLOBAL:
+            rd(s, "noise_model", "omc", _MODEL_RULE[GLOBAL])
             continue
-        m = rd(s, "noise_model", "str", "vega" if first else "std")
-        if m not in LOCAL_MODELS:
-            raise _err(f"{s}.noise_model", m, f"one of {LOCAL_MODELS} for a local source")
-        ch = rd(s, "chain", "str", vals["local_chain"] if first else "static")
-        if ch not in LOCAL_CHAINS:
-            raise _err(f"{s}.chain", ch, f"one of {LOCAL_CHAINS}")
-        rd(s, "base_tool", "str", vals["ots_base_tool"] if first else "base")
-        rd(s, "rig_body", "str", vals["omc_rig_body"] if first else f"{s}_rig")
+        rd(s, "noise_model", "vega" if first else "std", _MODEL_RULE[LOCAL])
+        rd(s, "chain", vals["local_chain"] if first else "static")
+        rd(s, "base_tool", vals["ots_base_tool"] if first else "base")
+        rd(s, "rig_body", vals["omc_rig_body"] if first else f"{s}_rig")
         for key, legacy in (("T_base", "T_base_ots"), ("T_rig", "T_rig_ots")):
-            v = rd(s, key, "pose7", None)
+            v = rd(s, key, None)
             if first and v is not None and vals[legacy] is not None:
                 raise ParameterError(f"parameter '{s}.{key}' and '{legacy}' both give the link of source '{s}'; "
                                      "give it once")
@@ -195,10 +208,9 @@ def read_source_values(get: Callable[[str, Any], Any], vals: dict[str, Any], tar
     for t in targets:
         for s in names:
             legacy = f"{t}.omc_body" if s == glob[0] else f"{t}.ots_tool" if s == loc[0] else None
-            dev = conv(f"{t}.{s}", "str", None, get(f"{t}.{s}", None))
-            if dev is not None and not dev:
-                raise _err(f"{t}.{s}", dev, "must not be empty")
-            out[f"{t}.{s}"] = dev if dev is not None else (vals[legacy] if legacy else t)
+            p = device_param(t, s)
+            dev = convert(p, get(p.name, None))
+            out[p.name] = dev if dev is not None else (vals[legacy] if legacy else t)
     return out
 
 

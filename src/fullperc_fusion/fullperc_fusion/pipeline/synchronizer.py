@@ -16,7 +16,9 @@ occluded the OMC stream would be thrown away -- exactly wrong for fusion. This s
   that is alive, and :meth:`flush` emits everything at the end.
 * Items come out in non-decreasing processing stamp (the newer stamp of a pair).
 
-Defined behaviour for bad timing (each counted in :attr:`counts`, tested in test_synchronizer.py):
+Defined behaviour for bad timing (each counted in :attr:`counts`, tested in test_synchronizer.py); the duplicate
+and late rules are :class:`~.stamp_rules.StampRules`' (:attr:`ApproxSync.rules`), the same code fusion on arrival
+applies to its history:
 
 * duplicate: a sample with the same stamp as a pending or already emitted sample of the *same* stream
   is dropped (``'duplicate'``); the first one wins. Equal stamps on the two streams simply pair.
@@ -43,9 +45,12 @@ from collections import Counter
 from dataclasses import dataclass
 from typing import Any
 
-GLOBAL = 0
-LOCAL = 1
-_NAMES = ("global", "local")
+from fullperc_fusion.filters.api import ROLE_LABELS, Role
+from fullperc_fusion.pipeline.stamp_rules import OK, StampRules
+
+GLOBAL = int(Role.GLOBAL)   # the stream index of a role (filters.api.Role)
+LOCAL = int(Role.LOCAL)
+_NAMES = ROLE_LABELS
 
 
 @dataclass(frozen=True)
@@ -79,32 +84,37 @@ class ApproxSync:
         self.names = tuple(names)
         self._t: tuple[list[int], ...] = tuple([] for _ in names)      # sorted stamps per stream
         self._p: tuple[list[Any], ...] = tuple([] for _ in names)      # payloads, parallel to _t
-        self._last_emitted: list[int | None] = [None] * len(names)
-        self.horizon_ns: int | None = None    # processing stamp of the last emitted item
-        self.watermark_ns: int | None = None  # newest stamp pushed
+        self.rules = StampRules(self.names)   # duplicate / late (stamp_rules.py): pending, last emitted, horizon
         self.counts: Counter[str] = Counter()
 
     @property
     def pending(self) -> int:
         return sum(len(ts) for ts in self._t)
 
+    @property
+    def horizon_ns(self) -> int | None:
+        """Processing stamp of the last emitted item."""
+        return self.rules.horizon_ns
+
+    @property
+    def watermark_ns(self) -> int | None:
+        """Newest stamp pushed."""
+        return self.rules.newest_ns
+
     def push(self, stream: int, t_ns: int, payload: Any = None) -> str:
         """Queue one sample; returns 'ok', 'late' or 'duplicate' (the latter two are dropped)."""
         t_ns = int(t_ns)
+        r = self.rules.check(stream, t_ns)
+        if r != OK:
+            self.counts[f"{self.names[stream]}_{r}"] += 1
+            return r
         ts = self._t[stream]
         i = bisect.bisect_left(ts, t_ns)
-        if (i < len(ts) and ts[i] == t_ns) or self._last_emitted[stream] == t_ns:
-            self.counts[f"{self.names[stream]}_duplicate"] += 1
-            return "duplicate"
-        if self.horizon_ns is not None and t_ns < self.horizon_ns:
-            self.counts[f"{self.names[stream]}_late"] += 1
-            return "late"
         ts.insert(i, t_ns)
         self._p[stream].insert(i, payload)
-        if self.watermark_ns is None or t_ns > self.watermark_ns:
-            self.watermark_ns = t_ns
+        self.rules.admit(stream, t_ns)
         self.counts[f"{self.names[stream]}_in"] += 1
-        return "ok"
+        return OK
 
     def poll(self, now_ns: int | None = None) -> list[SyncItem]:
         """Emit every item that is final at ``now_ns`` (default: the watermark)."""
@@ -163,10 +173,10 @@ class ApproxSync:
                 self.counts["forced_by_overflow"] += 1
             e = self._pop(s_e, 0)
             if s_e >= 2:   # a further local source: never paired (module docstring)
-                self._last_emitted[s_e] = e.t_ns
-                self.horizon_ns = e.t_ns if self.horizon_ns is None else max(self.horizon_ns, e.t_ns)
+                item = SyncItem(e.t_ns, None, e, s_e - 1)
+                self.rules.release(item)
                 self.counts[f"{self.names[s_e]}_alone"] += 1
-                out.append(SyncItem(e.t_ns, None, e, s_e - 1))
+                out.append(item)
                 continue
             other = 1 - s_e
             j = self._nearest(other, t_e)
@@ -177,11 +187,8 @@ class ApproxSync:
                 if k is None or abs(self._t[s_e][k] - t_b) >= abs(t_b - t_e):
                     partner = self._pop(other, j)
             g, loc = (e, partner) if s_e == GLOBAL else (partner, e)
-            t_item = max(x.t_ns for x in (g, loc) if x is not None)
-            for s, x in ((GLOBAL, g), (LOCAL, loc)):
-                if x is not None:
-                    self._last_emitted[s] = x.t_ns
-            self.horizon_ns = t_item
+            item = SyncItem(max(x.t_ns for x in (g, loc) if x is not None), g, loc)
+            self.rules.release(item)
             self.counts["pairs" if partner is not None else f"{_NAMES[s_e]}_alone"] += 1
-            out.append(SyncItem(t_item, g, loc))
+            out.append(item)
         return out

@@ -1,0 +1,368 @@
+"""FusionCore: what fusion_node decides, without ROS -- routing, health bookkeeping, flush policy, calibration,
+the diagnostics verdict, the link watch and the choice of the /tf_static links.
+
+Why: these decisions were methods of the node, reachable only through multi-process tests. Here every call takes
+``now`` (monotonic seconds of the caller's clock; ``fusion_node`` passes ``time.monotonic()``) and stamps in ns, and
+returns plain data -- fused outputs, log lines ``(level, text)`` with level ``info | warning | error``, diagnostic
+statuses ``(name, level, message, values)``, static links ``(parent, child, T)`` -- which the node converts into
+messages. The pipelines (:mod:`pipeline.ordered`, :mod:`pipeline.arrival`) are built here from the node's
+parameter values (:func:`fusion_config.read_values`), one per target.
+
+Routing: a pose of (device tag, body) feeds the pipeline of every target whose streams use that body (its own body,
+the base marker, the rig); only a sample of a target's own body is a measurement of that target -- it counts for the
+source's health (accepted / rejected, :mod:`fusion_health`), for the silence check and for the idle flush. A body no
+target uses is routed nowhere. While ``~/calibrate`` runs, every OMC and OTS sighting also goes to its collection.
+In an input batch a link body's sample goes before a target sample of the same stamp (the same device frame: the
+target's sample is mapped with it).
+
+``processing``: with ``arrival`` (default, :mod:`pipeline.arrival`) every sample is fused and published when it
+arrives (pose, pose_cov, status, /tf: the newest estimate, stamps strictly increasing); a late sample rewinds and
+replays within ``history``; ``slop`` pairs as before, ``reorder_delay`` and ``clock`` only decide which static links
+an item is mapped with (as in ordered processing) and nothing waits; after ``idle_flush`` seconds without any target
+sample the history is flushed and becomes final. With ``ordered`` the rest of this paragraph applies. ``clock``:
+with ``stamps`` the synchronizer's notion of "now" is the newest stamp received, so output depends only on the data
+(live, replayed bags, simulated time alike); after ``idle_flush`` seconds without any target sample everything
+pending is flushed. With ``host`` "now" is the node clock, for deployments where the stamps are on that clock and
+latency must not depend on traffic.
+
+``max_future`` (time guard, either clock mode): a sample stamped more than this ahead of the node clock is rejected
+before it reaches the pipeline's synchronizer (``rejected_future`` on /diagnostics, naming the source, the stamp and
+how far ahead), so one bad stamp cannot move the watermark (ordered) or the history (arrival) an hour ahead and
+stall the output; with arrival processing a sample older than the history is dropped as ``late``, named. The node
+clock follows /clock under ``use_sim_time`` (replays keep working); while that clock has not started (time 0)
+nothing is checked.
+
+/tf_static: ``omc -> base`` (T_omc_base), ``base -> ots`` (T_base_ots, not with ``local_chain: tracked``, where
+the OTS moves) and ``base -> <source>`` of every further local source, from the first target whose link is known;
+``base -> diana_base`` when ``tf.diana_base`` is given. Sent when first known and again when one changes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from fullperc_fusion.calibration.io import save_calibration
+from fullperc_fusion.calibration.run import CalibrationRun, summary
+from fullperc_fusion.calibration.se3_stats import CalibrationBodies
+from fullperc_fusion.fusion_config import calibration_settings, health_params, primary_and_extra, target_config
+from fullperc_fusion.fusion_health import GLOBAL, LOCAL, TargetHealth
+from fullperc_fusion.fusion_verdict import InputBook, Key, TargetVerdict
+from fullperc_fusion.pipeline.arrival import ArrivalPipeline, make_pipeline
+from fullperc_fusion.pipeline.frame_chain import links_needed, pose_to_T
+from fullperc_fusion.pipeline.ordered import FusedOutput, TargetPipeline
+from fullperc_fusion.pipeline.sources import Route, routes
+
+DIAG_EVAL_PERIOD_S = 0.5   # [s] the diagnostics' evaluation timer (published every 1 s by diag.Diagnostics)
+
+Log = tuple[str, str]                                 # (info | warning | error, line)
+Status = tuple[str, int, str, dict]                   # (name, level, message, values) of one diagnostic status
+StaticLink = tuple[str, str, np.ndarray]              # (parent frame, child frame, T_parent_child)
+
+
+class CalibrationAnswer(NamedTuple):
+    """How a ``~/calibrate`` run ended: the service's answer and the line to log at ``level``."""
+
+    ok: bool
+    message: str
+    level: str
+
+
+class FusionCore:
+    """The ROS-free decisions of fusion_node for every target (module docstring); ``vals``: the node's parameter
+    values (:func:`fusion_config.read_values`), ``now``: monotonic time [s] at construction."""
+
+    def __init__(self, vals: dict[str, Any], now: float) -> None:
+        self.targets: list[str] = list(vals["targets"])
+        self.primary, self.extra = primary_and_extra(vals)
+        self.filters = tuple(dict.fromkeys([self.primary, *self.extra]))
+        self.clock_mode: str = vals["clock"]
+        self.idle_flush: float = vals["idle_flush"]
+        self.cal_duration: float = vals["calibration.duration"]
+        self.cal_output: str = vals["calibration.output"]
+        self.cal_timeout: float = vals["calibration.timeout"]
+        self.cal_settings = calibration_settings(vals)
+        self._vals = {k: vals[k] for k in ("local_chain", "init_samples", "static_links")}
+        d = vals["tf.diana_base"]
+        self.T_base_diana = None if d is None else pose_to_T((np.asarray(d[:3]), np.asarray(d[3:])))
+        health = health_params(vals)
+        self.pipes: dict[str, TargetPipeline] = {}
+        self.health: dict[str, TargetHealth] = {}
+        self.routes: dict[str, list[Route]] = {}
+        self.verdicts: dict[str, TargetVerdict] = {}
+        self.last_rx: dict[str, dict[str, float | None]] = {}   # target -> device tag -> newest target sample
+        self.last_target_rx = now                           # newest sample of any target's own body
+        self.prefix: dict[str, str] = {}                    # device tag -> topic prefix
+        self.local_k: dict[str, int] = {}                   # device tag -> local source index (omc: -1)
+        self.diag_eval_at = now                             # the last diagnostics evaluation
+        self._diag_sent = 0   # /diagnostics arrays sent before the last evaluation's values were set
+        self._skipped_seen: dict[str, int] = {}
+        self._link_state: dict[str, tuple[int | None, int]] = {}   # logged (bump start, recalibrations)
+        self._static_key: tuple | None = None
+        self._cal: CalibrationRun | None = None
+        routed: dict[str, dict[str, list[str]]] = {}        # device tag -> body -> targets
+        quality: dict[Key, str] = {}                        # (device tag, target body) -> its quality topic
+        for t in self.targets:
+            pipe = self.pipes[t] = make_pipeline(target_config(vals, t, self.filters))
+            c = pipe.config.chain
+            extra_tools = "".join(f", {x.name} tool '{ch.cfg.ots_target}'" for x, ch in
+                                  zip(pipe.config.sources.extras, pipe.extra_chains, strict=True))
+            self.health[t] = TargetHealth(t, {GLOBAL: f"OMC body '{c.omc_target}'",
+                                              LOCAL: f"OTS tool '{c.ots_target}'{extra_tools}"}, health)
+            self.verdicts[t] = TargetVerdict(t, vals["stale_timeout"], vals["problem_hold"])
+            self._skipped_seen[t] = 0
+            self._link_state[t] = (None, 0)
+            rts = self.routes[t] = routes(pipe.config.sources, c, pipe.extra_chains)
+            for r in rts:
+                self.prefix[r.tag] = r.prefix
+                self.local_k[r.tag] = r.k
+                for b in r.bodies:
+                    routed.setdefault(r.tag, {}).setdefault(b, []).append(t)
+                quality.setdefault((r.tag, r.target), f"{r.prefix.rstrip('/')}/{r.target}/quality")
+            self.last_rx[t] = {r.tag: None for r in rts}
+        self.targets_of = {d: {b: list(dict.fromkeys(ts)) for b, ts in r.items()} for d, r in routed.items()}
+        self.quality_topics: dict[Key, str] = quality
+        self.book = InputBook(quality, vals["stale_timeout"], vals["problem_hold"], vals["lag_warn"])
+
+    # ---- wiring -------------------------------------------------------------------------------------------------
+    def pose_topics(self) -> list[tuple[str, str, str]]:
+        """(device tag, body, topic) of every pose stream a target uses, one per topic."""
+        return [(dev, b, f"{self.prefix[dev].rstrip('/')}/{b}/pose") for dev, rt in self.targets_of.items()
+                for b in rt]
+
+    def startup_message(self) -> str:
+        links = next(iter(self.pipes.values())).chain.links
+        given = "".join(f"{k} from {v}; " for k, v in links.sources.items())
+        v = self._vals
+        rest = (f"average of the first {v['init_samples']} samples" if v["static_links"] == "average"
+                else f"calibrated over the first {self.cal_duration:g} s, average of the first samples meanwhile")
+        return (f"fusing targets {self.targets} with {self.filters[0]} (side by side: {self.extra or 'none'}), "
+                f"local chain '{v['local_chain']}', clock '{self.clock_mode}', static links: {given}"
+                + (f"others: {rest}" if links.collecting else "all given"))
+
+    # ---- input --------------------------------------------------------------------------------------------------
+    def batch_key(self, item: tuple) -> tuple[int, bool]:
+        """Sort key of an input batch's (stamp_ns, device, body, ...): stamp order, a link body's sample before a
+        target sample of the same stamp."""
+        return item[0], (item[1], item[2]) in self.book.loss
+
+    def on_pose(self, dev: str, body: str, t_ns: int, p: np.ndarray, q: np.ndarray, now: float,
+                clock_ns: int | None) -> list[str]:
+        """Push one pose into the pipelines of the targets it feeds; returns those targets. ``clock_ns``: the node
+        clock for the time guard (0 or None: not started, nothing checked)."""
+        clock_ns = clock_ns or None
+        if self._cal is not None and dev in ("omc", "ots"):
+            self._cal.add(dev, body, t_ns, p, q)
+        targets = self.targets_of.get(dev, {}).get(body, [])
+        for t in targets:
+            pipe = self.pipes[t]
+            c = pipe.config.chain
+            if dev == "omc":
+                ok = pipe.push_omc(body, t_ns, (p, q), now_ns=clock_ns)
+                if body == c.omc_target:
+                    self._target_sample(t, "omc", GLOBAL, ok, now)
+            else:   # ots: the first local source; a further one by its index (sources.py)
+                k = self.local_k[dev]
+                ok = pipe.push_local(k, body, t_ns, (p, q), now_ns=clock_ns)
+                if body == (c if k == 0 else pipe.extra_chains[k - 1].cfg).ots_target:
+                    self._target_sample(t, dev, LOCAL, ok, now)
+        return targets
+
+    def _target_sample(self, target: str, dev: str, source: str, accepted: bool, now: float) -> None:
+        self.last_rx[target][dev] = now
+        self.last_target_rx = now
+        h = self.health[target]
+        if accepted:
+            h.accepted(source, now)
+        else:
+            h.rejected(source, now, self.pipes[target].last_problem)
+
+    def quality_rx(self, key: Key, now: float) -> None:
+        """A quality callback of ``key`` ran at ``now`` (the stream is not silent)."""
+        self.book.rx[key] = now
+
+    def quality(self, key: Key, frame_number: int, t_ns: int, visible: bool, fit_error: float,
+                markers_used: float) -> None:
+        """One TrackingQuality of ``key``: the loss count; a visible OMC frame's quality to the pipelines of the
+        targets of that body (the OMC model covariance of filters that use the models)."""
+        self.book.loss[key].quality(frame_number, t_ns, visible)
+        if key[0] == "omc" and visible:
+            for t in self.targets_of["omc"].get(key[1], ()):
+                self.pipes[t].push_omc_quality(key[1], t_ns, {"fit_error": fit_error, "markers_used": markers_used})
+
+    def input_done(self, batch: Sequence[tuple], delay_ns: int | None, clock_ns: int, now: float) -> bool:
+        """The end of one input callback (:meth:`InputBook.callback`); True when the diagnostics' evaluation is a
+        whole period late (an overloaded node runs input callbacks back to back and its executor no timer)."""
+        self.book.callback(batch, delay_ns, clock_ns, now)
+        return now - self.diag_eval_at >= 2.0 * DIAG_EVAL_PERIOD_S
+
+    def end_of_streams(self) -> None:
+        """Shutdown: nothing more comes, the next diagnostics settle every lost-sample count."""
+        self.book.end_of_streams()
+
+    # ---- output -------------------------------------------------------------------------------------------------
+    @property
+    def needs_clock(self) -> bool:
+        """Whether :meth:`poll` and :meth:`due_outputs` use the node clock (``clock: host``)."""
+        return self.clock_mode == "host"
+
+    def poll(self, target: str, clock_ns: int | None) -> list[FusedOutput]:
+        """The outputs of ``target`` due after an input; ``clock_ns``: the node clock (used with ``clock: host``)."""
+        return self.pipes[target].poll(clock_ns if self.needs_clock else None)
+
+    def due_outputs(self, now: float, clock_ns: int | None) -> Iterator[tuple[str, list[FusedOutput]]]:
+        """The timer's flush policy (module docstring): (target, outputs) of every target with something due."""
+        idle = now - self.last_target_rx > self.idle_flush
+        for t, pipe in self.pipes.items():
+            if isinstance(pipe, ArrivalPipeline):   # nothing waits; after idle_flush the history becomes final
+                if idle and pipe.pending:
+                    yield t, pipe.flush()
+                continue
+            if pipe.sync.pending == 0:
+                continue
+            yield t, (pipe.flush() if (idle and self.clock_mode == "stamps") else
+                      pipe.poll(clock_ns if self.needs_clock else None))
+
+    def flush_all(self) -> Iterator[tuple[str, list[FusedOutput]]]:
+        """Shutdown: (target, outputs) of every target with something pending, all of it flushed."""
+        for t, pipe in self.pipes.items():
+            if pipe.pending if isinstance(pipe, ArrivalPipeline) else pipe.sync.pending:
+                yield t, pipe.flush()
+
+    def final_outputs(self, target: str) -> list[FusedOutput]:
+        """The primary filter's outputs of the items that left ``target``'s history since the last call (arrival
+        processing; the side-by-side filters' own topics carry their final estimates already)."""
+        pipe = self.pipes[target]
+        if not isinstance(pipe, ArrivalPipeline):
+            return []
+        return [o for o in pipe.take_final() if o.filter == self.primary]
+
+    def note_skipped(self, target: str, now: float) -> None:
+        """Before publishing: local samples the chain could not map since the last call count as rejected."""
+        pipe = self.pipes[target]
+        skipped = pipe.counts["local_skipped"]
+        if skipped > self._skipped_seen[target]:
+            self.health[target].rejected(LOCAL, now, pipe.problems.get("local_skipped", ""),
+                                         skipped - self._skipped_seen[target])
+            self._skipped_seen[target] = skipped
+
+    def primary_output(self, target: str, now: float, o: FusedOutput) -> None:
+        """One published output of the primary filter: its source bits, hop and bias to the health monitor."""
+        self.health[target].output(now, o.sources, o.hop, o.bias)
+
+    def publish_error(self, target: str, o: FusedOutput, why: str) -> None:
+        """An output refused at publishing (non-finite pose): counted as the pipeline's ``publish_error``."""
+        self.pipes[target].report_problem("publish_error", f"{o.filter}: {why}", o.t_ns)
+
+    # ---- static links -------------------------------------------------------------------------------------------
+    def static_links(self) -> list[StaticLink]:
+        """(parent, child, T_parent_child) of the static links known now (the first target whose links are set)."""
+        out: dict[str, StaticLink] = {}
+        for pipe in self.pipes.values():
+            L = pipe.chain.links
+            if L.T_omc_base is not None:
+                out.setdefault("base", ("omc", "base", L.T_omc_base))
+            if L.T_base_ots is not None and pipe.config.chain.local_chain != "tracked":
+                out.setdefault("ots", ("base", "ots", L.T_base_ots))
+            for x, ch in zip(pipe.config.sources.extras, pipe.extra_chains, strict=True):   # base -> <source>
+                if ch.links.T_base_ots is not None and ch.cfg.local_chain != "tracked":
+                    out.setdefault(x.name, ("base", x.name, ch.links.T_base_ots))
+        if self.T_base_diana is not None:
+            out["diana_base"] = ("base", "diana_base", self.T_base_diana)
+        return list(out.values())
+
+    def static_links_to_send(self) -> list[StaticLink] | None:
+        """The static links when they differ from those returned last (first known, or one changed), else None."""
+        links = self.static_links()
+        key = tuple((p, c, T.tobytes()) for p, c, T in links)
+        if not links or key == self._static_key:
+            return None
+        self._static_key = key
+        return links
+
+    def watch_links(self, target: str, now: float) -> list[Log]:
+        """The start of a link bump, its end, and every re-calibration the monitor started, as log lines; the bump
+        is remembered for the diagnostics (held ``problem_hold``)."""
+        pipe = self.pipes[target]
+        m = pipe.monitor
+        start, n_recal = self._link_state[target]
+        logs: list[Log] = []
+        if m.bumped:
+            self.verdicts[target].saw_bump(now, m.message(target))
+            if m.first_bump_ns != start:
+                logs.append(("warning", m.message(target)))
+        elif start is not None and m.last is not None:
+            logs.append(("info", m.message(target)))
+        if pipe.counts["recalibrations"] > n_recal:
+            logs.append(("warning", f"target '{target}': re-calibrating the static links over "
+                                    f"{pipe.config.chain.calibration_duration_s:g} s after the bump; the old "
+                                    "links stay in use meanwhile"))
+        self._link_state[target] = (m.first_bump_ns if m.bumped else None, pipe.counts["recalibrations"])
+        return logs
+
+    # ---- services -----------------------------------------------------------------------------------------------
+    def initialize(self) -> str:
+        """~/initialize: every target re-estimates its static links from the next samples; the answer."""
+        for pipe in self.pipes.values():
+            pipe.request_initialize()
+        c = next(iter(self.pipes.values())).config.chain
+        how = (f"from the next {c.init_samples} samples per body" if c.static_links == "average" else
+               f"by calibrating over the next {c.calibration_duration_s:g} s of sightings")
+        return f"re-estimating static links of {list(self.pipes)} {how}; the previous links stay in use until then"
+
+    @property
+    def calibrating(self) -> bool:
+        return self._cal is not None
+
+    def start_calibration(self, now: float) -> tuple[bool, str]:
+        """~/calibrate: start collecting the links the chain needs -> (True, the line to log); (False, why) while
+        a run is going on already."""
+        if self._cal is not None:
+            return False, "a calibration is already running; call again when it has answered"
+        c = next(iter(self.pipes.values())).config.chain
+        links = links_needed(c)
+        self._cal = CalibrationRun(links, CalibrationBodies.from_chain_config(c), self.cal_duration,
+                                   self.cal_settings, now=now, timeout_s=self.cal_timeout,
+                                   source="fusion_node ~/calibrate")
+        return True, (f"~/calibrate: collecting {self.cal_duration:g} s of sightings for {list(links)}; keep the "
+                      "OTS and the reference marker still")
+
+    def finish_calibration(self, now: float) -> CalibrationAnswer | None:
+        """Poll the run; when done (None before): refused -> links unchanged; else ``calibration.output`` is
+        written first (if set; a write error keeps the links too) and the links of every target swapped in one
+        step."""
+        run = self._cal
+        if run is None or not run.poll(now):
+            return None
+        self._cal = None
+        if run.result is None:
+            return CalibrationAnswer(False, f"calibration refused, links unchanged: {run.error}", "warning")
+        cal = run.result
+        written = ""
+        if self.cal_output:
+            try:
+                save_calibration(self.cal_output, cal)
+            except (OSError, ValueError) as e:
+                return CalibrationAnswer(False, f"calibration not applied, links unchanged: cannot write "
+                                                f"{self.cal_output}: {e}", "error")
+            written = f"; written to {self.cal_output}"
+        for pipe in self.pipes.values():
+            pipe.apply_calibration(cal, "~/calibrate")
+        return CalibrationAnswer(True, f"{summary(cal)}; links of {list(self.pipes)} swapped{written}", "info")
+
+    # ---- diagnostics --------------------------------------------------------------------------------------------
+    def diagnostics(self, now: float, published: int) -> list[Status]:
+        """One status per target (:mod:`fusion_verdict`); ``published``: /diagnostics arrays sent so far (the input
+        load's report starts anew once the previous one went out)."""
+        self.diag_eval_at = now
+        self.book.load.begin_report(published > self._diag_sent)
+        out = []
+        for t, pipe in self.pipes.items():
+            level, msgs, values = self.verdicts[t].evaluate(now, pipe, self.health[t], self.last_rx[t], self.primary)
+            level = self.book.overload(now, self.routes[t], level, msgs, values)
+            out.append((f"target {t}", level, "; ".join(msgs) or "ok", values))
+        self.book.load.reset_period()
+        self._diag_sent = published
+        return out

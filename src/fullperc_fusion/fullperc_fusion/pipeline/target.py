@@ -1,0 +1,97 @@
+"""What one target's pipeline is configured with and what it outputs: :class:`TargetConfig`, :class:`FusedOutput`.
+
+Shared by the two processing modes (``ordered``: :class:`~.ordered.TargetPipeline`, ``arrival``:
+:class:`~.arrival.ArrivalPipeline`) and by what builds them (``fusion_config``) or reads their outputs
+(``fusion_node``, the evaluator). :mod:`.ordered` re-exports all of it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fullperc_fusion.calibration.monitor import MonitorParams
+from fullperc_fusion.filters.fullperc_params import FullpercParams
+from fullperc_fusion.filters.measurement_models import OmcModelParams
+from fullperc_fusion.filters.paper_family import FilterParams
+from fullperc_fusion.filters.registry import FILTERS
+from fullperc_fusion.margin.layout import Layout
+from fullperc_fusion.pipeline.frame_chain import ChainConfig
+from fullperc_fusion.pipeline.sources import SourceSet
+
+FILTER_NAMES: tuple[str, ...] = tuple(FILTERS)   # ("cbkf", "ckf", "bkf", "kf", "omc", "fullperc"): filters.registry
+
+
+@dataclass
+class TargetConfig:
+    """Everything one target needs. ``filters[0]`` is the primary filter of the node."""
+
+    name: str = "tool"
+    chain: ChainConfig = field(default_factory=ChainConfig)
+    filters: tuple[str, ...] = ("cbkf",)
+    params: FilterParams = field(default_factory=FilterParams)
+    slop_ns: int = 4_000_000        # pair samples closer than this (below half the OMC period at 120 Hz)
+    delay_ns: int = 50_000_000      # reorder / transport delay the synchronizer waits for
+    max_future_ns: int = 100_000_000   # a sample stamped further ahead of the caller's clock is rejected
+    processing: str = "arrival"     # fusion_node: arrival (arrival.ArrivalPipeline) | ordered (this class)
+    history_ns: int = 200_000_000   # arrival: how far back a late sample still rewinds and replays
+    orientation_std_local: float = 0.002   # [rad] reported in pose_cov when the OTS orientation is used
+    orientation_std_global: float = 0.01   # [rad] when the OMC orientation is used
+    monitor: MonitorParams = field(default_factory=MonitorParams)   # link monitoring (link_monitor)
+    layout: Layout | None = None    # OR layout (omc frame) for the OMC model's view margin; None: margin unknown
+    omc_model: OmcModelParams = field(default_factory=OmcModelParams)   # constants of the OMC model (noise_model_file)
+    sources: SourceSet = field(default_factory=SourceSet)   # sources.py: global + first local (``chain``) + further
+
+    def __post_init__(self) -> None:
+        self.filters = tuple(self.filters)
+        if not self.filters:
+            raise ValueError(f"target '{self.name}': at least one filter is needed")
+        for f in self.filters:
+            if f not in FILTERS:
+                raise ValueError(f"target '{self.name}': filter '{f}' is not one of {tuple(FILTERS)}")
+        if len(set(self.filters)) != len(self.filters):
+            raise ValueError(f"target '{self.name}': duplicate filter in {self.filters}")
+        self.params.validate()
+        self.monitor.validate()
+        if self.processing not in ("arrival", "ordered"):
+            raise ValueError(f"target '{self.name}': processing must be arrival or ordered, got {self.processing!r}")
+        if not self.history_ns > 0:
+            raise ValueError(f"target '{self.name}': history must be > 0, got {self.history_ns * 1e-9} s")
+        if not self.max_future_ns > 0:
+            raise ValueError(f"target '{self.name}': max_future must be > 0, got {self.max_future_ns * 1e-9} s")
+
+
+@dataclass
+class FusedOutput:
+    """One fused estimate of one target by one filter (all vectors in ``base``, SI units)."""
+
+    target: str
+    filter: str
+    t_ns: int                      # acquisition stamp of the newest sample used
+    p: np.ndarray                  # (3,) position [m]
+    q: np.ndarray                  # (4,) orientation x y z w
+    cov: np.ndarray                # (6, 6) pose covariance, ROS order (x y z rotX rotY rotZ)
+    bias: np.ndarray               # (3,) estimated global-source bias [m] (zeros without a bias state)
+    innovation: np.ndarray         # (3,) global innovation if a global sample was used, else local [m]
+    nis: float
+    hop: bool
+    sources: int                   # SOURCE_GLOBAL | SOURCE_LOCAL bits
+    orientation_source: int
+    time_since_local: float        # [s] since the last local sample used; -1 if never
+    reset: bool                    # the filter (re-)initialised on this item
+    t_global: int | None = None    # stamps of the samples used
+    t_local: int | None = None
+    local_equation: str = ""       # 'eq1' | 'eq2' | 'static' for the local measurement used
+    link_bumped: bool = False      # the link monitor sees the OTS's view of the base off its calibration
+
+
+def rotation_stds(config: TargetConfig) -> tuple[float, float]:
+    """(global, local) per-axis orientation std [rad] of a sample given a fixed covariance by its source (``noise_std``
+    or ``noise_model: std``, :mod:`.sources`): the filter parameters' own orientation noise when they model the
+    orientation (:class:`~fullperc_fusion.filters.fullperc_params.FullpercParams` ``rot_global_std`` /
+    ``rot_local_std``), else the orientation std the outputs report (``orientation_std_global`` / ``_local``)."""
+    p = config.params
+    if isinstance(p, FullpercParams):
+        return p.rot_global_std, p.rot_local_std
+    return config.orientation_std_global, config.orientation_std_local
