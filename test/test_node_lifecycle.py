@@ -10,6 +10,13 @@
   new messages arrived): exit 0, no traceback. While the first run's data
   flows, the node's declared parameters are listed over its ``list_parameters`` service and each must appear
   in the parameter file that ``--help`` prints. soak/soak_signals.py repeats the SIGINT run 20 times per node.
+* ROS naming and parameters (the drivers and margin_node, :data:`NS_NAMES`; docs/nodes.md "Namespaces and
+  parameters"): started with ``-r __ns:=/or1`` and its shipped parameter file, every topic the node publishes or
+  subscribes and every service it offers is under ``/or1`` (seen through the graph API of a node in this process),
+  except the global ``/tf``, ``/tf_static``, ``/diagnostics`` and rclpy's ``/rosout`` and ``/parameter_events``.
+  Over the node's parameter services: every parameter is read-only except those the node applies at run time
+  (:data:`WRITABLE`); a set of a read-only one is refused with a reason naming it and changes nothing; a set of a
+  writable one succeeds.
 
 Which configuration case runs for which node (:data:`CASES_OF`): every node runs its help and a wrong type for its
 float parameter in a process of its own (what only the node brings: its name, package and parameter file, its
@@ -62,6 +69,17 @@ CASES_OF = {"omc_driver": ("help", "int_for_float", "control"),
             "fusion_node": ("h", "string_for_float", "broken_yaml"),
             "margin_node": ("help", "int_for_float")}
 RCLPY_BUILTIN = {"use_sim_time", "start_type_description_service"}  # declared by rclpy in every node
+# the nodes whose names and parameters follow the ROS conventions (fusion_node's follow later)
+NS_NAMES = ["omc_driver", "ndi_driver", "diana_state", "margin_node"]
+NS = "/or1"
+GLOBAL_TOPICS = {"/tf", "/tf_static", "/diagnostics", "/rosout", "/parameter_events"}
+# the parameters each node validates and applies at run time (all others are read-only); value for the set test
+WRITABLE = {"omc_driver": {}, "ndi_driver": {}, "diana_state": {},
+            "margin_node": {"layout_file": "", "threshold_deg": -1.0, "map_resolution": 0.2, "publish_map": True,
+                            "hysteresis.margin_band_deg": 1.0, "hysteresis.min_dwell": 0.3}}
+# a topic that shows the node is up and named (omc_driver makes its pose topics at the first frame of a body)
+NS_READY = {"omc_driver": "/or1/omc/base/pose", "ndi_driver": "/or1/ots/tool/pose",
+            "diana_state": "/or1/diana/joint_states", "margin_node": "/or1/fullperc/tool/region"}
 
 
 def reference_text(name: str) -> str:
@@ -155,6 +173,77 @@ def _signals(tmp: Path, name: str) -> tuple[list, list[str]]:
         return results, declared
 
 
+def _namespaced(tmp: Path, name: str) -> list[str]:
+    """Start ``name`` in ``/or1`` with its shipped parameter file; the problems found (none: as expected)."""
+    from rcl_interfaces.msg import ParameterType
+    from rcl_interfaces.srv import DescribeParameters, GetParameters, ListParameters, SetParameters
+    from rclpy.parameter import Parameter
+
+    spec = NODES[name]
+    exe = installed_exe(spec.pkg, spec.name)
+    params = workspace_root() / "install" / spec.pkg / "share" / spec.pkg / "config" / spec.params_file
+    with RosSession(tmp) as s:
+        # UDP feeds (their ports as -p): omc_driver makes its topics per body seen; the others need no data here
+        feed = start_feed(s.procs, spec, tmp)[1:] if spec.feed in ("omc", "diana") else []
+        p = s.procs.start([exe, "--ros-args", "-r", f"__ns:={NS}", "--params-file", str(params), *feed],
+                          name=f"{name}_ns")
+        probe = TopicCounter(s.context, {}, node_name="fullperc_ns_probe")
+        problems: list[str] = []
+        try:
+            def graph() -> tuple[set[str], set[str]]:
+                g = probe.node
+                return ({t for t, _ in g.get_publisher_names_and_types_by_node(name, NS)}
+                        | {t for t, _ in g.get_subscriber_names_and_types_by_node(name, NS)},
+                        {v for v, _ in g.get_service_names_and_types_by_node(name, NS)})
+
+            def ready() -> bool:
+                try:
+                    return p.poll() is not None or NS_READY[name] in graph()[0]
+                except Exception:   # the node is not in the graph yet
+                    return False
+
+            if poll_until(ready, LIVENESS_S) is None or p.poll() is not None:
+                return [f"{NS_READY[name]} did not appear (exit {p.poll()}); log:\n{s.procs.log(p)[-3000:]}"]
+            topics, services = graph()
+            outside = sorted(t for t in topics if not t.startswith(NS + "/") and t not in GLOBAL_TOPICS)
+            outside += sorted(v for v in services if not v.startswith(f"{NS}/{name}/"))
+            if outside:
+                problems.append(f"not under {NS}: {outside} (topics {sorted(topics)})")
+
+            srv = f"{NS}/{name}"
+            listed = probe.call(ListParameters, f"{srv}/list_parameters", ListParameters.Request(), LIVENESS_S)
+            names = [n for n in (listed.result.names if listed else []) if n not in RCLPY_BUILTIN
+                     and not n.startswith("qos_overrides.")]
+            described = probe.call(DescribeParameters, f"{srv}/describe_parameters",
+                                   DescribeParameters.Request(names=names), LIVENESS_S)
+            if not names or described is None:
+                return problems + [f"parameter services of {srv} did not answer"]
+            ro = {d.name for d in described.descriptors if d.read_only}
+            wrong = sorted((set(names) - ro) ^ set(WRITABLE[name]))
+            if wrong:
+                problems.append(f"read-only is wrong for {wrong} (writable: {sorted(set(names) - ro)})")
+
+            sets = [Parameter("qos_depth", value=7)] + [Parameter(k, value=v) for k, v in WRITABLE[name].items()]
+            answer = probe.call(SetParameters, f"{srv}/set_parameters",
+                                SetParameters.Request(parameters=[x.to_parameter_msg() for x in sets]), LIVENESS_S)
+            results = list(answer.results) if answer else []
+            if len(results) != len(sets):
+                return problems + [f"set_parameters of {srv} answered {results}"]
+            r = results[0]
+            if r.successful or "read-only" not in r.reason or "qos_depth" not in r.reason:
+                problems.append(f"set of read-only qos_depth: successful={r.successful}, reason {r.reason!r}")
+            problems += [f"set of writable {x.name}: {r.reason!r}" for x, r in zip(sets[1:], results[1:], strict=True)
+                         if not r.successful]
+            got = probe.call(GetParameters, f"{srv}/get_parameters", GetParameters.Request(names=["qos_depth"]),
+                             LIVENESS_S)
+            if got is None or got.values[0].type != ParameterType.PARAMETER_INTEGER or got.values[0].integer_value == 7:
+                problems.append(f"qos_depth after the refused set: {got and got.values}")
+        finally:
+            probe.close()
+            s.procs.stop(p)
+        return problems
+
+
 @pytest.fixture(scope="module")
 def scenarios(request, tmp_path_factory):
     """Every selected test's runs started at once, side by side, each node's in a domain of its own: a test waits
@@ -165,6 +254,9 @@ def scenarios(request, tmp_path_factory):
                          ("test_signals_with_data_flowing", _signals)):
             tmp = tmp_path_factory.mktemp(f"{test[5:9]}_{name}")   # here: mktemp is not thread-safe
             jobs[f"{test}[{name}]"] = (lambda fn=fn, tmp=tmp, name=name: fn(tmp, name))
+    for name in NS_NAMES:
+        tmp = tmp_path_factory.mktemp(f"ns_{name}")
+        jobs[f"test_namespace_and_read_only_parameters[{name}]"] = (lambda tmp=tmp, name=name: _namespaced(tmp, name))
     sbs = SideBySide(jobs).start(selected_cases(request, jobs))
     yield sbs
     sbs.join()
@@ -196,3 +288,19 @@ def test_signals_with_data_flowing(name, scenarios, request):
                 and not re.search(rf"^[\s#]*{re.escape(n.rsplit('.', 1)[-1])}\s*:", reference, re.M)]
     assert declared and not unlisted, (f"parameters of {name} missing from config/{NODES[name].params_file} "
                                        f"(what --help prints): {unlisted}")
+
+
+@pytest.mark.parametrize("name", NS_NAMES)
+def test_namespace_and_read_only_parameters(name, scenarios, request):
+    problems = scenarios.result(request.node.name)
+    assert not problems, "\n\n".join(problems)
+
+
+@pytest.mark.parametrize("name", NS_NAMES)
+def test_shipped_parameter_file_applies_in_any_namespace(name):
+    """The file's only key is ``/**/<node>``: a bare ``<node>`` matches ``/<node>`` only, so under
+    ``-r __ns:=/or1`` its values would silently not apply."""
+    import yaml
+
+    doc = yaml.safe_load((workspace_root() / "src" / NODES[name].pkg / "config" / NODES[name].params_file).read_text())
+    assert list(doc) == [f"/**/{name}"]

@@ -34,6 +34,7 @@ setup(
             'supervisor = fullperc_eval.graph.cli:main',
             'echo = fullperc_eval.bag.topic_tools:echo_main',
             'pub = fullperc_eval.bag.topic_tools:pub_main',
+            'call = fullperc_eval.bag.topic_tools:call_main',
         ],
     },
 )

@@ -65,19 +65,32 @@ def parameter_exception_message(e: BaseException, name: str | None = None) -> st
 
 
 def declare(node, name: str, default: Any, check: Callable[[Any], bool] | None = None,
-            why: str = "", description: str = "") -> Any:
+            why: str = "", description: str = "", read_only: bool = False) -> Any:
     """Declare ``name`` with ``default`` and return its value; raise ParameterError if ``check`` fails.
 
     A value of the wrong type (from ``-p`` or a parameter file) raises ParameterError too, naming the parameter,
     the expected and the given type (rclpy raises its InvalidParameterTypeException).
+
+    ``read_only``: the node reads the value once, at start. rclpy then refuses a run-time set (``ros2 param set``,
+    the ``set_parameters`` service) with ``successful: false`` and the reason "Trying to set a read-only
+    parameter: <name>." before any callback of the node runs -- instead of reporting success and changing
+    nothing. A parameter the node does apply at run time stays writable and needs the node's own
+    ``add_on_set_parameters_callback`` to validate and apply it.
     """
     from rcl_interfaces.msg import ParameterDescriptor
     from rclpy.exceptions import ParameterException
 
     try:
-        value = node.declare_parameter(name, default, ParameterDescriptor(description=description)).value
+        desc = ParameterDescriptor(description=description, read_only=read_only)
+        value = node.declare_parameter(name, default, desc).value
     except ParameterException as e:
         raise ParameterError(parameter_exception_message(e, name)) from e
     if check is not None and not check(value):
         raise ParameterError(f"parameter '{name}' = {value!r} is invalid: {why}")
     return value
+
+
+def declare_fixed(node, name: str, default: Any, check: Callable[[Any], bool] | None = None,
+                  why: str = "", description: str = "") -> Any:
+    """:func:`declare` with ``read_only=True``: a parameter the node reads at start only."""
+    return declare(node, name, default, check, why, description, read_only=True)

@@ -1,4 +1,5 @@
-"""params.declare: a value of the wrong type is a ParameterError naming the parameter, the types and a fix."""
+"""params.declare: a value of the wrong type is a ParameterError naming the parameter, the types and a fix;
+``read_only`` (and declare_fixed) make rclpy refuse a run-time set through the parameter service, with the reason."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import pytest
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from fullperc_common.params import ParameterError, declare
+from fullperc_common.params import ParameterError, declare, declare_fixed
 
 
 def _node(ctx, **overrides) -> Node:
@@ -43,4 +44,37 @@ def test_one_wrong_type_is_named_the_other_parameters_declare(rclpy_context):
         with pytest.raises(ParameterError, match="'depth'.*must be > 0"):
             declare(node, "depth", 10, lambda v: v > 0, "must be > 0")
     finally:
+        node.destroy_node()
+
+
+def test_read_only_is_refused_through_the_parameter_service_with_the_reason(rclpy_context):
+    from rcl_interfaces.srv import SetParameters
+    from rclpy.executors import SingleThreadedExecutor
+
+    from fullperc_common.testing import wait_for
+
+    node = _node(rclpy_context, fixed=3)
+    caller = Node("params_test_caller", context=rclpy_context)
+    ex = SingleThreadedExecutor(context=rclpy_context)
+    try:
+        assert declare(node, "fixed", 1, read_only=True) == 3          # a start-up value still applies
+        declare(node, "free", 1.0)
+        declare_fixed(node, "also_fixed", "a", lambda v: bool(v), "non-empty")
+        assert [node.describe_parameter(n).read_only for n in ("fixed", "free", "also_fixed")] == [True, False, True]
+        ex.add_node(node)
+        ex.add_node(caller)
+        cli = caller.create_client(SetParameters, "/params_test/set_parameters")
+        wait_for(lambda: (ex.spin_once(timeout_sec=0.05), cli.service_is_ready())[1], what="the parameter service")
+        sets = [Parameter("fixed", value=5), Parameter("free", value=2.0), Parameter("also_fixed", value="b")]
+        fut = cli.call_async(SetParameters.Request(parameters=[p.to_parameter_msg() for p in sets]))
+        wait_for(lambda: (ex.spin_once(timeout_sec=0.05), fut.done())[1], what="the set_parameters answer")
+        res = fut.result().results
+        assert [r.successful for r in res] == [False, True, False]
+        assert "read-only" in res[0].reason and "fixed" in res[0].reason, res[0].reason
+        assert "read-only" in res[2].reason and "also_fixed" in res[2].reason, res[2].reason
+        assert (node.get_parameter("fixed").value, node.get_parameter("free").value,
+                node.get_parameter("also_fixed").value) == (3, 2.0, "a")
+    finally:
+        ex.shutdown()
+        caller.destroy_node()
         node.destroy_node()

@@ -32,7 +32,7 @@ from sensor_msgs.msg import JointState
 from fullperc_common.diagnostics import Diagnostics
 from fullperc_common.health import ERROR, WARN, Health
 from fullperc_common.node_main import run_node
-from fullperc_common.params import ParameterError, declare
+from fullperc_common.params import ParameterError, declare_fixed
 from fullperc_common.ros_conv import ns_to_stamp, pose_stamped
 from fullperc_common.tf import Broadcaster, transform_stamped
 from fullperc_common.transforms import T_to_pq
@@ -58,28 +58,30 @@ def _rotvec_to_R(v: np.ndarray) -> np.ndarray:
 class DianaStateNode(Node):
     def __init__(self) -> None:
         super().__init__("diana_state")
-        backend = declare(self, "backend", "stream", lambda v: v in ("stream", "diana_api"),
-                          "one of stream, diana_api")
-        robot_ip = declare(self, "robot_ip", "192.168.10.75", lambda v: bool(v), "non-empty")
-        library = declare(self, "api_library", "", description="path of libDianaApi.so")
-        host = declare(self, "stream_host", "127.0.0.1")
-        port = declare(self, "stream_port", 3884, lambda v: 0 < v < 65536, "UDP port 1..65535")
-        rate = declare(self, "rate_hz", 100.0, lambda v: 0 < v <= 1000, "0 < rate <= 1000")
-        self.frame_id = declare(self, "frame_id", "diana_base", lambda v: bool(v), "non-empty")
-        self.publish_tool = declare(self, "publish_tool", False)
-        publish_tf = declare(self, "tf", True, description="the arm's links from FK on /tf")
-        tool = declare(self, "tool_offset", [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
-                       lambda v: len(v) == 7 and np.linalg.norm(v[3:]) > 0.5, "x y z qx qy qz qw (unit quaternion)")
-        self.dh_source = declare(self, "dh_source", "nominal", lambda v: v in ("nominal", "parameters", "controller"),
-                                 "nominal, parameters or controller")
-        dh = [declare(self, f"dh_{k}", DIANA7_MDH[:, i].tolist(), lambda v: len(v) == 7, "7 values")
+        backend = declare_fixed(self, "backend", "stream", lambda v: v in ("stream", "diana_api"),
+                                "one of stream, diana_api")
+        robot_ip = declare_fixed(self, "robot_ip", "192.168.10.75", lambda v: bool(v), "non-empty")
+        library = declare_fixed(self, "api_library", "", description="path of libDianaApi.so")
+        host = declare_fixed(self, "stream_host", "127.0.0.1")
+        port = declare_fixed(self, "stream_port", 3884, lambda v: 0 < v < 65536, "UDP port 1..65535")
+        rate = declare_fixed(self, "rate_hz", 100.0, lambda v: 0 < v <= 1000, "0 < rate <= 1000")
+        self.frame_id = declare_fixed(self, "frame_id", "diana_base", lambda v: bool(v), "non-empty")
+        self.publish_tool = declare_fixed(self, "publish_tool", False)
+        publish_tf = declare_fixed(self, "tf", True, description="the arm's links from FK on /tf")
+        tool = declare_fixed(self, "tool_offset", [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
+                             lambda v: len(v) == 7 and np.linalg.norm(v[3:]) > 0.5,
+                             "x y z qx qy qz qw (unit quaternion)")
+        self.dh_source = declare_fixed(self, "dh_source", "nominal",
+                                       lambda v: v in ("nominal", "parameters", "controller"),
+                                       "nominal, parameters or controller")
+        dh = [declare_fixed(self, f"dh_{k}", DIANA7_MDH[:, i].tolist(), lambda v: len(v) == 7, "7 values")
               for k, i in (("a", 1), ("alpha", 0), ("d", 2), ("theta", 3))]
-        qos = declare(self, "qos", "reliable", lambda v: v in ("reliable", "sensor"), "reliable or sensor")
-        depth = declare(self, "qos_depth", 1000, lambda v: v > 0, "> 0")   # config/diana.yaml: why
-        window = declare(self, "sync_window_s", 5.0, lambda v: v > 0, "> 0")
-        age = declare(self, "age_compensation_s", 0.0, lambda v: 0 <= v < 1, "0..1 s")
-        self.stale_s = declare(self, "stale_timeout_s", 1.0, lambda v: v > 0, "> 0")
-        diag_period = declare(self, "diagnostics_period_s", 1.0, lambda v: v > 0, "> 0")
+        qos = declare_fixed(self, "qos", "reliable", lambda v: v in ("reliable", "sensor"), "reliable or sensor")
+        depth = declare_fixed(self, "qos_depth", 1000, lambda v: v > 0, "> 0")   # config/diana.yaml: why
+        window = declare_fixed(self, "sync_window_s", 5.0, lambda v: v > 0, "> 0")
+        age = declare_fixed(self, "age_compensation_s", 0.0, lambda v: 0 <= v < 1, "0..1 s")
+        self.stale_s = declare_fixed(self, "stale_timeout_s", 1.0, lambda v: v > 0, "> 0")
+        diag_period = declare_fixed(self, "diagnostics_period_s", 1.0, lambda v: v > 0, "> 0")
         health_cfg = declare_health(self, frames_stale_after_s=self.stale_s)
         if self.dh_source == "controller" and backend != "diana_api":
             raise ParameterError("parameter 'dh_source' = 'controller' needs backend 'diana_api'")
@@ -95,9 +97,9 @@ class DianaStateNode(Node):
         self._dh_loaded = self.dh_source != "controller"
 
         q = make_qos(qos, depth)
-        self.pub_js = self.create_publisher(JointState, "/diana/joint_states", q)
-        self.pub_flange = self.create_publisher(PoseStamped, "/diana/flange_pose", q)
-        self.pub_tool = self.create_publisher(PoseStamped, "/diana/tool_pose", q) if self.publish_tool else None
+        self.pub_js = self.create_publisher(JointState, "diana/joint_states", q)
+        self.pub_flange = self.create_publisher(PoseStamped, "diana/flange_pose", q)
+        self.pub_tool = self.create_publisher(PoseStamped, "diana/tool_pose", q) if self.publish_tool else None
         self.tf = Broadcaster(self) if publish_tf else None
         self.diag = Diagnostics(self, hardware_id=f"diana7:{backend}", period_s=diag_period)
         self.health = Health(["arm"], health_cfg, item_kind="arm", output="joint state", frame="joint state",

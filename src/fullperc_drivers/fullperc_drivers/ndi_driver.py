@@ -23,8 +23,8 @@ host [127.0.0.1]; port [8765]; serial_device [/dev/ttyUSB0]; baud [115200]; tool
 start: exit 2 naming a file that is not an NDI tool definition); tool_priorities [] (S/D/B per tool, default
 D); mode [BX] | TX; reply_option [1] (0x0001; 0x0801 also reports out-of-volume tools); rate_hz [60.0];
 frame_rate_hz [60.0]; device_latency_s [0.0]; volume [-1: keep]; read_timeout_s [0.5]; frame_id [ots];
-topic_prefix [/ots]; qos_depth [2000]; health.stale_after_s [2.0]; health.reconnect_window_s [10.0];
-health.max_reconnects [3].
+topic_prefix [ots: relative, /ots in the default namespace]; qos_depth [2000]; health.stale_after_s [2.0];
+health.reconnect_window_s [10.0]; health.max_reconnects [3]. Every parameter is read-only (:mod:`.node_common`).
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ from fullperc_common import ros_conv
 from fullperc_common.diagnostics import Diagnostics
 from fullperc_common.health import Health
 from fullperc_common.node_main import run_node
-from fullperc_common.params import ParameterError, declare
+from fullperc_common.params import ParameterError, declare_fixed
 from fullperc_common.share import share_path
 from fullperc_common.subscribers import SubscriberLog
 from fullperc_msgs.msg import TrackingQuality
@@ -66,29 +66,40 @@ def resolve_rom(tool: str, path: str) -> Path:
         raise ParameterError(f"parameter 'tool_roms': ROM file for tool '{tool}' not found: {e}") from e
 
 
+def tool_topic(prefix: str, tool: str, what: str) -> str:
+    """``<prefix>/<tool>/<what>``: relative (resolved in the node's namespace) unless ``prefix`` starts with ``/``.
+
+    An empty prefix gives the relative ``<tool>/<what>`` and ``/`` the absolute ``/<tool>/<what>``.
+    """
+    head = prefix.rstrip("/")
+    if head:
+        return f"{head}/{tool}/{what}"
+    return f"/{tool}/{what}" if prefix.startswith("/") else f"{tool}/{what}"
+
+
 class NdiDriverNode(Node):
     def __init__(self) -> None:
         super().__init__("ndi_driver")
-        transport = declare(self, "transport", "tcp", lambda v: v in ("tcp", "serial"), "tcp or serial")
-        host = declare(self, "host", "127.0.0.1")
-        port = declare(self, "port", 8765, lambda v: 0 < v < 65536, "TCP port")
-        serial_device = declare(self, "serial_device", "/dev/ttyUSB0")
-        baud = declare(self, "baud", 115200, lambda v: v in (9600, 14400, 19200, 38400, 57600, 115200,
-                                                               230400, 921600, 1228739), "a COMM rate")
-        names = list(declare(self, "tools", ["tool", "base"], lambda v: len(v) > 0, "at least one tool"))
-        roms = list(declare(self, "tool_roms", ["tool.rom", "base.rom"]))
-        prios = list(declare(self, "tool_priorities", [""]))
-        mode = declare(self, "mode", "BX", lambda v: v in ("BX", "TX"), "BX or TX")
-        option = declare(self, "reply_option", 1, lambda v: v in (0x0001, 0x0801, 0x0009, 0x0809),
-                         "0x0001, 0x0801, 0x0009 or 0x0809")
-        rate = declare(self, "rate_hz", 60.0, lambda v: v >= 0, ">= 0")
-        frame_rate = declare(self, "frame_rate_hz", 60.0, lambda v: v > 0, "> 0")
-        latency = declare(self, "device_latency_s", 0.0, lambda v: 0 <= v < 1, "0 <= latency < 1 s")
-        volume = declare(self, "volume", -1)
-        read_timeout = declare(self, "read_timeout_s", 0.5, lambda v: v > 0, "> 0")
-        self.frame_id = declare(self, "frame_id", "ots")
-        prefix = declare(self, "topic_prefix", "/ots").rstrip("/")
-        depth = declare(self, "qos_depth", 2000, lambda v: v > 0, "> 0")   # config/ndi_vega.yaml: why
+        transport = declare_fixed(self, "transport", "tcp", lambda v: v in ("tcp", "serial"), "tcp or serial")
+        host = declare_fixed(self, "host", "127.0.0.1")
+        port = declare_fixed(self, "port", 8765, lambda v: 0 < v < 65536, "TCP port")
+        serial_device = declare_fixed(self, "serial_device", "/dev/ttyUSB0")
+        baud = declare_fixed(self, "baud", 115200, lambda v: v in (9600, 14400, 19200, 38400, 57600, 115200,
+                                                                     230400, 921600, 1228739), "a COMM rate")
+        names = list(declare_fixed(self, "tools", ["tool", "base"], lambda v: len(v) > 0, "at least one tool"))
+        roms = list(declare_fixed(self, "tool_roms", ["tool.rom", "base.rom"]))
+        prios = list(declare_fixed(self, "tool_priorities", [""]))
+        mode = declare_fixed(self, "mode", "BX", lambda v: v in ("BX", "TX"), "BX or TX")
+        option = declare_fixed(self, "reply_option", 1, lambda v: v in (0x0001, 0x0801, 0x0009, 0x0809),
+                               "0x0001, 0x0801, 0x0009 or 0x0809")
+        rate = declare_fixed(self, "rate_hz", 60.0, lambda v: v >= 0, ">= 0")
+        frame_rate = declare_fixed(self, "frame_rate_hz", 60.0, lambda v: v > 0, "> 0")
+        latency = declare_fixed(self, "device_latency_s", 0.0, lambda v: 0 <= v < 1, "0 <= latency < 1 s")
+        volume = declare_fixed(self, "volume", -1)
+        read_timeout = declare_fixed(self, "read_timeout_s", 0.5, lambda v: v > 0, "> 0")
+        self.frame_id = declare_fixed(self, "frame_id", "ots")
+        prefix = declare_fixed(self, "topic_prefix", "ots")
+        depth = declare_fixed(self, "qos_depth", 2000, lambda v: v > 0, "> 0")   # config/ndi_vega.yaml: why
         health_cfg = declare_health(self)
         if len(roms) != len(names):
             raise ParameterError(f"parameter 'tool_roms' needs one ROM per tool ({len(names)}), got {len(roms)}")
@@ -114,8 +125,9 @@ class NdiDriverNode(Node):
         self.roms = {t.name: t.source for t in tools}
 
         qos = QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
-        self.pose_pubs = {n: self.create_publisher(PoseStamped, f"{prefix}/{n}/pose", qos) for n in names}
-        self.qual_pubs = {n: self.create_publisher(TrackingQuality, f"{prefix}/{n}/quality", qos) for n in names}
+        self.pose_pubs = {n: self.create_publisher(PoseStamped, tool_topic(prefix, n, "pose"), qos) for n in names}
+        self.qual_pubs = {n: self.create_publisher(TrackingQuality, tool_topic(prefix, n, "quality"), qos)
+                          for n in names}
         self.where = f"{host}:{port}" if transport == "tcp" else f"{serial_device}@{baud}"
         self.diag = Diagnostics(self, hardware_id=f"ndi {self.where}")
         self.health = Health(names, health_cfg, item_kind="tool", output="pose", frame="frame",

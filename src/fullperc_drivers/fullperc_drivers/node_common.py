@@ -5,6 +5,14 @@ Every driver node has the same shape: a ROS-free core/backend whose thread only 
 :class:`fullperc_common.health.Health`, whose verdict a timer publishes through
 :class:`fullperc_common.diagnostics.Diagnostics`; ``main`` is :func:`fullperc_common.node_main.run_node`, and
 ``close()`` stops the core's threads before the node is destroyed, so nothing calls into rclpy after shutdown.
+
+ROS conventions the three share (docs/nodes.md "Namespaces and parameters"): topic names are relative
+(``omc/<body>/pose``, ``ots/<tool>/pose``, ``diana/joint_states``), so ``-r __ns:=/or1`` moves every topic of
+the node to ``/or1/...`` and the default namespace gives the familiar ``/omc/...``; ``/tf`` and ``/diagnostics``
+stay global (tf2 and diagnostic_aggregator listen there). Every parameter is declared read-only
+(:func:`fullperc_common.params.declare_fixed`): a driver reads its parameters once, to open the device and
+build its pipeline, so a run-time ``set_parameters`` is refused with the reason instead of reporting a success
+that changes nothing.
 """
 
 from __future__ import annotations
@@ -16,7 +24,7 @@ from collections.abc import Callable
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 
 from fullperc_common.health import OK, Health, HealthConfig, Verdict
-from fullperc_common.params import declare
+from fullperc_common.params import declare_fixed
 
 HEALTH_PERIOD_S = 0.25  # how often the nodes evaluate their health ladder
 
@@ -36,13 +44,13 @@ def make_qos(kind: str, depth: int) -> QoSProfile:
 def declare_health(node, frames_stale_after_s: float | None = None) -> HealthConfig:
     """Declare ``health.stale_after_s``, ``health.reconnect_window_s`` and ``health.max_reconnects``."""
     cfg = HealthConfig(
-        stale_after_s=declare(node, "health.stale_after_s", 2.0, lambda v: v > 0, "> 0 s",
-                              "an item without a good output for this long leaves OK [s]"),
+        stale_after_s=declare_fixed(node, "health.stale_after_s", 2.0, lambda v: v > 0, "> 0 s",
+                                    "an item without a good output for this long leaves OK [s]"),
         frames_stale_after_s=frames_stale_after_s,
-        reconnect_window_s=declare(node, "health.reconnect_window_s", 10.0, lambda v: v > 0, "> 0 s",
-                                   "window over which reconnects are counted [s]"),
-        max_reconnects=declare(node, "health.max_reconnects", 3, lambda v: v >= 1, ">= 1",
-                               "reconnects within the window that make the level WARN while outputs flow"),
+        reconnect_window_s=declare_fixed(node, "health.reconnect_window_s", 10.0, lambda v: v > 0, "> 0 s",
+                                         "window over which reconnects are counted [s]"),
+        max_reconnects=declare_fixed(node, "health.max_reconnects", 3, lambda v: v >= 1, ">= 1",
+                                     "reconnects within the window that make the level WARN while outputs flow"),
     )
     return cfg
 

@@ -24,7 +24,7 @@ from rclpy.node import Node
 from fullperc_common.diagnostics import Diagnostics
 from fullperc_common.health import Health
 from fullperc_common.node_main import run_node
-from fullperc_common.params import ParameterError, declare
+from fullperc_common.params import ParameterError, declare_fixed
 from fullperc_common.ros_conv import ns_to_stamp, pose_stamped
 from fullperc_common.subscribers import SubscriberLog
 from fullperc_msgs.msg import TrackingQuality
@@ -43,28 +43,29 @@ class OmcDriverNode(Node):
     def __init__(self) -> None:
         super().__init__("omc_driver")
         p = {}
-        p["backend"] = declare(self, "backend", "stream", lambda v: v in ("stream", "nokov_sdk"),
-                               "one of stream, nokov_sdk")
-        p["server"] = declare(self, "server", "10.1.1.198", lambda v: bool(v), "XINGYING server IP")
-        p["sdk_library"] = declare(self, "sdk_library", "", description="path of libnokov_sdk.so")
-        p["stream_host"] = declare(self, "stream_host", "127.0.0.1")
-        p["stream_port"] = declare(self, "stream_port", 3883, lambda v: 0 < v < 65536, "UDP port 1..65535")
-        bodies = declare(self, "bodies", ["all"], description="body names to publish, or ['all']")
-        self.frame_id = declare(self, "frame_id", "omc", lambda v: bool(v), "non-empty")
-        qos = declare(self, "qos", "reliable", lambda v: v in ("reliable", "sensor"), "reliable or sensor")
-        depth = declare(self, "qos_depth", 1000, lambda v: v > 0, "> 0")   # config/omc.yaml: why
-        lat = declare(self, "latency_compensation", True)
-        dev_stamp = declare(self, "device_stamp", "capture", lambda v: v in ("capture", "send"), "capture or send")
-        stamp_src = declare(self, "stamp_source", "device", lambda v: v in ("device", "receive"),
-                            "device or receive")
-        window = declare(self, "sync_window_s", 5.0, lambda v: v > 0, "> 0")
-        transport = declare(self, "transport_delay_s", 0.0, lambda v: 0 <= v < 1, "0..1 s")
-        ts_unit = declare(self, "sdk_timestamp_unit_ns", 1_000_000, lambda v: v > 0, "> 0")
-        lat_unit = declare(self, "sdk_latency_unit_s", 1.0, lambda v: v > 0, "> 0")
-        mask = declare(self, "sdk_valid_flag_mask", 0, lambda v: 0 <= v < 65536, "0..65535")
-        self.stale_s = declare(self, "stale_timeout_s", 1.0, lambda v: v > 0, "> 0")
-        self.reconnect_s = declare(self, "reconnect_after_s", 5.0, lambda v: v > 0, "> 0")
-        diag_period = declare(self, "diagnostics_period_s", 1.0, lambda v: v > 0, "> 0")
+        p["backend"] = declare_fixed(self, "backend", "stream", lambda v: v in ("stream", "nokov_sdk"),
+                                     "one of stream, nokov_sdk")
+        p["server"] = declare_fixed(self, "server", "10.1.1.198", lambda v: bool(v), "XINGYING server IP")
+        p["sdk_library"] = declare_fixed(self, "sdk_library", "", description="path of libnokov_sdk.so")
+        p["stream_host"] = declare_fixed(self, "stream_host", "127.0.0.1")
+        p["stream_port"] = declare_fixed(self, "stream_port", 3883, lambda v: 0 < v < 65536, "UDP port 1..65535")
+        bodies = declare_fixed(self, "bodies", ["all"], description="body names to publish, or ['all']")
+        self.frame_id = declare_fixed(self, "frame_id", "omc", lambda v: bool(v), "non-empty")
+        qos = declare_fixed(self, "qos", "reliable", lambda v: v in ("reliable", "sensor"), "reliable or sensor")
+        depth = declare_fixed(self, "qos_depth", 1000, lambda v: v > 0, "> 0")   # config/omc.yaml: why
+        lat = declare_fixed(self, "latency_compensation", True)
+        dev_stamp = declare_fixed(self, "device_stamp", "capture", lambda v: v in ("capture", "send"),
+                                  "capture or send")
+        stamp_src = declare_fixed(self, "stamp_source", "device", lambda v: v in ("device", "receive"),
+                                  "device or receive")
+        window = declare_fixed(self, "sync_window_s", 5.0, lambda v: v > 0, "> 0")
+        transport = declare_fixed(self, "transport_delay_s", 0.0, lambda v: 0 <= v < 1, "0..1 s")
+        ts_unit = declare_fixed(self, "sdk_timestamp_unit_ns", 1_000_000, lambda v: v > 0, "> 0")
+        lat_unit = declare_fixed(self, "sdk_latency_unit_s", 1.0, lambda v: v > 0, "> 0")
+        mask = declare_fixed(self, "sdk_valid_flag_mask", 0, lambda v: 0 <= v < 65536, "0..65535")
+        self.stale_s = declare_fixed(self, "stale_timeout_s", 1.0, lambda v: v > 0, "> 0")
+        self.reconnect_s = declare_fixed(self, "reconnect_after_s", 5.0, lambda v: v > 0, "> 0")
+        diag_period = declare_fixed(self, "diagnostics_period_s", 1.0, lambda v: v > 0, "> 0")
         health_cfg = declare_health(self, frames_stale_after_s=self.stale_s)
 
         self.bodies = None if (not bodies or "all" in bodies) else set(bodies)
@@ -104,8 +105,8 @@ class OmcDriverNode(Node):
     def _pubs_for(self, name: str):
         if name not in self._pose_pubs:
             tok = topic_name(name)
-            self._pose_pubs[name] = self.create_publisher(PoseStamped, f"/omc/{tok}/pose", self.qos)
-            self._quality_pubs[name] = self.create_publisher(TrackingQuality, f"/omc/{tok}/quality", self.qos)
+            self._pose_pubs[name] = self.create_publisher(PoseStamped, f"omc/{tok}/pose", self.qos)
+            self._quality_pubs[name] = self.create_publisher(TrackingQuality, f"omc/{tok}/quality", self.qos)
         return self._pose_pubs[name], self._quality_pubs[name]
 
     def _drain(self) -> None:

@@ -218,7 +218,7 @@ def _shipped_params_file_matches_reference_table_and_starts(procs, rclpy_context
     from fullperc_common.testing import installed_exe, wait_for, workspace_root
 
     cfg = workspace_root() / "install/fullperc_drivers/share/fullperc_drivers/config/diana.yaml"
-    params = yaml.safe_load(cfg.read_text())["diana_state"]["ros__parameters"]
+    params = yaml.safe_load(cfg.read_text())["/**/diana_state"]["ros__parameters"]
     table = np.array(_DOC_TABLE)  # alpha, a, d, theta rows from reference/diana_eval.md
     for key, col in (("dh_alpha", 0), ("dh_a", 1), ("dh_d", 2), ("dh_theta", 3)):
         np.testing.assert_allclose(params[key], table[:, col], atol=1e-15, err_msg=key)

@@ -27,7 +27,7 @@ def _yaml_depth(name: str) -> int:
 
 
 def _code_default(module: str) -> int:
-    m = re.search(r'declare\(self, "qos_depth", (\d+),', (PKG / "fullperc_drivers" / module).read_text())
+    m = re.search(r'declare(?:_fixed)?\(self, "qos_depth", (\d+),', (PKG / "fullperc_drivers" / module).read_text())
     assert m, f"{module} declares no qos_depth"
     return int(m.group(1))
 

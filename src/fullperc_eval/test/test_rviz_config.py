@@ -46,9 +46,10 @@ def test_rviz_topics_are_published_by_our_nodes():
     fusion_src = (SRC / "fullperc_fusion" / "fullperc_fusion" / "fusion_node.py").read_text()
     margin_src = (SRC / "fullperc_fusion" / "fullperc_fusion" / "margin_node.py").read_text()
     published = {
-        "/fullperc/margin_map": 'MAP_TOPIC = "/fullperc/margin_map"' in margin_src,
+        # margin_node's names are relative: these in the default namespace (docs/nodes.md "Namespaces and parameters")
+        "/fullperc/margin_map": 'MAP_TOPIC = "fullperc/margin_map"' in margin_src,
         **{f"/fullperc/{t}/pose_cov": 'f"/fullperc/{t}/pose_cov"' in fusion_src for t in TARGETS},
-        **{f"/fullperc/{t}/region_marker": 'f"/fullperc/{target}/region_marker"' in margin_src for t in TARGETS},
+        **{f"/fullperc/{t}/region_marker": 'f"fullperc/{target}/region_marker"' in margin_src for t in TARGETS},
     }
     _, displays = _displays()
     topics = [d["Topic"]["Value"] for d in displays if "Topic" in d]

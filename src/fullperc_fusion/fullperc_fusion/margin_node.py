@@ -27,6 +27,12 @@ is the threshold in force (threshold -/+ band), and while a change is held back 
 
 Bad input: an invalid layout file stops the node at start with the file and field named (exit code 2); a later
 parameter change to an invalid file is rejected with the same message and the old layout stays in force.
+
+Names and parameters (docs/nodes.md "Namespaces and parameters"): every topic name is relative (the defaults
+``fullperc/{target}/pose``, ``omc/base/pose``, ...), so the names above are those of the default namespace and
+``-r __ns:=/or1`` moves them all to ``/or1/...``; ``/diagnostics`` stays global. ``layout_file``,
+``threshold_deg``, ``map_resolution``, ``publish_map`` and ``hysteresis.*`` are validated and applied at run time
+(:meth:`MarginNode.on_set_parameters`); the others are read-only and a run-time set is refused with the reason.
 """
 
 from __future__ import annotations
@@ -46,7 +52,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from fullperc_common import diagnostics as _diag
 from fullperc_common.diagnostics import Diagnostics, as_level
 from fullperc_common.node_main import run_node
-from fullperc_common.params import ParameterError, declare
+from fullperc_common.params import ParameterError, declare, declare_fixed
 from fullperc_common.ros_conv import pose_to_T, stamp_to_ns
 from fullperc_common.transforms import is_finite_pose, make_T
 from fullperc_fusion.margin.hysteresis import HysteresisParams, RegionFilter
@@ -56,7 +62,7 @@ from fullperc_fusion.margin.view_margin import BVV, GVV, PVV, REGION_NAMES, UNKN
 from fullperc_msgs.msg import Region
 
 OK, WARN, ERROR = as_level(_diag.OK), as_level(_diag.WARN), as_level(_diag.ERROR)
-MAP_TOPIC = "/fullperc/margin_map"
+MAP_TOPIC = "fullperc/margin_map"   # relative: -r __ns:=/or1 gives /or1/fullperc/margin_map
 _ALPHA = {BVV: 0.35, GVV: 0.12, PVV: 0.25}
 
 
@@ -144,17 +150,18 @@ class MarginNode(Node):
             self, "threshold_deg", -1.0, lambda v: math.isfinite(v), "must be finite",
             "GVV threshold [deg] overriding the layout's; < 0 = use the layout's")
         self._last_label: dict[str, int] = {}
-        self.targets = declare(self, "targets", ["tool"], lambda v: len(v) > 0 and all(v), "need at least one name",
-                               "target names; one region topic each")
-        self.pose_topic = declare(self, "pose_topic", "/fullperc/{target}/pose",
-                                  lambda v: "{target}" in v, "must contain {target}",
-                                  "input pose topic pattern (fused or raw, e.g. /omc/{target}/pose)")
-        self.region_topic = declare(self, "region_topic", "/fullperc/{target}/region",
-                                    lambda v: "{target}" in v, "must contain {target}")
-        self.base_pose_topic = declare(self, "base_pose_topic", "/omc/base/pose",
-                                       description="PoseStamped of the base marker in the layout frame")
-        t_param = declare(self, "T_omc_base", [0.0], lambda v: len(v) in (1, 7), "needs [x y z qx qy qz qw]",
-                          "fixed T_omc_base instead of base_pose_topic; [0.0] = not given")
+        # read-only (declare_fixed): the topics and T_omc_base shape the node's subscriptions and publishers at start
+        self.targets = declare_fixed(self, "targets", ["tool"], lambda v: len(v) > 0 and all(v),
+                                     "need at least one name", "target names; one region topic each")
+        self.pose_topic = declare_fixed(self, "pose_topic", "fullperc/{target}/pose",
+                                        lambda v: "{target}" in v, "must contain {target}",
+                                        "input pose topic pattern (fused or raw, e.g. omc/{target}/pose)")
+        self.region_topic = declare_fixed(self, "region_topic", "fullperc/{target}/region",
+                                          lambda v: "{target}" in v, "must contain {target}")
+        self.base_pose_topic = declare_fixed(self, "base_pose_topic", "omc/base/pose",
+                                             description="PoseStamped of the base marker in the layout frame")
+        t_param = declare_fixed(self, "T_omc_base", [0.0], lambda v: len(v) in (1, 7), "needs [x y z qx qy qz qw]",
+                                "fixed T_omc_base instead of base_pose_topic; [0.0] = not given")
         self.map_resolution = declare(self, "map_resolution", 0.1, lambda v: 0.01 <= v <= 1.0,
                                       "must be within [0.01, 1.0] m", "margin map grid step [m]")
         self.publish_map = declare(self, "publish_map", True)
@@ -167,7 +174,7 @@ class MarginNode(Node):
                                 "must be finite and >= 0 [s]",
                                 "a label is held at least this long after a change [s of pose stamps]; 0 = none"),
         ).validate()
-        self.qos_depth = declare(self, "qos_depth", 50, lambda v: v > 0, "must be > 0")
+        self.qos_depth = declare_fixed(self, "qos_depth", 50, lambda v: v > 0, "must be > 0")
 
         self.layout = load_configured_layout(self.layout_file, self.threshold_override)
         self.T_omc_base: np.ndarray | None = None
@@ -189,7 +196,7 @@ class MarginNode(Node):
             self.region_filters[target] = RegionFilter(self.hysteresis)
             self.region_pubs[target] = self.create_publisher(
                 Region, self.region_topic.format(target=target), self.qos_depth)
-            self.marker_pubs[target] = self.create_publisher(Marker, f"/fullperc/{target}/region_marker",
+            self.marker_pubs[target] = self.create_publisher(Marker, f"fullperc/{target}/region_marker",
                                                              self.qos_depth)
             self.counts[target] = 0
             self.create_subscription(PoseStamped, self.pose_topic.format(target=target),
@@ -228,7 +235,9 @@ class MarginNode(Node):
             + ", ".join(f"{k} {100 * v:.1f} %" for k, v in mmap.fractions().items()))
 
     def on_set_parameters(self, params) -> SetParametersResult:
-        """Validate changes (an invalid layout is rejected, naming file and field); the map is rebuilt afterwards."""
+        """Validate changes (an invalid layout is rejected, naming file and field); the map is rebuilt afterwards.
+
+        Only the parameters applied here are writable; rclpy refuses the read-only ones before this runs."""
         path, thr = self.layout_file, self.threshold_override
         res, publish = self.map_resolution, self.publish_map
         hyst = {"margin_band_deg": self.hysteresis.margin_band_deg, "min_dwell_s": self.hysteresis.min_dwell_s}
@@ -248,8 +257,6 @@ class MarginNode(Node):
                 res = p.value
             elif p.name == "publish_map":
                 publish = bool(p.value)
-            elif p.name in ("targets", "pose_topic", "region_topic", "base_pose_topic", "T_omc_base", "qos_depth"):
-                return SetParametersResult(successful=False, reason=f"'{p.name}' is read-only after start")
         try:
             if not (isinstance(thr, float) and math.isfinite(thr)):
                 raise LayoutError(f"parameter 'threshold_deg' = {thr!r} must be finite")

@@ -12,6 +12,6 @@ imports only ``fullperc_common``/``fullperc_msgs`` and third-party code. Modules
 * :mod:`.recover` -- ``reindex``: rebuild metadata.yaml, make a killed recorder's MCAP complete;
 * :mod:`.calibration` -- ``calibration.yaml``, the bag's companion file the evaluator needs;
 * :mod:`.record` / :mod:`.play` -- the ``record`` and ``play`` executables (rclpy);
-* :mod:`.topic_tools` -- the ``echo`` and ``pub`` executables (they share the type lookup);
-* :mod:`.cli` -- ``python -m fullperc_eval.bag info|reindex BAG``.
+* :mod:`.topic_tools` -- the ``echo``, ``pub`` and ``call`` executables (they share the type lookup);
+* :mod:`.cli` -- ``python -m fullperc_eval.bag info|reindex BAG`` (and ``echo|pub|call``).
 """

@@ -1,7 +1,9 @@
 """``python -m fullperc_eval.bag info|reindex BAG``: what metadata.yaml says about a bag; recover a bag.
 
 ``reindex`` (:func:`.recover.reindex`) is the command the reader's and the recorder's error messages name
-when a bag was left incomplete by a killed recorder.
+when a bag was left incomplete by a killed recorder. ``echo``, ``pub`` and ``call`` run the topic and service
+tools of :mod:`.topic_tools` (also installed as executables of their own), for systems without the ros2 CLI:
+``python -m fullperc_eval.bag call /fusion_node/calibrate std_srvs/srv/Trigger``.
 """
 
 from __future__ import annotations
@@ -29,8 +31,18 @@ def format_info(reader: BagReader) -> str:
     return "\n".join(lines)
 
 
+TOOLS = {"echo": "echo_main", "pub": "pub_main", "call": "call_main"}   # the commands of .topic_tools
+
+
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m fullperc_eval.bag", description=__doc__.split("\n")[0])
+    argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] in TOOLS:   # its own parser, options and exit status
+        from . import topic_tools
+
+        return getattr(topic_tools, TOOLS[argv[0]])(argv[1:])
+    ap = argparse.ArgumentParser(prog="python -m fullperc_eval.bag", description=__doc__.split("\n")[0],
+                                 epilog="also: echo TOPIC ..., pub TOPIC TYPE ..., call SERVICE TYPE ... "
+                                        "(python -m fullperc_eval.bag call -h)")
     sub = ap.add_subparsers(dest="cmd", required=True)
     sub.add_parser("info", help="print what metadata.yaml says about a bag").add_argument("bag")
     sub.add_parser("reindex", help="recover a bag: complete killed MCAP files, checkpoint "

@@ -1,4 +1,5 @@
-"""`echo` and `pub`: the parts of `ros2 topic echo/pub` we need, for systems without the ros2 CLI.
+"""`echo`, `pub` and `call`: the parts of `ros2 topic echo/pub` and `ros2 service call` we need, for systems without
+the ros2 CLI.
 
 The PyPI wheels ship no ros2cli and no rosidl_runtime_py, so this carries the small pieces:
 type lookup by name (:func:`.types.get_message`, the one the recorder and the player use), message <->
@@ -7,6 +8,11 @@ type lookup.
 
     echo /fullperc/tool/pose [--type geometry_msgs/msg/PoseStamped] [--count N] [--timeout S]
     pub  /topic fullperc_msgs/msg/TrackingQuality '{"body": "tool", "visible": true}' [--rate HZ] [--count N]
+    call /fusion_node/calibrate std_srvs/srv/Trigger ['{}'] [--timeout S]
+
+`call` waits for the service, sends one request (fields as JSON/YAML, default all zero) and prints the response
+as one JSON object; status 0 once a response came (whatever it says: ``{"success": false, ...}`` is an answer),
+1 when no server appeared or it did not answer within ``--timeout``, 2 for a bad type or request.
 
 `echo` prints one JSON object per message on stdout (machine-readable, for scripts and tests). When the reader
 of a pipe goes away (``echo /topic | head -3``), it stops quietly with status 141, as a coreutils program killed
@@ -183,6 +189,65 @@ def pub_main(argv: list[str] | None = None) -> int:
         return 0
     except KeyboardInterrupt:
         return 0
+    finally:
+        node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+
+
+def get_service(srvtype: str):
+    """Python class of 'pkg/srv/Name' (it has ``Request`` and ``Response``); BagError naming the type otherwise."""
+    cls = get_message(srvtype)
+    if not (hasattr(cls, "Request") and hasattr(cls, "Response")):
+        raise BagError(f"{srvtype!r} is not a service type (expected 'pkg/srv/Name')")
+    return cls
+
+
+def call_main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="call", description="Call a service once and print its response as JSON.")
+    ap.add_argument("service", help="service name, e.g. /fusion_node/calibrate")
+    ap.add_argument("type", help="service type, e.g. std_srvs/srv/Trigger")
+    ap.add_argument("values", nargs="?", default="{}", help="request fields as JSON or YAML")
+    ap.add_argument("--timeout", type=float, default=0.0,
+                    help="exit with status 1 when no server appeared or it did not answer within S seconds "
+                         "(0 = wait; a calibration takes as long as its collection)")
+    args = ap.parse_args(argv)
+
+    import rclpy
+    import yaml
+
+    try:
+        srv = get_service(args.type)
+        values = yaml.safe_load(args.values) or {}
+        if not isinstance(values, dict):
+            raise ValueError("values must be a mapping")
+        request = fill(srv.Request(), values)
+    except (ValueError, TypeError, AssertionError, BagError, yaml.YAMLError) as e:
+        print(f"call: {e}", file=sys.stderr)
+        return 2
+
+    rclpy.init()
+    node = rclpy.create_node("fullperc_call")
+    client = node.create_client(srv, args.service)
+    end = time.monotonic() + args.timeout if args.timeout > 0 else None
+    try:
+        while not client.service_is_ready():
+            if end is not None and time.monotonic() > end:
+                print(f"call: no server of {args.service} appeared within {args.timeout} s", file=sys.stderr)
+                return 1
+            rclpy.spin_once(node, timeout_sec=0.1)
+        future = client.call_async(request)
+        while not future.done():
+            if end is not None and time.monotonic() > end:
+                print(f"call: {args.service} did not answer within {args.timeout} s", file=sys.stderr)
+                return 1
+            rclpy.spin_once(node, timeout_sec=0.1)
+        print(json.dumps(to_dict(future.result())), flush=True)
+        return 0
+    except KeyboardInterrupt:
+        return 130
+    except BrokenPipeError:
+        return stdout_closed()
     finally:
         node.destroy_node()
         if rclpy.ok():
