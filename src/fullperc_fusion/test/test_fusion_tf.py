@@ -135,3 +135,70 @@ def test_fusion_node_broadcasts_tf_and_tf_static(scenarios, request):
 
 def test_tf_disabled_publishes_no_tf(scenarios, request):
     scenarios.result(request.node.name)
+
+
+# ---- /tf batching: one TFMessage per wake-up (in this process; the node is built and never spun) ---------------
+T0 = 1_700_000_000_000_000_000
+STEP = 4_166_667   # 240 Hz
+
+
+def _omc_frame(pubs, t_ns: int) -> None:
+    """One OMC frame: the reference marker and both targets, all stamped ``t_ns``."""
+    from fullperc_common.ros_conv import pose_stamped
+
+    pubs["base"].publish(pose_stamped(t_ns, "omc", (1.0, 0.5, 0.8), (0.0, 0.0, 0.0, 1.0)))
+    pubs["tool"].publish(pose_stamped(t_ns, "omc", (1.4, 0.5, 1.1), (0.0, 0.0, 0.0, 1.0)))
+    pubs["instrument"].publish(pose_stamped(t_ns, "omc", (1.2, 0.3, 1.0), (0.0, 0.0, 0.0, 1.0)))
+
+
+def _one_wake_up(node, pubs, frames: range) -> None:
+    """Publish ``frames``, wait until the node's readers hold them all, then run ONE input callback: it drains
+    every queued sample (fusion_node._on_input), i.e. one wake-up of the node."""
+    from rclpy.duration import Duration
+
+    from fullperc_common.ros_conv import pose_stamped
+
+    for k in frames:
+        _omc_frame(pubs, T0 + k * STEP)
+    for p in pubs.values():
+        assert p.wait_for_all_acked(Duration(seconds=60))
+    first = pose_stamped(T0 + frames[0] * STEP - 1, "omc", (1.0, 0.5, 0.8), (0.0, 0.0, 0.0, 1.0))
+    node._on_input("omc", "base", first, {})
+
+
+@pytest.fixture
+def two_target_node(rclpy_context):
+    import rclpy
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.parameter import Parameter
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    from fullperc_fusion.fusion_node import FusionNode
+
+    node = FusionNode(context=rclpy_context, parameter_overrides=[
+        Parameter("targets", value=["tool", "instrument"]), Parameter("init_samples", value=5),
+        Parameter("static_links", value="average")])
+    feeder = rclpy.create_node("feeder", context=rclpy_context)
+    qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+    pubs = {b: feeder.create_publisher(PoseStamped, f"/omc/{b}/pose", qos) for b in ("base", "tool", "instrument")}
+    lis = TfListener(rclpy_context)
+    wait_for(lambda: all(p.get_subscription_count() >= 1 for p in pubs.values())
+             and node._tf.pub.get_subscription_count() >= 1, 60, what="fusion_node and the listener matched")
+    yield node, pubs, lis
+    lis.close()
+    feeder.destroy_node()
+    node.destroy_node()
+
+
+def test_one_tf_message_holds_both_targets_of_one_wake_up(two_target_node):
+    node, pubs, lis = two_target_node
+    _one_wake_up(node, pubs, range(0, 10))        # the static links (5 samples each), then fused outputs
+    wait_for(lambda: lis.tf, 30, what="the first /tf")
+    assert len(lis.tf) == 1, "one wake-up, one TFMessage"
+    _one_wake_up(node, pubs, range(10, 11))       # one OMC frame of both targets
+    wait_for(lambda: len(lis.tf) >= 2, 30, what="the second /tf")
+    msg = lis.tf[1]
+    assert sorted((t.child_frame_id, _ns(t.header.stamp)) for t in msg.transforms) == [
+        ("instrument", T0 + 10 * STEP), ("tool", T0 + 10 * STEP)]
+    assert all(t.header.frame_id == "base" for t in msg.transforms)
+    assert len(lis.tf) == 2
