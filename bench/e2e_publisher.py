@@ -1,7 +1,6 @@
 """Driver stand-in for the live benches (fused latency, capacity): OMC and OTS poses at device rates, in real time.
 
-OMC (frame ``omc``) at ``--omc-hz``: bodies ``base``, ``--rig`` (when given: the OMC body on the OTS, still) and
-every ``--tools`` name; OTS (frame ``ots``) at
+OMC (frame ``omc``) at ``--omc-hz``: bodies ``base`` and every ``--tools`` name; OTS (frame ``ots``) at
 ``--ots-hz``: tools ``base`` and the same names. Every message is stamped with the host time just before it is
 published (acquisition time == publish time for this stand-in), so the subscriber's receive time minus the fused
 pose's stamp is the end-to-end latency from a driver's publish to the fused pose.
@@ -44,7 +43,6 @@ def main() -> int:
     ap.add_argument("--wait-base", type=int, default=1,
                     help="subscribers /omc/base/pose and /ots/base/pose must have (one per fusion process)")
     ap.add_argument("--tools", default="tool", help="comma-separated target names (default: tool)")
-    ap.add_argument("--rig", default="", help="also publish this OMC body (the OTS rig, still) at the OMC rate")
     ap.add_argument("--stamps", help="write the target samples' stamps here (JSON: {omc|ots: {tool: [ns]}})")
     a = ap.parse_args()
     rclpy.init()
@@ -53,8 +51,6 @@ def main() -> int:
     tools = [t for t in a.tools.split(",") if t]
     pubs = {f"/{d}/{b}/pose": node.create_publisher(PoseStamped, f"/{d}/{b}/pose", qos)
             for d in ("omc", "ots") for b in ("base", *tools)}
-    if a.rig:
-        pubs[f"/omc/{a.rig}/pose"] = node.create_publisher(PoseStamped, f"/omc/{a.rig}/pose", qos)
     need = {f"/omc/{tools[0]}/pose": a.wait_subscribers, "/omc/base/pose": a.wait_base, "/ots/base/pose": a.wait_base}
     while any(p.get_subscription_count() < need.get(topic, 1) for topic, p in pubs.items()):
         rclpy.spin_once(node, timeout_sec=0.05)
@@ -67,13 +63,10 @@ def main() -> int:
     counts = {"omc": 0, "ots": 0}
     stamps: dict[str, dict[str, list[int]]] = {"omc": {t: [] for t in tools}, "ots": {t: [] for t in tools}}
     T_ots_omc_q = T_to_pq(T_ots_omc)[1]
-    p_rig, q_rig = T_to_pq(T_OMC_OTS)
     while (now := time.monotonic()) - t0 < a.duration:
         t = now - t0
         if now >= next_omc:
             pubs["/omc/base/pose"].publish(pose_stamped(time.time_ns(), "omc", p_base_omc, q_base_omc))
-            if a.rig:
-                pubs[f"/omc/{a.rig}/pose"].publish(pose_stamped(time.time_ns(), "omc", p_rig, q_rig))
             p = tool_in_omc(t)
             for tool in tools:
                 ns = time.time_ns()

@@ -240,9 +240,6 @@ PARAMS: tuple[Param, ...] = (
           "every sample of a source rejected for this long -> ERROR"),
     Param("tf.enabled", True, "bool", None, "", "",
           "broadcast /tf (base -> <target>) and /tf_static (omc -> base, base -> ots, base -> diana_base)"),
-    Param("tf.rate", 0.0, "float", *NONNEGATIVE, "Hz",
-          "most /tf messages per second, each with the newest base -> <target> of every target fused since the "
-          "last (0 = one per wake-up with every fused output of every target)"),
     Param("tf.diana_base", None, "pose7", None, "", "m, quaternion x y z w",
           "optional T_base_diana_base (the arm's base in base) for /tf_static [x y z qx qy qz qw]"),
 )

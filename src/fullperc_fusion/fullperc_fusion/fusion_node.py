@@ -6,8 +6,8 @@ from ``sources``, :mod:`sources`):
   /ots/<tool>/pose  for the target's OTS tool and the base tool (PoseStamped, ``ots``)
   <prefix>/<tool>/pose  of every further local source: the target's tool and its base tool
   /fullperc/<target>/region (fullperc_msgs/Region, optional: fills FusionStatus.region)
-Publishes (every per-sample topic but ``pose`` only while a subscription is matched, :mod:`fusion_publish`):
-  /fullperc/<target>/pose      PoseStamped, frame ``base``, stamp = acquisition stamp of the newest sample (always)
+Publishes:
+  /fullperc/<target>/pose      PoseStamped, frame ``base``, stamp = acquisition stamp of the newest sample
   /fullperc/<target>/pose_cov  PoseWithCovarianceStamped (same stamp/frame)
   /fullperc/<target>/status    fullperc_msgs/FusionStatus
   /fullperc/<target>/<filter>/pose and .../status  for every filter listed in ``filters`` (side by side; with
@@ -15,8 +15,7 @@ Publishes (every per-sample topic but ``pose`` only while a subscription is matc
   /fullperc/<target>/final     PoseStamped (``processing: arrival``, ``publish_final``): the primary filter's estimate
                                of each item once it left the history -- final, equal to the offline evaluator's
   /tf                          tf2_msgs/TFMessage ``base`` -> ``<target>`` per fused output of the primary filter
-                               (stamp = fused stamp), one TFMessage per wake-up holding every target fused in it
-                               (``tf.rate`` > 0: at most that rate, newest per target); with ``tf.enabled``
+                               (stamp = fused stamp); with ``tf.enabled`` (default true)
   /tf_static                   (transient local) ``omc`` -> ``base`` (T_omc_base) and ``base`` -> ``ots``
                                (T_base_ots; not with ``local_chain: tracked``, where the OTS moves) once known, sent
                                again when they change (~/initialize, ~/calibrate, re-calibration); ``base`` ->
@@ -70,7 +69,7 @@ from fullperc_common.ros_conv import ns_to_stamp, pose_msg, pose_to_pq, stamp_to
 from fullperc_common.tf import Broadcaster, StaticBroadcaster, transform_stamped
 from fullperc_fusion.fusion_config import read_values, spec
 from fullperc_fusion.fusion_core import DIAG_EVAL_PERIOD_S, FusionCore, Log
-from fullperc_fusion.fusion_publish import Listeners, OutputPublisher, TfBatch, publish_outputs
+from fullperc_fusion.fusion_publish import OutputPublisher, publish_outputs
 from fullperc_fusion.pipeline.arrival import ArrivalPipeline
 from fullperc_fusion.pipeline.ordered import FusedOutput
 from fullperc_msgs.msg import FusionStatus, Region, TrackingQuality
@@ -92,22 +91,21 @@ class FusionNode(Node):
         self._region: dict[str, int] = {}
         pubs: dict[tuple[str, str], tuple] = {}
         self._final_pubs: dict[str, object] = {}
-        self._listeners = lis = Listeners()   # subscriber counts of the lazy outputs, cached (fusion_publish)
         for t in core.targets:
             pubs[(t, "")] = (
                 self.create_publisher(PoseStamped, f"/fullperc/{t}/pose", qos),
                 self.create_publisher(PoseWithCovarianceStamped, f"/fullperc/{t}/pose_cov", qos),
                 self.create_publisher(FusionStatus, f"/fullperc/{t}/status", qos))
             if vals["publish_final"] and isinstance(core.pipes[t], ArrivalPipeline):
-                self._final_pubs[t] = lis.add(self.create_publisher(PoseStamped, f"/fullperc/{t}/final", qos))
+                self._final_pubs[t] = self.create_publisher(PoseStamped, f"/fullperc/{t}/final", qos)
             for f in core.extra:
                 pubs[(t, f)] = (
                     self.create_publisher(PoseStamped, f"/fullperc/{t}/{f}/pose", qos), None,
                     self.create_publisher(FusionStatus, f"/fullperc/{t}/{f}/status", qos))
             self.create_subscription(Region, f"/fullperc/{t}/region",
                                      lambda m, t=t: self._region.__setitem__(t, int(m.label)), 10)
-        self._out_sets = {k: OutputPublisher(*v, always_pose=k[1] == "", status_rate=vals["status_rate"],
-                                             listeners=lis) for k, v in pubs.items()}
+        self._out_sets = {k: OutputPublisher(*v, always_pose=k[1] == "", status_rate=vals["status_rate"])
+                          for k, v in pubs.items()}
         self._quality_subs = {key: self.create_subscription(TrackingQuality, topic,
                                                             partial(self._on_quality, key), qos)
                               for key, topic in core.quality_topics.items()}
@@ -118,7 +116,7 @@ class FusionNode(Node):
         # own (reentrant) group: the answer waits for the collection, and the default group's callbacks (the data)
         # must run meanwhile; a second call is answered at once
         self.create_service(Trigger, "~/calibrate", self._on_calibrate, callback_group=ReentrantCallbackGroup())
-        self._tf = TfBatch(Broadcaster(self).pub, lis, vals["tf.rate"]) if vals["tf.enabled"] else None
+        self._tf = Broadcaster(self) if vals["tf.enabled"] else None
         self._tf_static = StaticBroadcaster(self) if vals["tf.enabled"] else None
         self._send_static()
         self.create_timer(0.01, self._on_timer)
@@ -156,7 +154,6 @@ class FusionNode(Node):
         body's sample before a target sample of the same stamp: the same device frame, mapped with it). ``info``:
         rclpy's message info (a required argument, so rclpy passes it), for the callback delay."""
         wall = time.time_ns()
-        self._listeners.refresh(time.monotonic())
         batch = [(stamp_to_ns(msg.header.stamp), dev, body, msg)]
         for d, b, sub in self._input_subs:
             batch.extend((stamp_to_ns(m.header.stamp), d, b, m) for m in take_queued(sub))
@@ -173,7 +170,6 @@ class FusionNode(Node):
         if self.core.input_done(batch, None if not received else wall - int(received), clock, time.monotonic()):
             self._update_diagnostics()   # its timer is a period late: an overloaded node runs no timer
         self._diag.publish_if_overdue()
-        self._flush_tf()
 
     def _on_pose(self, dev: str, body: str, t_ns: int, msg: PoseStamped) -> list[str]:
         """Push one pose into the pipelines of the targets it feeds; returns those targets."""
@@ -200,20 +196,17 @@ class FusionNode(Node):
         for key, sub in self._quality_subs.items():
             while m := take_queued(sub, 1):
                 self._on_quality(key, m[0])
-        self._flush_tf()
         self.core.end_of_streams()   # nothing more comes: the last /diagnostics settles every count
         self._update_diagnostics()
         self._diag.publish()
 
     def _on_timer(self) -> None:
         now = time.monotonic()
-        self._listeners.refresh(now)
         if self.core.calibrating:
             self._finish_calibration(now)
         for t, outs in self.core.due_outputs(now, self._host_ns()):
             self._publish(t, outs)
             self._publish_final(t)
-        self._flush_tf()
 
     # ---- services ---------------------------------------------------------------------------
     def _on_initialize(self, _req, resp):
@@ -270,20 +263,19 @@ class FusionNode(Node):
         now = time.monotonic()
         core = self.core
         core.note_skipped(target, now)
-        publish_outputs(self._out_sets, target, outs, core.primary, core.extra, self._region.get(target, 0),
-                        on_primary=partial(core.primary_output, target, now),
-                        on_error=partial(core.publish_error, target), tf=self._tf)
-
-    def _flush_tf(self) -> None:
-        """The end of a wake-up: /tf of the targets fused in it, one TFMessage (``tf.rate``: when due)."""
-        if self._tf is not None:
-            self._tf.flush(time.monotonic())
+        tfs = publish_outputs(
+            self._out_sets, target, outs, core.primary, core.extra, self._region.get(target, 0),
+            on_primary=partial(core.primary_output, target, now), on_error=partial(core.publish_error, target),
+            tf_of=None if self._tf is None else
+            lambda o: transform_stamped(o.t_ns, "base", target, p=o.p, q_xyzw=o.q))
+        if tfs:
+            self._tf.send(tfs)
 
     def _publish_final(self, target: str) -> None:
         """/fullperc/<target>/final: the primary filter's estimates of the items that left the history."""
         outs = self.core.final_outputs(target)
         pub = self._final_pubs.get(target)
-        if pub is None or not self._listeners.wanted(pub):
+        if pub is None:
             return
         for o in outs:
             ps = PoseStamped()

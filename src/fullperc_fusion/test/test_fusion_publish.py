@@ -1,6 +1,5 @@
 """fusion_publish: reused messages carry what the per-output construction carried; topics nobody subscribes to are
-skipped (never the primary's pose), with the subscriber counts cached per refresh period; /tf is one TFMessage per
-wake-up (``tf.rate``: newest per target, at most that rate); a refused pose publishes nothing."""
+skipped only where allowed (never the primary's pose / pose_cov / tf); a refused pose publishes nothing."""
 
 from __future__ import annotations
 
@@ -10,7 +9,7 @@ import numpy as np
 import pytest
 
 from fullperc_common.ros_conv import ns_to_stamp, pose_msg
-from fullperc_fusion.fusion_publish import Listeners, OutputPublisher, TfBatch, fill_pose, publish_outputs
+from fullperc_fusion.fusion_publish import OutputPublisher, fill_pose, publish_outputs
 from fullperc_fusion.pipeline.ordered import FusedOutput
 
 
@@ -18,10 +17,8 @@ class FakePub:
     def __init__(self, subs: int) -> None:
         self.subs = subs
         self.sent: list = []
-        self.count_calls = 0
 
     def get_subscription_count(self) -> int:
-        self.count_calls += 1
         return self.subs
 
     def publish(self, msg) -> None:
@@ -41,12 +38,6 @@ def _sets(subs: int):
     pubs = {("tool", ""): (FakePub(subs), FakePub(subs), FakePub(subs)),
             ("tool", "kf"): (FakePub(subs), None, FakePub(subs))}
     return pubs, {k: OutputPublisher(*v, always_pose=k[1] == "") for k, v in pubs.items()}
-
-
-def _refresh(sets) -> None:
-    """A new wake-up: every set's (private, refresh_s 0) listener cache reads the counts again."""
-    for s in sets.values():
-        s.listeners.refresh(0.0)
 
 
 def test_fill_pose_equals_pose_msg_and_keeps_its_refusals():
@@ -71,7 +62,6 @@ def test_fill_pose_equals_pose_msg_and_keeps_its_refusals():
 
 def test_reused_messages_carry_every_field_of_each_output():
     pubs, sets = _sets(subs=1)
-    _refresh(sets)
     outs = [_out(t_ns=1_000_000_000 * i + 7, k=0.1 * i) for i in range(3)]
     for o in outs:
         sets[("tool", "")].publish("tool", o, region=4)
@@ -93,109 +83,33 @@ def test_reused_messages_carry_every_field_of_each_output():
         assert (st.nis, st.hop, st.time_since_local, st.link_bumped) == (o.nis, o.hop, 0.01, False)
 
 
-def test_unsubscribed_topics_skipped_but_never_the_primary_pose():
+def test_unsubscribed_topics_skipped_but_never_the_primary_pose_cov_or_tf():
     pubs, sets = _sets(subs=0)
-    tf_pub = FakePub(0)
-    tf = TfBatch(tf_pub, sets[("tool", "")].listeners)
-    _refresh(sets)
     seen, errors = [], []
-    publish_outputs(sets, "tool", [_out("cbkf"), _out("kf")], "cbkf", ["kf"], 0,
-                    on_primary=seen.append, on_error=lambda o, why: errors.append(why), tf=tf)
+    tfs = publish_outputs(sets, "tool", [_out("cbkf"), _out("kf")], "cbkf", ["kf"], 0,
+                          on_primary=seen.append, on_error=lambda o, why: errors.append(why),
+                          tf_of=lambda o: ("tf", o.t_ns))
     pose_pub, cov_pub, st_pub = pubs[("tool", "")]
-    assert len(pose_pub.sent) == 1                                 # the primary's pose: always
-    assert cov_pub.sent == [] and st_pub.sent == []                # pose_cov, status: nobody listens
+    assert len(pose_pub.sent) == 1 and len(cov_pub.sent) == 1   # primary pose and pose_cov: always
+    assert st_pub.sent == []                                       # status: nobody listens
     assert all(p is None or p.sent == [] for p in pubs[("tool", "kf")])   # side-by-side: nobody listens
-    assert tf.flush(0.0) == 0 and tf_pub.sent == []                # /tf: nobody listens, nothing kept
-    assert [o.filter for o in seen] == ["cbkf"] and errors == []
+    assert tfs == [("tf", _out().t_ns)] and [o.filter for o in seen] == ["cbkf"] and errors == []
     pubs[("tool", "kf")][0].subs = 1   # a subscriber appears on the side-by-side pose only
-    cov_pub.subs = tf_pub.subs = 1     # ... and on pose_cov and /tf
-    _refresh(sets)
-    publish_outputs(sets, "tool", [_out("cbkf", t_ns=4), _out("kf", t_ns=5)], "cbkf", ["kf"], 0, seen.append,
-                    lambda o, w: None, tf)
+    publish_outputs(sets, "tool", [_out("kf", t_ns=5)], "cbkf", ["kf"], 0, seen.append, lambda o, w: None, None)
     assert [m.header.stamp.nanosec for m in pubs[("tool", "kf")][0].sent] == [5]
-    assert pubs[("tool", "kf")][2].sent == [] and st_pub.sent == []
-    assert [m.header.stamp.nanosec for m in cov_pub.sent] == [4]
-    assert tf.flush(0.0) == 1 and [t.header.stamp.nanosec for t in tf_pub.sent[0].transforms] == [4]
-
-
-def test_subscriber_counts_are_read_once_per_refresh_period_not_per_output():
-    """The count check is a call into rcl (~2 us): read at the first wake-up ``refresh_s`` after the last read, and
-    a subscriber that appears in between gets its outputs from the next read on."""
-    lis = Listeners(refresh_s=0.1)
-    pose, cov, st = FakePub(1), FakePub(0), FakePub(0)
-    out = OutputPublisher(pose, cov, st, always_pose=True, listeners=lis)
-    assert pose.count_calls == 0, "the primary pose is never checked"
-    for k in range(50):                    # 50 wake-ups within 49 ms: one read
-        lis.refresh(1.0 + k * 0.001)
-        out.publish("tool", _out(t_ns=1_000 + k), region=0)
-    assert (cov.count_calls, st.count_calls, lis.reads) == (1, 1, 1) and cov.sent == []
-    cov.subs = 1                           # matched now: not seen before the next read
-    lis.refresh(1.09)
-    out.publish("tool", _out(t_ns=2_000), region=0)
-    assert cov.sent == []
-    lis.refresh(1.1)                       # one refresh period after the last read
-    out.publish("tool", _out(t_ns=3_000), region=0)
-    assert [m.header.stamp.nanosec for m in cov.sent] == [3_000] and lis.reads == 2
-    assert len(pose.sent) == 52
-
-
-def _tf_outputs(sets, tf, target_outs):
-    for target, outs in target_outs:
-        publish_outputs(sets, target, outs, "cbkf", [], 0, lambda o: None, lambda o, w: None, tf)
-
-
-def _two_targets():
-    lis = Listeners(refresh_s=0.0)
-    sets = {(t, ""): OutputPublisher(FakePub(0), FakePub(0), FakePub(0), always_pose=True, listeners=lis)
-            for t in ("tool", "instrument")}
-    tf_pub = FakePub(1)
-    return lis, sets, tf_pub
-
-
-def test_tf_is_one_message_per_wake_up_with_every_target_and_output_fused_in_it():
-    lis, sets, tf_pub = _two_targets()
-    tf = TfBatch(tf_pub, lis)
-    lis.refresh(0.0)
-    _tf_outputs(sets, tf, [("tool", [_out(t_ns=10), _out(t_ns=20, k=0.1)]), ("instrument", [_out(t_ns=15)])])
-    assert tf_pub.sent == [], "nothing before the wake-up ends"
-    assert tf.flush(0.0) == 3 and len(tf_pub.sent) == 1
-    msg = tf_pub.sent[0]
-    assert [(t.child_frame_id, t.header.stamp.nanosec) for t in msg.transforms] == [
-        ("tool", 10), ("tool", 20), ("instrument", 15)]
-    assert all(t.header.frame_id == "base" for t in msg.transforms)
-    t20, o20 = msg.transforms[1], _out(t_ns=20, k=0.1)   # values copied from that output, not the refilled message
-    assert [t20.transform.translation.x, t20.transform.translation.y, t20.transform.translation.z] == list(o20.p)
-    assert np.allclose([t20.transform.rotation.x, t20.transform.rotation.y, t20.transform.rotation.z,
-                        t20.transform.rotation.w], o20.q, atol=1e-15)
-    assert tf.flush(0.001) == 0 and len(tf_pub.sent) == 1, "an empty wake-up sends nothing"
-
-
-def test_tf_rate_sends_the_newest_transform_per_target_at_most_that_often():
-    lis, sets, tf_pub = _two_targets()
-    tf = TfBatch(tf_pub, lis, rate=10.0)
-    lis.refresh(0.0)
-    _tf_outputs(sets, tf, [("tool", [_out(t_ns=10), _out(t_ns=20)]), ("instrument", [_out(t_ns=15)])])
-    assert tf.flush(5.0) == 2
-    _tf_outputs(sets, tf, [("tool", [_out(t_ns=30)])])
-    assert tf.flush(5.05) == 0, "within 1 / rate of the last message: kept"
-    _tf_outputs(sets, tf, [("tool", [_out(t_ns=40)]), ("instrument", [_out(t_ns=35)])])
-    assert tf.flush(5.1) == 2
-    got = [[(t.child_frame_id, t.header.stamp.nanosec) for t in m.transforms] for m in tf_pub.sent]
-    assert got == [[("tool", 20), ("instrument", 15)], [("tool", 40), ("instrument", 35)]]
+    assert pubs[("tool", "kf")][2].sent == []
 
 
 def test_a_refused_pose_publishes_nothing_and_is_reported():
     pubs, sets = _sets(subs=1)
-    tf_pub = FakePub(1)
-    tf = TfBatch(tf_pub, sets[("tool", "")].listeners)
-    _refresh(sets)
     errors = []
     bad, nonunit = _out(p=(np.nan, 0.0, 0.0)), _out("kf")
     nonunit.q = np.array([0.0, 0.0, 0.0, 1.5])
-    publish_outputs(sets, "tool", [bad, nonunit], "cbkf", ["kf"], 0,
-                    on_primary=lambda o: None, on_error=lambda o, why: errors.append((o.filter, why)), tf=tf)
-    assert tf.flush(0.0) == 0 and [f for f, _ in errors] == ["cbkf", "kf"]
-    assert all(p is None or p.sent == [] for v in pubs.values() for p in v) and tf_pub.sent == []
+    tfs = publish_outputs(sets, "tool", [bad, nonunit], "cbkf", ["kf"], 0,
+                          on_primary=lambda o: None, on_error=lambda o, why: errors.append((o.filter, why)),
+                          tf_of=lambda o: o)
+    assert tfs == [] and [f for f, _ in errors] == ["cbkf", "kf"]
+    assert all(p is None or p.sent == [] for v in pubs.values() for p in v)
 
 
 def test_status_rate_caps_status_by_stamp_but_never_drops_a_hop_or_a_bump_change():
@@ -205,7 +119,6 @@ def test_status_rate_caps_status_by_stamp_but_never_drops_a_hop_or_a_bump_change
 
     pose_pub, cov_pub, st_pub = FakePub(1), FakePub(1), FakePub(1)
     pub = OutputPublisher(pose_pub, cov_pub, st_pub, always_pose=True, status_rate=50.0)
-    pub.listeners.refresh(0.0)
     t0, dt = 1_000_000_000, 2_500_000
     hops = {37, 38, 101}
     bumped_from = 150
@@ -225,7 +138,6 @@ def test_status_rate_caps_status_by_stamp_but_never_drops_a_hop_or_a_bump_change
     # uncapped (the default): every output
     st2 = FakePub(1)
     pub2 = OutputPublisher(FakePub(1), FakePub(1), st2, always_pose=True)
-    pub2.listeners.refresh(0.0)
     for o in outs:
         pub2.publish("tool", o, region=1)
     assert len(st2.sent) == len(outs)
