@@ -216,3 +216,22 @@ def test_the_registry_is_the_one_list():
         assert isinstance(f, Filter) and f.kind == name and f.params.global_std == 1e-3
     with pytest.raises(ValueError, match="not one of"):
         make_filter("ukf")
+
+
+def test_each_filter_gets_its_own_parameter_dataclass():
+    """A target's one parameter object (fullperc's dataclass, a superset) reaches each filter as its registry entry's
+    own dataclass: the paper's filters get a FilterParams with the same values of their fields, fullperc the object."""
+    import dataclasses
+
+    from fullperc_fusion.filters.fullperc_params import FullpercParams
+    from fullperc_fusion.filters.registry import own_params
+
+    p = FullpercParams(global_std=2e-3, local_std=3e-4)
+    for name, entry in FILTERS.items():
+        f = make_filter(name, p)
+        assert type(f.params) is entry.params, name
+        assert all(getattr(f.params, k.name) == getattr(p, k.name) for k in dataclasses.fields(entry.params)), name
+    assert make_filter("fullperc", p).params is p
+    assert own_params("cbkf", None) is None
+    base = FilterParams(global_std=1e-3)
+    assert own_params("cbkf", base) is base

@@ -9,6 +9,7 @@ of ``TargetConfig`` and ``fusion_config`` (the ``filter`` / ``filters`` node par
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
@@ -60,6 +61,17 @@ def capabilities(name: str) -> Capabilities:
     return spec(name).caps
 
 
+def own_params(name: str, params: FilterParams | None) -> FilterParams | None:
+    """``params`` as filter ``name``'s own parameter dataclass: a target's configuration holds one object of the
+    dataclass every registered one is a base of (``fullperc``'s, a superset); a filter whose own dataclass is a base of
+    it gets a copy of its own fields only, so it cannot read (or come to depend on) another filter's parameters."""
+    own = spec(name).params
+    if params is None or type(params) is own or not isinstance(params, own):
+        return params
+    return own(**{f.name: getattr(params, f.name) for f in dataclasses.fields(own)})
+
+
 def make_filter(name: str, params: FilterParams | None = None) -> Filter:
-    """A new filter ``name`` (a key of :data:`FILTERS`) with ``params`` (default: its own parameter dataclass's)."""
-    return spec(name).factory(params)
+    """A new filter ``name`` (a key of :data:`FILTERS`) with its own fields of ``params`` (:func:`own_params`;
+    default: its own parameter dataclass's defaults)."""
+    return spec(name).factory(own_params(name, params))
