@@ -114,12 +114,31 @@ def signal_cycle(procs: Procs, spec: NodeSpec, ros_args: list[str], counter, sig
 
     With ``again_after_s`` the same signal is sent a second time that long after the first, i.e. while the node
     shuts down (Ctrl-C pressed twice, or a launcher escalating). Clean: exit status 0 and no "Traceback" in
-    the node's output. ``on_flowing(p)`` runs once the data flows, before the signal. The timeouts are
+    the node's output. ``on_flowing(p, counter)`` runs once the data flows, before the signal. The timeouts are
     liveness bounds (a hung node must not hang the run), not measurements.
+
+    ``counter`` counts ``spec.output`` (a :class:`~fullperc_common.testing.TopicCounter`), or is a function that
+    makes one: then it is made once the node has written its first line (its DDS participant is up) and closed at
+    the end of the cycle. A reader that exists before a new process's participant appears is often matched with its
+    writers only at Fast DDS's next periodic announcement (up to ~3 s later, seen here: 0.5-3.6 s to the first
+    message); one made after the participant appeared is matched at once.
     """
     res = CycleResult(signal.Signals(sig).name + ("" if again_after_s is None else " twice"))
-    before = counter.count(spec.output)
-    p = procs.start([spec.exe(), *ros_args], name=f"{spec.name}_{k}")
+    make = counter if callable(counter) else None
+    try:
+        if make is None:
+            before = counter.count(spec.output)
+        p = procs.start([spec.exe(), *ros_args], name=f"{spec.name}_{k}")
+        if make is not None:
+            poll_until(lambda: p.poll() is not None or procs.log(p).strip(), liveness_s)
+            counter, before = make(), 0
+        return _cycle(procs, spec, p, counter, before, res, sig, min_msgs, liveness_s, on_flowing, again_after_s)
+    finally:
+        if make is not None and not callable(counter):
+            counter.close()
+
+
+def _cycle(procs, spec, p, counter, before, res, sig, min_msgs, liveness_s, on_flowing, again_after_s):
     flowing = poll_until(lambda: p.poll() is not None or counter.count(spec.output) - before >= min_msgs,
                          liveness_s)
     res.flowed = counter.count(spec.output) - before
@@ -134,7 +153,7 @@ def signal_cycle(procs: Procs, spec: NodeSpec, ros_args: list[str], counter, sig
         res.problem = f"no data flowed within {liveness_s:.0f} s ({res.flowed} messages on {spec.output})"
         return res
     if on_flowing is not None:
-        on_flowing(p)
+        on_flowing(p, counter)
     try:
         os.killpg(p.pid, sig)
         if again_after_s is not None:

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from fullperc_common.diagnostics import as_level
-from fullperc_common.testing import SpunNode, installed_exe, side_by_side_fixture, wait_for
+from fullperc_common.testing import SpunNode, installed_exe, side_by_side_fixture, wait_for, wait_for_first_line
 from fullperc_drivers.ndi import replies as R
 from fullperc_drivers.ndi.protocol import FrameReader, decode_command, encode_ascii_reply, encode_binary_reply
 
@@ -220,6 +220,7 @@ def _health_leaves_ok_on_frozen_nan_and_garbage_replies_and_recovers(procs, tmp_
     proxy = FaultProxy(start_emulator(procs, tmp_path))
     # stale_after_s 1 s (default 2 s): each fault phase lasts until the level left OK, which takes that long
     drv = start_driver(procs, proxy.port, "health.reconnect_window_s:=3.0", "health.stale_after_s:=1.0")
+    wait_for_first_line(procs, drv)   # the listener once the driver is up: matched at once (wait_for_first_line)
     lis = Listener(rclpy_context)
     try:
         wait_for(lambda: lis.n_poses("tool") > 30 and lis.n_poses("base") > 30, timeout=40, what="poses")
@@ -268,6 +269,7 @@ def _a_rom_the_device_refuses_is_named_and_the_other_tool_keeps_tracking(procs, 
     base_rom = CONFIG / "base.rom"
     proxy = FaultProxy(start_emulator(procs, tmp_path), refuse_rom=base_rom.read_bytes())
     drv = start_driver(procs, proxy.port, f"tool_roms:=[{CONFIG / 'tool.rom'}, {base_rom}]")
+    wait_for_first_line(procs, drv)
     lis = Listener(rclpy_context)
     try:
         wait_for(lambda: lis.n_poses("tool") > 60, timeout=40, what="poses of the accepted tool")
@@ -358,19 +360,21 @@ def _max_attempts(seconds: float) -> int:
 
 def _ctrl_c_over_a_slow_link_exits_0_without_a_traceback(procs, tmp_path, rclpy_context):
     proxy = FaultProxy(start_emulator(procs, tmp_path), delay_s=0.02)
-    lis = Listener(rclpy_context)
     try:
         for i in range(2):
-            n0 = lis.n_poses("tool")
             drv = start_driver(procs, proxy.port, name=f"ndi_driver_{i}")
-            wait_for(lambda n0=n0: lis.n_poses("tool") > n0 + 20, timeout=40, what="poses over the slow link")
-            assert procs.stop(drv, signal.SIGINT) == 0, procs.log(drv)
+            wait_for_first_line(procs, drv)   # a listener of each run's own, made once the driver is up
+            lis = Listener(rclpy_context)
+            try:
+                wait_for(lambda lis=lis: lis.n_poses("tool") > 20, timeout=40, what="poses over the slow link")
+                assert procs.stop(drv, signal.SIGINT) == 0, procs.log(drv)   # the listener still subscribed
+            finally:
+                lis.close()
             log = procs.log(drv)
             assert "Traceback" not in log and "callback failed" not in log, log[-3000:]
             # the stop took the clean path over the slow link: TSTOP went to the device before the exit
             assert proxy.commands.count("TSTOP") == i + 1, proxy.commands[-10:]
     finally:
-        lis.close()
         proxy.close()
 
 

@@ -304,6 +304,18 @@ def wait_for(pred, timeout: float = 20.0, interval: float = 0.05, what: str = "c
     pytest.fail(f"timed out after {timeout:.0f} s waiting for {what}" + (f": {detail()}" if detail else ""))
 
 
+def wait_for_first_line(procs: Procs, p: subprocess.Popen, timeout: float = 60.0) -> str:
+    """Wait until ``p`` (started by ``procs``) has written a line or exited; its output so far.
+
+    Make a test's subscriptions to a node after this: a node writes its first line once its DDS participant is up,
+    and a reader made after a new participant appeared is matched with that participant's writers at once, while a
+    reader that existed before often waits for Fast DDS's next periodic announcement (up to ~3 s; 0.5-3.6 s from a
+    node's start to the first message on an old subscription, 0.2-0.4 s on a new one). A liveness bound only.
+    """
+    wait_for(lambda: p.poll() is not None or procs.log(p).strip(), timeout, what=f"{Path(p.args[0]).name}'s output")
+    return procs.log(p)
+
+
 def poll_until(pred, timeout: float, interval: float = 0.05):
     """Like :func:`wait_for` but returns None on timeout instead of failing (for scripts outside pytest)."""
     end = time.monotonic() + timeout

@@ -19,3 +19,23 @@ def test_wait_for_appends_the_detail_to_a_timeout_and_calls_it_only_then():
     assert calls == [1]
     with pytest.raises(pytest.fail.Exception, match=r"waiting for the peer$"):
         wait_for(lambda: False, 0.01, interval=0.001, what="the peer")
+
+
+def test_wait_for_first_line_returns_once_the_process_wrote_or_exited(tmp_path):
+    import os
+    import sys
+
+    from fullperc_common.testing import Procs, wait_for_first_line
+
+    procs = Procs(dict(os.environ), tmp_path)
+    try:
+        talker = procs.start([sys.executable, "-c", "import time; print('up', flush=True); time.sleep(60)"],
+                             name="talker")
+        assert wait_for_first_line(procs, talker, 60).strip() == "up" and talker.poll() is None
+        silent = procs.start([sys.executable, "-c", "pass"], name="silent")
+        assert wait_for_first_line(procs, silent, 60) == "" and silent.returncode == 0
+        mute = procs.start([sys.executable, "-c", "import time; time.sleep(60)"], name="mute")
+        with pytest.raises(pytest.fail.Exception, match="waiting for python.*output"):
+            wait_for_first_line(procs, mute, 0.2)
+    finally:
+        procs.stop_all()

@@ -113,7 +113,9 @@ def publisher_main(argv: list[str]) -> int:
     ap.add_argument("--rate", type=float, default=RATE_HZ)
     ap.add_argument("--log", required=True)
     ap.add_argument("--ack-timeout", type=float, default=60.0, help="[s] wait this long for the readers' acks")
+    ap.add_argument("--stop-file", help="stop publishing once this file exists (the log has what was published)")
     args = ap.parse_args(argv)
+    stop_file = Path(args.stop_file) if args.stop_file else None
     rclpy.init()
     node = rclpy.create_node("fp_test_publisher")
     qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=args.n + 10, reliability=ReliabilityPolicy.RELIABLE,
@@ -128,7 +130,11 @@ def publisher_main(argv: list[str]) -> int:
     print("READY", flush=True)
     stamps = []
     t0 = time.monotonic()
+    stopped = False
     for seq in range(args.n):
+        if stop_file is not None and seq % 10 == 0 and stop_file.exists():
+            stopped = True
+            break
         left = t0 + seq / args.rate - time.monotonic()
         if left > 0:
             time.sleep(left)
@@ -138,7 +144,7 @@ def publisher_main(argv: list[str]) -> int:
         stamps.append(stamp)
         if seq == args.n // 2:
             print("HALF", flush=True)
-    acked = not wait_for_acks(node, args.ack_timeout)
+    acked = not wait_for_acks(node, 0.0 if stopped else args.ack_timeout)
     Path(args.log).write_text(json.dumps({"stamps": stamps, "acked": acked}))
     print("DONE", flush=True)
     try:
@@ -151,9 +157,10 @@ def publisher_main(argv: list[str]) -> int:
 
 # ------------------------------------------------------------------ helpers
 
-def start_publisher(procs: Procs, log: Path, n: int = N, ack_timeout: float = 60.0):
+def start_publisher(procs: Procs, log: Path, n: int = N, ack_timeout: float = 60.0, stop_file: Path | None = None):
     return procs.start([sys.executable, str(Path(__file__).resolve()), "publish", "--n", str(n), "--log", str(log),
-                        "--ack-timeout", str(ack_timeout)], name="publisher")
+                        "--ack-timeout", str(ack_timeout), *(["--stop-file", str(stop_file)] if stop_file else [])],
+                       name="publisher")
 
 
 def wait_done(pub, timeout: float = 120.0) -> list[int]:
@@ -218,10 +225,16 @@ def recorded(tmp_path_factory):
         lease.release()
 
 
+@pytest.fixture(scope="module")
+def recorded_data(recorded):
+    """read_all of the shared recording, read once (the tests only read it)."""
+    return read_all(recorded[0])
+
+
 @pytest.mark.system
-def test_round_trip_counts_and_contents_rosbags(recorded):
+def test_round_trip_counts_and_contents_rosbags(recorded, recorded_data):
     bag, stamps, rec_log = recorded
-    data = read_all(bag)
+    data = recorded_data
     assert sorted(data) == sorted(TOPICS)
     for topic, msgs in data.items():
         assert len(msgs) == N, f"{topic}: {len(msgs)} != {N}"
@@ -267,7 +280,7 @@ def test_round_trip_mcap_reader_and_metadata(recorded):
 
 
 @pytest.mark.system
-def test_bag_writer_serialization_decodes_in_rclpy(recorded):
+def test_bag_writer_serialization_decodes_in_rclpy(recorded, recorded_data):
     """BagWriter.write_msg's CDR (rosbags typestore incl. our fullperc_msgs) decodes with the
     rosidl-generated rclpy code into the published values, so generated datasets replay like
     recordings. Bytes may differ only in alignment padding: Fast DDS does not zero it (seen: a
@@ -278,7 +291,7 @@ def test_bag_writer_serialization_decodes_in_rclpy(recorded):
 
     bag, stamps, _ = recorded
     ts = fullperc_typestore()
-    data = read_all(bag)
+    data = recorded_data
     for topic, msgs in data.items():
         cls = type(build_rclpy_msg(topic, 0, 0))
         for seq in (0, 1, 7, N - 1):
@@ -297,11 +310,11 @@ def _player_lateness_ms(log: str) -> float:
 
 @pytest.mark.system
 @pytest.mark.parametrize("rate", [1.0, 2.0])
-def test_replay_reproduces_bytes_and_timing(recorded, procs, tmp_path, rate):
+def test_replay_reproduces_bytes_and_timing(recorded, recorded_data, procs, tmp_path, rate):
     """Not side by side with the module's other system tests (below): a replay at 1 kHz x 3 topics is the one test
     here whose figures (the player's lateness, the receiving side's envelope) a busy machine moves."""
     bag, _, _ = recorded
-    original = read_all(bag)
+    original = recorded_data
     replay, play_log = run_play(procs, bag, tmp_path / f"replay_{rate:g}", "--rate", str(rate))
     # The player judged by its own clock: messages go out when due -- not behind by more than a small part of the
     # replay. A schedule kept relative to the previous message (the overshoots add up) or a player that cannot keep
@@ -334,11 +347,12 @@ def _sigkill_loses_at_most_about_one_second(procs, tmp_path):
     from fullperc_eval.bag.recover import reindex
 
     bag = tmp_path / "killed"
-    n = 4000  # 4 s at 1 kHz; the recorder is killed after 2 s
+    n = 4000  # at most 4 s at 1 kHz; the recorder is killed after 2 s, and the publisher stopped then (stop_file)
     rec = procs.start(record_cmd(bag, "--topics", *TOPICS), name="record")
     # the killed recorder never acknowledges: DDS would keep it matched until its lease ran out (~20 s) and the
     # publisher would wait for its acks that long; nothing here needs them
-    pub = start_publisher(procs, tmp_path / "pub.json", n=n, ack_timeout=0.5)
+    stop_file = tmp_path / "stop_publishing"
+    pub = start_publisher(procs, tmp_path / "pub.json", n=n, ack_timeout=0.5, stop_file=stop_file)
 
     def flushed_count() -> int:  # the periodic metadata.yaml shows how much is on disk
         try:
@@ -352,6 +366,9 @@ def _sigkill_loses_at_most_about_one_second(procs, tmp_path):
     t_kill = time.time_ns()
     os.killpg(rec.pid, signal.SIGKILL)
     rec.wait(10)
+    # what the publisher sends after the kill goes nowhere: it stops and logs every stamp it published (those
+    # before the kill among them)
+    stop_file.touch()
     wait_done(pub)
     stamps = np.array(json.loads((tmp_path / "pub.json").read_text())["stamps"], dtype=np.int64)
 

@@ -7,6 +7,7 @@ import json
 import socket
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -22,11 +23,18 @@ TASK, SEED = "P-G-B", 2
 
 
 @pytest.fixture(scope="module")
-def offline():
-    """The task as the ``sim`` executable runs it by default (its default twin profile), offline: computed before
-    any sim starts, so a test is free to drain its sockets. The run is deterministic and only read (by the tests and
-    by LiveServer): one simulation serves every test of the module."""
-    return run_task(TASK, seed=SEED, profile=DEFAULT_PROFILE)
+def offline_future():
+    """The task as the ``sim`` executable runs it by default (its default twin profile), offline, computed in a
+    thread of its own: the first test starts the ``sim`` process (which simulates the same task before it serves)
+    while this runs, and drains its sockets meanwhile. The run is deterministic and only read (by the tests and by
+    LiveServer): one simulation serves every test of the module."""
+    with ThreadPoolExecutor(1) as ex:
+        yield ex.submit(run_task, TASK, seed=SEED, profile=DEFAULT_PROFILE)
+
+
+@pytest.fixture(scope="module")
+def offline(offline_future):
+    return offline_future.result()
 
 
 def _udp() -> socket.socket:
@@ -38,7 +46,7 @@ def _udp() -> socket.socket:
 
 
 @pytest.mark.slow
-def test_sim_serves_the_offline_measurements(procs, tmp_path, offline):
+def test_sim_serves_the_offline_measurements(procs, tmp_path, offline_future):
     so, sd = _udp(), _udp()
     port_file = tmp_path / "vega.port"
     offset = 7_000_000_000  # device clocks 7 s ahead of the host clock
@@ -66,6 +74,7 @@ def test_sim_serves_the_offline_measurements(procs, tmp_path, offline):
     wait_for(drain, timeout=120, interval=0.01, what="sim to finish the task")
     drain()
     assert p.returncode == 0, procs.log(p)
+    offline = offline_future.result()
 
     # every OMC frame arrived, in order, with the offline values (mm on the wire)
     fn = np.array([f.frame_number for f, _ in omc])

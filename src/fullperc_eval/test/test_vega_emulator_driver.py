@@ -53,13 +53,15 @@ class Collector:
             return len(self.frames)
 
 
-def run_driver(cfg, during=None, n_frames=30):
-    """Run the driver until ``n_frames`` frames arrived; ``during()`` is called before stopping."""
+def run_driver(cfg, during=None, n_frames=30, until=None):
+    """Run the driver until ``n_frames`` frames arrived and ``until()`` (if given) holds; ``during()`` is called
+    before stopping."""
     col = Collector()
     d = NdiDriver(cfg, on_frame=col)
     d.start()
     try:
-        wait_for(lambda: col.count() >= n_frames, timeout=30, what=f"{n_frames} frames")
+        wait_for(lambda: col.count() >= n_frames and (until is None or until()), timeout=30,
+                 what=f"{n_frames} frames" + ("" if until is None else " and the condition"))
         if during is not None:
             during()
     finally:
@@ -201,10 +203,15 @@ def test_faults_are_counted_and_frames_keep_flowing():
     try:
         cfg = DriverConfig(port=emu.port, tools=[ToolConfig(n, ROMS[n]) for n in names], read_timeout_s=0.1,
                            rate_hz=0)
-        d, frames = run_driver(cfg, n_frames=150)
+        # Until every kind of fault has hit the driver several times (a condition on what is checked below, not a
+        # count of frames: 150 frames took ~13 s, most of it the delayed replies -- 2 % of ~130 replies a second,
+        # 0.3 s each -- and brought no other kind of fault); with this seed that is ~3 s and ~400 replies.
+        d, frames = run_driver(cfg, n_frames=30, until=lambda: (emu.stats.corrupted >= 10 and emu.stats.garbage >= 5
+                                                                and emu.stats.delayed >= 5))
         c = d.counters
         assert emu.stats.corrupted > 0 and c.crc_errors + c.garbled > 0
         assert c.crc_errors + c.garbled + c.timeouts + c.link_losses > 0
+        assert c.timeouts > 0 and c.garbage_bytes > 0   # the delayed replies outlast the read timeout; noise skipped
         check_poses(frames, emu, names)  # whatever got through is exact, nothing garbled passed
     finally:
         emu.stop()

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fullperc_common.testing import RosSession, SideBySide, installed_exe, selected_cases, wait_for
+from fullperc_common.testing import RosSession, SideBySide, installed_exe, selected_cases, wait_for, wait_for_first_line
 
 HERE = Path(__file__).resolve().parent
 PUB = HERE / "synthetic_driver_pub.py"
@@ -85,29 +85,50 @@ def _ns(stamp):
     return stamp.sec * 1_000_000_000 + stamp.nanosec
 
 
+def _start_pub(procs, tmp: Path, *args: str):
+    """synthetic_driver_pub, started once this test's listener is matched with the node's outputs."""
+    return procs.start([sys.executable, str(PUB), "--log", str(tmp / "pub.jsonl"), *args], name="pub")
+
+
+def _published(procs, pub, tmp: Path):
+    """The publisher's rows and t0 once it has written its last line (the meta row; liveness bound only). It then
+    keeps its publishers a second longer for reliable delivery, beside the test's own waits: the test checks its exit
+    status at the end (:func:`_pub_exited`)."""
+    log = tmp / "pub.jsonl"
+
+    def done() -> bool:
+        text = log.read_text() if log.exists() else ""
+        return pub.poll() is not None or (text.endswith("\n") and '"kind": "meta"' in text.rsplit("\n", 2)[-2])
+    wait_for(done, 90, what="the publisher's data", detail=lambda: procs.log(pub)[-2000:])
+    assert pub.poll() in (None, 0), procs.log(pub)
+    return _read_log(log)
+
+
+def _pub_exited(procs, pub) -> None:
+    wait_for(lambda: pub.poll() is not None, 30, what="the publisher to exit")
+    assert pub.returncode == 0, procs.log(pub)
+
+
 def _end_to_end(tmp: Path) -> dict:
     topics = ["/fullperc/tool/pose", "/fullperc/tool/pose_cov", "/fullperc/tool/status",
               "/fullperc/tool/kf/pose", "/fullperc/tool/kf/status", "/fullperc/tool/final"]
     with RosSession(tmp) as s:
         procs = s.procs
+        # qos_depth 1000: every input queue holds the whole 4 s run, so a node stalled on a busy machine still gets
+        # each bad sample this test expects named (the default 100 is 0.8 s of one 120 Hz topic; the stand-in
+        # publishes no TrackingQuality, so a sample lost from a full queue would go unnoticed)
+        node = procs.start([installed_exe("fullperc_fusion", "fusion_node"), "--ros-args",
+                            "-p", "filters:=[kf]", "-p", "init_samples:=20", "-p", "qos_depth:=1000"],
+                           name="fusion_node")
+        wait_for_first_line(procs, node)   # the listener once the node is up: matched at once (wait_for_first_line)
         lis = Listener(s.context, topics)
         try:
-            # qos_depth 1000: every input queue holds the whole 4 s run, so a node stalled on a busy machine still gets
-            # each bad sample this test expects named (the default 100 is 0.8 s of one 120 Hz topic; the stand-in
-            # publishes no TrackingQuality, so a sample lost from a full queue would go unnoticed)
-            node = procs.start([installed_exe("fullperc_fusion", "fusion_node"), "--ros-args",
-                                "-p", "filters:=[kf]", "-p", "init_samples:=20", "-p", "qos_depth:=1000"],
-                               name="fusion_node")
             # start the data only once this listener is matched with every output of the node
             wait_for(lambda: all(lis.node.count_publishers(t) > 0 for t in topics), 60, what="node's publishers")
             wait_for(lambda: all(p.get_publisher_count() > 0 for p in lis.node.subscriptions
                                  if p.topic_name in topics), 30, what="subscriptions matched")
-            log = tmp / "pub.jsonl"
-            pub = procs.start([sys.executable, str(PUB), "--log", str(log), "--bad", "--duration", "4.0"], name="pub")
-            # liveness bounds only: discovery + 4 s of data
-            wait_for(lambda: pub.poll() is not None, 90, what="publisher to finish")
-            assert pub.returncode == 0, procs.log(pub)
-            rows, t0 = _read_log(log)
+            pub = _start_pub(procs, tmp, "--bad", "--duration", "4.0")
+            rows, t0 = _published(procs, pub, tmp)   # liveness bounds only: discovery + 4 s of data
             # every item is final after idle_flush (its outputs, pose, pose_cov, status and kf, were published before
             # its final estimate): wait until the newest good tool sample is final and every output is in
             last_good = max(r["t_ns"] for r in rows if r["body"] == "tool" and "bad" not in r)
@@ -132,6 +153,7 @@ def _end_to_end(tmp: Path) -> dict:
                      detail=texts)
             resp = lis.call_initialize()
             alive = node.poll() is None
+            _pub_exited(procs, pub)
             return {"lis": lis, "rows": rows, "t0": t0, "resp": resp, "alive": alive, "log": procs.log(node)}
         finally:
             lis.close()
@@ -208,10 +230,36 @@ def test_fusion_node_end_to_end(scenarios, request):
 
 
 BAD_PARAMS = ["noise.global_std:=-1.0", "alarm.bias_max:=-0.02", "alarm.hop_max:=0", "T_rig_ots:=[1.0, 2.0, 3.0]"]
+# The case given to the installed executable (a list on the command line, parsed by rcl): exit status and the line
+# naming the parameter. The others are given to FusionNode in this process as parameter overrides of the types rcl
+# parses them to (YAML): the node's own declarations and checks without three more process starts (~1.2 s of CPU
+# each, beside this module's other scenarios). test_fusion_config.py checks each value against the table and that a
+# getter (the node's path) and a params file map alike; test_node_lifecycle.py the exit of a bad value of each node.
+BAD_PARAM_IN_A_PROCESS = "T_rig_ots:=[1.0, 2.0, 3.0]"
 
 
-def _bad_parameter(tmp: Path, arg: str) -> tuple[int, str]:
+def _bad_parameter(tmp: Path, arg: str) -> tuple[int | None, str]:
+    """(exit status, log) of fusion_node started with ``-p arg`` (:data:`BAD_PARAM_IN_A_PROCESS`); the other cases in
+    this process: (None, the message of what the node's constructor raised, or "constructed" if it raised nothing)."""
     with RosSession(tmp) as s:
+        if arg != BAD_PARAM_IN_A_PROCESS:
+            import yaml
+            from rclpy.exceptions import ParameterException
+            from rclpy.parameter import Parameter
+
+            from fullperc_common.params import ParameterError, parameter_exception_message
+            from fullperc_fusion.fusion_node import FusionNode
+
+            name, text = arg.split(":=", 1)
+            try:
+                node = FusionNode(context=s.context, parameter_overrides=[Parameter(name, value=yaml.safe_load(text))])
+            except ParameterError as e:
+                return None, str(e)
+            except ParameterException as e:
+                return None, parameter_exception_message(e)
+            node.close()
+            node.destroy_node()
+            return None, "constructed"
         p = s.procs.start([installed_exe("fullperc_fusion", "fusion_node"), "--ros-args", "-p", arg],
                           name="bad_params")
         wait_for(lambda: p.poll() is not None, 60, what="fusion_node to exit")
@@ -219,10 +267,13 @@ def _bad_parameter(tmp: Path, arg: str) -> tuple[int, str]:
 
 
 @pytest.mark.parametrize("case", BAD_PARAMS)
-def test_fusion_node_rejects_bad_parameters(scenarios, request, case):
-    returncode, log = scenarios.result(request.node.name)
-    assert returncode != 0
-    assert f"'{case.split(':=')[0]}'" in log
+def test_fusion_node_rejects_bad_parameters(scenarios, request, tmp_path, case):
+    if case == BAD_PARAM_IN_A_PROCESS:
+        returncode, log = scenarios.result(request.node.name)
+        assert returncode == 2 and "Traceback" not in log, log
+    else:   # in this test's thread (the main one: the module's scenarios have imported what they need by now)
+        _, log = _bad_parameter(tmp_path, case)
+    assert f"'{case.split(':=')[0]}'" in log, log
 
 
 def _statuses(lis, target):
@@ -241,19 +292,18 @@ def _alarms(tmp: Path) -> dict:
     topics = [f"/fullperc/{t}/status" for t in targets]
     with RosSession(tmp) as s:
         procs = s.procs
+        node = procs.start([installed_exe("fullperc_fusion", "fusion_node"), "--ros-args",
+                            "-p", "targets:=[tool, probe, broken]", "-p", "init_samples:=20",
+                            "-p", "alarm.reject_timeout:=1.0", "-p", "qos_depth:=5000"], name="fusion_node")
+        wait_for_first_line(procs, node)
         lis = Listener(s.context, topics)
         try:
-            node = procs.start([installed_exe("fullperc_fusion", "fusion_node"), "--ros-args",
-                                "-p", "targets:=[tool, probe, broken]", "-p", "init_samples:=20",
-                                "-p", "alarm.reject_timeout:=1.0", "-p", "qos_depth:=5000"], name="fusion_node")
             wait_for(lambda: all(lis.node.count_publishers(t) > 0 for t in topics), 60, what="node's publishers")
             wait_for(lambda: all(p.get_publisher_count() > 0 for p in lis.node.subscriptions
                                  if p.topic_name in topics), 30, what="subscriptions matched")
-            pub = procs.start([sys.executable, str(PUB), "--log", str(tmp / "pub.jsonl"), "--duration", "4.0",
-                               "--extra-bodies", "probe,broken", "--omc-jump", "tool:2.0:1.0",
-                               "--omc-jump", "probe:2.0:0.003", "--omc-nan", "broken:1.5"], name="pub")
-            wait_for(lambda: pub.poll() is not None, 90, what="publisher to finish")
-            assert pub.returncode == 0, procs.log(pub)
+            pub = _start_pub(procs, tmp, "--duration", "4.0", "--extra-bodies", "probe,broken", "--omc-jump",
+                             "tool:2.0:1.0", "--omc-jump", "probe:2.0:0.003", "--omc-nan", "broken:1.5")
+            rows, _ = _published(procs, pub, tmp)
 
             def raised(target, level, *words):
                 return [st for st in _statuses(lis, target)
@@ -264,12 +314,17 @@ def _alarms(tmp: Path) -> dict:
             err = wait_for(lambda: raised("broken", 2, "target 'broken'", "OMC body 'broken'", "rejected"), 30,
                            what="ERROR on every sample of broken rejected")
             # diagnostics of probe once the node has fused all of probe's samples (``last_stamp_ns``)
-            rows, _ = _read_log(tmp / "pub.jsonl")
             last_probe = max(r["t_ns"] for r in rows if r["body"] == "probe")
             wait_for(lambda: [st for st in _statuses(lis, "probe") if _last_stamp(st) >= last_probe], 60,
                      what="diagnostics of probe after all its samples",
                      detail=lambda: [st.message for st in _statuses(lis, "probe")[-3:]])
+            # and tool's FusionStatus of the newest sample those /diagnostics say it fused (the test reads the last
+            # status's bias): the statuses go on a topic of their own, so /diagnostics can arrive before them
+            newest = max(_last_stamp(st) for st in _statuses(lis, "tool"))
+            wait_for(lambda: any(_ns(s.header.stamp) >= newest for s in list(lis.got["/fullperc/tool/status"])), 30,
+                     what="tool's FusionStatus of its newest fused sample")
             hop_ns = min(r["t_ns"] for r in rows if r["body"] == "probe" and "jump" in r)
+            _pub_exited(procs, pub)
             return {"lis": lis, "hop_ns": hop_ns, "warn": warn, "err": err, "alive": node.poll() is None,
                     "log": procs.log(node)}
         finally:
@@ -392,9 +447,14 @@ def _time_guard_scenario(tmp: Path, processing: str, max_future: float) -> dict:
     """One case of the time-guard test (below), in a domain of its own; returns what the checks need."""
     pose_t, final_t = "/fullperc/tool/pose", "/fullperc/tool/final"
     with RosSession(tmp) as s:
-        lis = Listener(s.context, [pose_t, final_t] if processing == "arrival" else [pose_t])
+        # The drivers' writers before the node starts, this listener's readers once it is up: both are then matched at
+        # once (a reader that exists before a new participant appears often waits ~3 s: wait_for_first_line).
         scene = ScenePublisher(s.context)
-        node = None
+        node = s.procs.start([installed_exe("fullperc_fusion", "fusion_node"), "--ros-args",
+                              "-p", "init_samples:=20", "-p", f"max_future:={max_future}",
+                              "-p", f"processing:={processing}", "-p", "qos_depth:=5000"], name="fusion_node")
+        wait_for_first_line(s.procs, node)
+        lis = Listener(s.context, [pose_t, final_t] if processing == "arrival" else [pose_t])
         r: dict = {}
 
         def stamps(topic):
@@ -411,11 +471,8 @@ def _time_guard_scenario(tmp: Path, processing: str, max_future: float) -> dict:
                     f"{len(lis.got[pose_t])}); the node's last /diagnostics: "
                     f"{(sts[-1].message, {kv.key: kv.value for kv in sts[-1].values}) if sts else None}; "
                     f"every message it had: {named}; t0 {scene.t0_ns} ns, bad stamp {scene.bad_ns} ns, pause ended "
-                    f"at {r.get('t_b_ns')} ns; node log tail: {s.procs.log(node)[-2000:] if node else None}")
+                    f"at {r.get('t_b_ns')} ns; node log tail: {s.procs.log(node)[-2000:]}")
         try:
-            node = s.procs.start([installed_exe("fullperc_fusion", "fusion_node"), "--ros-args",
-                                  "-p", "init_samples:=20", "-p", f"max_future:={max_future}",
-                                  "-p", f"processing:={processing}", "-p", "qos_depth:=5000"], name="fusion_node")
             topics = list(lis.got)
             wait_for(lambda: all(lis.node.count_publishers(t) > 0 for t in topics), 60, what="node's publishers")
             wait_for(lambda: all(p.get_publisher_count() > 0 for p in lis.node.subscriptions
@@ -467,7 +524,13 @@ def scenarios(request, tmp_path_factory):
     jobs = {"test_fusion_node_end_to_end": job(_end_to_end, "end_to_end"),
             "test_fusion_node_alarms_on_diagnostics": job(_alarms, "alarms"),
             **{f"{guard}[{cid}]": job(_time_guard_scenario, cid, *TIME_GUARD[cid]) for cid in TIME_GUARD},
-            **{f"{bad}[{arg}]": job(_bad_parameter, arg, arg) for arg in BAD_PARAMS}}
+            f"{bad}[{BAD_PARAM_IN_A_PROCESS}]": job(_bad_parameter, "bad_param", BAD_PARAM_IN_A_PROCESS)}
+    # rclpy imported here, once, before the threads: threads importing rclpy's modules at once can get one of them
+    # partially initialised (they import each other)
+    import rclpy.exceptions  # noqa: F401
+    import rclpy.executors  # noqa: F401
+    import rclpy.node  # noqa: F401
+    import rclpy.parameter  # noqa: F401
     sbs = SideBySide(jobs).start(selected_cases(request, jobs))
     yield sbs
     sbs.join()
