@@ -72,10 +72,11 @@ accuracy: build
 	@$(ENV) python -m fullperc_eval.evaluation.accuracy --seeds $(SEEDS) --profile $(PROFILE) \
 	    $(if $(FUSION),--fusion-config $(FUSION)) --noise-model $(NOISE) --json bags/accuracy.json
 
-# Raw-sensor statistics of a twin profile next to its targets (PROFILE=paper|spec|both, SEEDS default 0-1 here).
+# Raw-sensor statistics of a twin profile next to its targets (PROFILE=paper|spec|both, SEEDS default 0-1 here;
+# with the default seeds it stores bags/<profile>/twin_report.json, which the suite checks).
 twin-report: build
 	@$(ENV) python -m fullperc_eval.evaluation.twin_report --profile $(PROFILE) \
-	    --seeds $(if $(filter command line environment,$(origin SEEDS)),$(SEEDS),0-1)
+	    $(if $(filter command line environment,$(origin SEEDS)),--seeds $(SEEDS),--seeds 0-1 --store bags)
 
 # Re-pin requirements/lock-cpXY.txt from what is installed in the venv.
 lock: setup

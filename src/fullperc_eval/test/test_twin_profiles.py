@@ -1,17 +1,20 @@
 """Twin profiles (``config/profile_*.yaml``): raw-sensor statistics within their targets; the accuracy summary.
 
 The profiles are calibrated on raw-sensor figures only (``make twin-report``); this pins them on the seeds the report
-uses by default (0-1; both profiles, six tasks each). Seed 0 is the seed of the committed sample bags
-``bags/<profile>/<task>/`` (``make dataset``): its figures (:func:`~fullperc_eval.evaluation.twin_report.task_stats`)
-are read from those bags where a bag holds them, and the bags are tied to today's twin by simulating one task again
-and comparing every message (a bag records its generator, task, seed and profile, not a hash of the twin). Seed 1 is
-simulated. The accuracy helpers are checked on hand-made rows.
+uses by default (0-1; both profiles, six tasks each), whose rows ``make twin-report`` stores in
+``bags/<profile>/twin_report.json`` with the profile's ``twin_hash``. The stored rows are tied to today's twin three
+ways: the hash (scene configuration and plans), seed 0's rows against the committed sample bags
+``bags/<profile>/<task>/`` (``make dataset``; every figure a bag holds, all six tasks), and one task simulated again
+(every figure, the ray-set jumps no bag holds included); the committed bags are tied to the twin by that simulation
+too (every message). The targets are then checked on the stored rows: the suite no longer simulates twelve tasks per
+profile (~60 s of a run). The accuracy helpers are checked on hand-made rows.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+import json
 import math
 from pathlib import Path
 from types import SimpleNamespace
@@ -32,9 +35,9 @@ from fullperc_eval.bag.fast_decode import (
 from fullperc_eval.bag.reader import BagReader, _raw_messages
 from fullperc_eval.bag.types import fullperc_typestore
 from fullperc_eval.evaluation import twin_report
-from fullperc_eval.evaluation.accuracy import holds, summarize
+from fullperc_eval.evaluation.accuracy import holds, summarize, twin_hash
 from fullperc_eval.evaluation.ground_truth import GroundTruth
-from fullperc_eval.evaluation.twin_report import DEFAULT_SEEDS, check_targets, parse_seeds, task_stats
+from fullperc_eval.evaluation.twin_report import DEFAULT_SEEDS, STORE_NAME, check_targets, parse_seeds, task_stats
 from fullperc_eval.sim.dataset import content_from_sim, synthetic_content, write_bag
 from fullperc_eval.sim.occluders import (
     PlacedBox,
@@ -54,7 +57,7 @@ BAG_SEED = 0          # the committed bags' seed (``make dataset``; test_sample_
 TWIN_TASK = TASKS[0]  # the task simulated again to tie the committed bags to today's twin
 JOINTS = "/diana/joint_states"
 QUALITY = "fullperc_msgs/msg/TrackingQuality"
-# figures of task_stats no bag can give, and why: a profile whose targets need one has its bags' seed simulated
+# figures of task_stats no bag can give, and why (the stored rows hold them: tied to the twin by one simulated task)
 NOT_IN_BAGS = {"jump_set_change_median_mm": "the OMC's ray count per frame (rays) is not recorded"}
 # a bag holds the poses as the drivers publish them (float32 on the wire) and its truth is the evaluator's (joint
 # states interpolated to the frame stamps): its figures are the simulation's to this (mm, mrad, m, shares; measured:
@@ -269,11 +272,6 @@ def bag_stats(bag: Path, profile: str) -> dict:
     return {k: v for k, v in row.items() if k not in NOT_IN_BAGS}
 
 
-def bags_hold_the_figures(profile: str) -> bool:
-    """Whether every figure the profile's targets check is one a bag gives (NOT_IN_BAGS)."""
-    return not {twin_report.TARGET_FIGURES[n][0] for n in load_profile(profile)["targets"]} & set(NOT_IN_BAGS)
-
-
 @pytest.fixture(scope="module")
 def seed_runs():
     """run_task(task, seed, profile), once per module for each: the twin task of the bags' seed as ``make dataset``
@@ -287,17 +285,6 @@ def seed_runs():
             runs[(profile, task, seed)] = run_task(task, seed=seed, profile=profile, second_target=full)
         return runs[(profile, task, seed)]
     return get
-
-
-def report_rows(profile: str, seed_runs) -> list[dict]:
-    """The twin report's rows of REPORT_SEEDS (seed-major, TASKS order): the bags' seed read from the committed bags
-    where they hold every checked figure (the twin task: its simulation's own), the others simulated."""
-    rows = []
-    for seed in REPORT_SEEDS:
-        for t in TASKS:
-            from_bag = seed == BAG_SEED and t != TWIN_TASK and bags_hold_the_figures(profile)
-            rows.append(bag_stats(BAGS / profile / t, profile) if from_bag else task_stats(seed_runs(profile, t, seed)))
-    return rows
 
 
 def _same(a, b) -> bool:
@@ -392,14 +379,49 @@ def test_committed_bags_are_todays_twin(profile, seed_runs, tmp_path):
             assert v == want[k], k
 
 
+def stored_report(profile: str) -> dict:
+    """``bags/<profile>/twin_report.json`` as ``make twin-report`` stored it."""
+    path = BAGS / profile / STORE_NAME
+    if not path.is_file():
+        pytest.fail(f"{path} is missing: run `make twin-report PROFILE={profile}` and commit it")
+    return json.loads(path.read_text())
+
+
+def _figure_close(a, b, rel: float, abs_: float) -> bool:
+    if isinstance(a, float) and isinstance(b, float):
+        return (math.isnan(a) and math.isnan(b)) or math.isclose(a, b, rel_tol=rel, abs_tol=abs_)
+    return a == b
+
+
 @pytest.mark.parametrize("profile", PROFILES)
-def test_committed_profile_is_within_its_raw_sensor_targets(profile, seed_runs):
-    """Every target is met on seeds 0-1 (:func:`report_rows`) except the profile's declared ``known_misses`` (each
-    measured and explained in the profile file; none today); a known miss that is met now must be removed from the
-    list (it would hide a regression)."""
+def test_stored_twin_report_is_todays_twin(profile, seed_runs):
+    """The stored rows were made with today's twin: its twin_hash, seed 0's rows equal to what the committed bags give
+    (:func:`bag_stats`, every task), and the twin task's row of seed 0 equal to a fresh simulation's (every figure)."""
+    doc = stored_report(profile)
+    hint = f"run `make twin-report PROFILE={profile}` and commit bags/{profile}/{STORE_NAME}"
+    assert doc["twin_hash"] == twin_hash(profile), f"{STORE_NAME} of {profile} was made with another twin: {hint}"
+    assert doc["seeds"] == REPORT_SEEDS and doc["tasks"] == list(TASKS), hint
+    rows = {(r["task"], r["seed"]): r for r in doc["rows"]}
+    assert len(rows) == len(doc["rows"]) == len(TASKS) * len(REPORT_SEEDS), hint
+    fresh = task_stats(seed_runs(profile, TWIN_TASK, BAG_SEED))
+    stored = rows[(TWIN_TASK, BAG_SEED)]
+    assert set(stored) == set(fresh), hint
+    bad = [k for k, v in fresh.items() if not _figure_close(v, stored[k], REL, ABS)]
+    assert not bad, f"{profile} {TWIN_TASK} seed {BAG_SEED}: stored figures differ from the simulation's: {bad}; {hint}"
+    for t in TASKS:
+        got, want = bag_stats(BAGS / profile / t, profile), rows[(t, BAG_SEED)]
+        bad = [k for k, v in got.items() if not _figure_close(v, want[k], BAG_FIGURE_REL, BAG_FIGURE_ABS)]
+        assert not bad, f"bags/{profile}/{t}: figures differ from the stored seed-{BAG_SEED} row: {bad}; {hint}"
+
+
+@pytest.mark.parametrize("profile", PROFILES)
+def test_committed_profile_is_within_its_raw_sensor_targets(profile):
+    """Every target is met on the report's seeds (the stored rows, tied to today's twin by the test above) except the
+    profile's declared ``known_misses`` (each measured and explained in the profile file; none today); a known miss
+    that is met now must be removed from the list (it would hide a regression)."""
     known = set(load_profile(profile).get("known_misses") or ())
     assert known <= set(load_profile(profile)["targets"])
-    checks = check_targets(report_rows(profile, seed_runs), load_profile(profile).get("targets") or {})
+    checks = check_targets(stored_report(profile)["rows"], load_profile(profile).get("targets") or {})
     assert {c["of"] for c in checks if c["target"] == "omc_mae_mm"} == set(TASKS)   # every task checked
     bad = [c for c in checks if not c["ok"] and c["target"] not in known]
     assert not bad, f"profile {profile}, seeds {REPORT_SEEDS}: raw-sensor figures outside the targets: {bad}"

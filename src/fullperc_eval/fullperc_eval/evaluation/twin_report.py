@@ -1,6 +1,7 @@
 """``make twin-report``: the raw-sensor statistics of a twin profile next to its targets (no filter involved).
 
     python -m fullperc_eval.evaluation.twin_report --profile paper [--seeds 0-1] [--tasks ...] [--json FILE]
+                                                   [--store DIR]
 
 A profile (``fullperc_eval/config/profile_<name>.yaml``) is calibrated on these figures only, never on filter
 results. Per task and seed the simulator's arrays are compared with its truth:
@@ -18,6 +19,11 @@ results. Per task and seed the simulator's arrays are compared with its truth:
 
 Targets (``targets:`` of the profile file) are ``[low, high]`` ranges on the named figures (module constant
 :data:`TARGET_FIGURES` says which figure each name checks).
+
+``--store bags`` (what ``make twin-report`` does with its default seeds) writes each profile's rows to
+``bags/<profile>/twin_report.json`` with the profile's ``twin_hash`` (the hash of its scene configuration and plans):
+the test suite checks the targets on those rows, ties them to the committed bags (seed 0, every figure a bag holds)
+and to today's simulator (one task simulated again), instead of simulating two seeds of twelve tasks in every run.
 """
 
 from __future__ import annotations
@@ -26,6 +32,7 @@ import argparse
 import json
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -209,6 +216,19 @@ def report(profile: str, seeds: list[int], tasks=TASKS, log=None) -> dict[str, A
             "all_ok": all(c["ok"] for c in checks)}
 
 
+STORE_NAME = "twin_report.json"
+
+
+def store(path: Path, rep: dict[str, Any]) -> None:
+    """Write a report's rows with the profile's twin_hash (what the committed rows were made with)."""
+    from .accuracy import twin_hash
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    doc = {"profile": rep["profile"], "twin_hash": twin_hash(rep["profile"]), "seeds": rep["seeds"],
+           "tasks": list(dict.fromkeys(r["task"] for r in rep["rows"])), "rows": rep["rows"]}
+    path.write_text(json.dumps(doc, indent=1) + "\n")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m fullperc_eval.evaluation.twin_report",
                                  description=__doc__.split("\n")[0])
@@ -216,14 +236,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", default=DEFAULT_SEEDS, help=f"e.g. 0-9 or 0,3 (default {DEFAULT_SEEDS})")
     ap.add_argument("--tasks", nargs="+", default=list(TASKS), choices=TASKS, metavar="TASK")
     ap.add_argument("--json", default=None, help="also write the figures here")
+    ap.add_argument("--store", default=None, metavar="DIR",
+                    help="write DIR/<profile>/twin_report.json (rows and twin_hash; default seeds and all tasks only)")
     args = ap.parse_args(argv)
     profiles = PROFILES if args.profile == "both" else (args.profile,)
+    if args.store and (parse_seeds(args.seeds) != parse_seeds(DEFAULT_SEEDS) or tuple(args.tasks) != tuple(TASKS)):
+        ap.error(f"--store keeps the default seeds ({DEFAULT_SEEDS}) and every task only")
     out = []
     for p in profiles:
         rep = report(p, parse_seeds(args.seeds), args.tasks, log=lambda m: print(m, file=sys.stderr, flush=True))
         print(format_report(p, rep["rows"], rep["checks"]))
         print()
         out.append(rep)
+        if args.store:
+            store(Path(args.store) / p / STORE_NAME, rep)
     if args.json:
         with open(args.json, "w") as f:
             json.dump(out, f, indent=1)
