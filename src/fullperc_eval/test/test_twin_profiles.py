@@ -35,9 +35,16 @@ from fullperc_eval.bag.fast_decode import (
 from fullperc_eval.bag.reader import BagReader, _raw_messages
 from fullperc_eval.bag.types import fullperc_typestore
 from fullperc_eval.evaluation import twin_report
-from fullperc_eval.evaluation.accuracy import holds, summarize, twin_hash
+from fullperc_eval.evaluation.accuracy import holds, summarize
 from fullperc_eval.evaluation.ground_truth import GroundTruth
-from fullperc_eval.evaluation.twin_report import DEFAULT_SEEDS, STORE_NAME, check_targets, parse_seeds, task_stats
+from fullperc_eval.evaluation.twin_report import (
+    DEFAULT_SEEDS,
+    STORE_NAME,
+    check_targets,
+    parse_seeds,
+    task_stats,
+    twin_hash,
+)
 from fullperc_eval.sim.dataset import content_from_sim, synthetic_content, write_bag
 from fullperc_eval.sim.occluders import (
     PlacedBox,

@@ -37,7 +37,6 @@ unchanged; ``goals`` added).
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import os
 import sys
@@ -49,29 +48,17 @@ from typing import Any
 import numpy as np
 
 from fullperc_eval.sim.dataset import generate
-from fullperc_eval.sim.scene import PROFILES, load_scene_config
-from fullperc_eval.sim.tasks import TASKS, default_plans_path, plans_file_of
+from fullperc_eval.sim.scene import PROFILES
+from fullperc_eval.sim.tasks import TASKS
 
 from .accuracy_goals import GOAL_METHOD, format_goals, goal_checks, goal_lines
 from .config import METHODS, PAPER_METHODS
 from .evaluate_all import TASK_ORDER
 from .tables import _grid
-from .twin_report import parse_seeds
+from .twin_report import parse_seeds, twin_hash
 
 ORDER_FULL = ("cbkf", "ckf", "bkf", "kf", "omc")   # CBKF <= CKF <= BKF <= KF <= OMC
 ORDER_MAIN = ("cbkf", "kf", "omc")                 # CBKF <= KF <= OMC
-
-
-def twin_hash(profile: str) -> str:
-    """Hash of what a profile's bags depend on: the merged scene configuration and its plans file."""
-    cfg = load_scene_config(profile=profile)
-    cfg = {k: v for k, v in cfg.items() if k != "_source"}
-
-    class _S:   # plans_file_of only reads .config
-        config = cfg
-    plans = default_plans_path(plans_file_of(_S))
-    text = plans.read_text() if plans is not None else ""
-    return hashlib.sha256(json.dumps([cfg, text], sort_keys=True, default=str).encode()).hexdigest()[:12]
 
 
 CALIBRATION_SEEDS = "100-102"

@@ -29,6 +29,7 @@ and to today's simulator (one task simulated again), instead of simulating two s
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import sys
 import time
@@ -41,8 +42,8 @@ from scipy.spatial.transform import Rotation
 from fullperc_common.runs import runs
 from fullperc_common.transforms import inv_T, make_T, mean_T
 from fullperc_eval.sim.runner import run_task
-from fullperc_eval.sim.scene import PROFILES, load_profile
-from fullperc_eval.sim.tasks import TASKS
+from fullperc_eval.sim.scene import PROFILES, load_profile, load_scene_config
+from fullperc_eval.sim.tasks import TASKS, default_plans_path, plans_file_of
 
 INIT_SAMPLES = 30   # fusion.yaml's init_samples (static_links: average)
 DEFAULT_SEEDS = "0-1"   # the report's default seeds (the Makefile's too); test_twin_profiles pins the profiles on them
@@ -216,13 +217,23 @@ def report(profile: str, seeds: list[int], tasks=TASKS, log=None) -> dict[str, A
             "all_ok": all(c["ok"] for c in checks)}
 
 
+def twin_hash(profile: str) -> str:
+    """Hash of what a profile's bags depend on: the merged scene configuration and its plans file."""
+    cfg = load_scene_config(profile=profile)
+    cfg = {k: v for k, v in cfg.items() if k != "_source"}
+
+    class _S:   # plans_file_of only reads .config
+        config = cfg
+    plans = default_plans_path(plans_file_of(_S))
+    text = plans.read_text() if plans is not None else ""
+    return hashlib.sha256(json.dumps([cfg, text], sort_keys=True, default=str).encode()).hexdigest()[:12]
+
+
 STORE_NAME = "twin_report.json"
 
 
 def store(path: Path, rep: dict[str, Any]) -> None:
     """Write a report's rows with the profile's twin_hash (what the committed rows were made with)."""
-    from .accuracy import twin_hash
-
     path.parent.mkdir(parents=True, exist_ok=True)
     doc = {"profile": rep["profile"], "twin_hash": twin_hash(rep["profile"]), "seeds": rep["seeds"],
            "tasks": list(dict.fromkeys(r["task"] for r in rep["rows"])), "rows": rep["rows"]}
