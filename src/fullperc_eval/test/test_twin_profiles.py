@@ -272,9 +272,10 @@ def _T_omc_ots(seed: int, profile: str) -> np.ndarray:
     return build_scene(seed, profile=profile).static_transforms()["T_omc_ots"]
 
 
+@functools.cache
 def bag_stats(bag: Path, profile: str) -> dict:
     """:func:`task_stats` of a committed bag: the twin report's row of its task and seed, without the figures of
-    NOT_IN_BAGS."""
+    NOT_IN_BAGS (once per module: two tests read the twin task's; callers do not modify it)."""
     row = task_stats(_bag_run(bag, profile))
     return {k: v for k, v in row.items() if k not in NOT_IN_BAGS}
 
