@@ -355,9 +355,25 @@ def test_a_visible_frame_whose_pose_never_came_is_lost_once_the_stream_was_silen
     c2.quality_rx(key, 1.0)
     c2.quality(key, 1, T0, True, 0.1, 4.0)
     c2.input_done([(T0, "omc", "base", None)], None, T0 + 5 * S, 1.0)   # the node is 5 s behind: poses queue
-    assert status(c2, 1.0 + LOSS_SILENCE_S + 0.1)[2]["omc_samples_lost"] == 0
+    later = 1.0 + LOSS_SILENCE_S + 0.1
+    c2.input_done([(T0 + S, "omc", "base", None)], None, T0 + 6 * S, later - 0.5)   # and still catching up
+    assert status(c2, later)[2]["omc_samples_lost"] == 0
     c2.end_of_streams()
-    assert status(c2, 1.0 + LOSS_SILENCE_S + 0.1)[2]["omc_samples_lost"] == 1
+    assert status(c2, later)[2]["omc_samples_lost"] == 1
+
+
+def test_a_lag_frozen_at_the_last_callback_does_not_hold_the_loss_count_off_for_good():
+    """The stream ended while the node was 15 s behind: its last input callback measured that lag and no callback
+    ran after it. Once none has run for stale_timeout the node's queue is empty, so the visible frame whose pose
+    never came is counted lost (a 1 kHz run never counted 1,466 lost OTS poses this way)."""
+    c = make_core()
+    key = ("omc", "tool")
+    c.quality_rx(key, 1.0)
+    c.quality(key, 1, T0, True, 0.1, 4.0)
+    c.input_done([(T0 - S, "omc", "base", None)], None, T0 + 15 * S, 1.0)
+    assert c.book.catching_up(1.5)
+    assert status(c, 1.0 + LOSS_SILENCE_S + 0.1)[2]["omc_samples_lost"] == 1
+    assert not c.book.catching_up(1.0 + LOSS_SILENCE_S + 0.1)
 
 
 # ---- link watch and /tf_static --------------------------------------------------------------------------------------

@@ -163,3 +163,22 @@ def test_every_sample_exactly_once_in_stamp_order(samples, slop, delay):
         for x in (it.glob, it.local):
             if x is not None:
                 assert x.t_ns <= it.t_ns
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.integers(0, 60), max_size=25, unique=True), st.lists(st.integers(0, 60), max_size=25, unique=True),
+       st.integers(0, 8))
+def test_pair_of_two_streams_equals_the_synchronizers_flush(g, loc, slop):
+    """ApproxSync.pair's two-stream path (read positions, no synchronizer built) makes the same items as pushing
+    the samples into an ApproxSync and flushing it -- the rules of the live path -- on stamps dense enough for
+    ties, competitors and equal stamps across the streams."""
+    from fullperc_fusion.pipeline.synchronizer import Sample
+
+    glob = [Sample(t * MS, ("g", t)) for t in sorted(g)]
+    local = [Sample(t * MS, ("l", t)) for t in sorted(loc)]
+    sync = ApproxSync(slop_ns=slop * MS, delay_ns=0, max_pending=100)
+    for s in glob:
+        sync.push(GLOBAL, s.t_ns, s.payload)
+    for s in local:
+        sync.push(LOCAL, s.t_ns, s.payload)
+    assert ApproxSync.pair(glob, local, slop * MS) == sync.flush()
