@@ -77,3 +77,12 @@ def test_fusion_node_gets_the_same_shutdown_grace_in_graph_and_launch_file():
                 and any(k.arg == "executable" and k.value.value == "fusion_node" for k in n.keywords))
     timeout = next(k.value.value for k in node.keywords if k.arg == "sigterm_timeout")
     assert float(timeout) == float(fusion["grace"]) >= 10
+
+
+def test_the_demo_stops_the_sources_then_fusion_then_margin_then_the_recorder():
+    """fusion_node publishes its queued backlog as it exits, margin_node labels it, the recorder records both: each
+    must still run while the one before it drains (margin_node stopped first lost the task's last region)."""
+    graph = yaml.safe_load((PKG / "config" / "demo_graph.yaml").read_text())
+    stage = {name: i for i, names in enumerate(graph["stop_stages"]) for name in names}
+    assert sorted(stage) == sorted(p["name"] for p in graph["processes"])
+    assert max(stage[n] for n in ("sim", "ndi", "diana", "omc")) < stage["fusion"] < stage["margin"] < stage["record"]

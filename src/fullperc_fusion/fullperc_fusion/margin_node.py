@@ -51,6 +51,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from fullperc_common import diagnostics as _diag
 from fullperc_common.diagnostics import Diagnostics, as_level
+from fullperc_common.drain import take_queued
 from fullperc_common.node_main import run_node
 from fullperc_common.params import ParameterError, declare, declare_fixed
 from fullperc_common.ros_conv import pose_to_T, stamp_to_ns
@@ -142,8 +143,8 @@ def _marker(frame_id: str, stamp, ns: str, mid: int, kind: int) -> Marker:
 
 
 class MarginNode(Node):
-    def __init__(self) -> None:
-        super().__init__("margin_node")
+    def __init__(self, **kw) -> None:
+        super().__init__("margin_node", **kw)
         self._lock = threading.Lock()
         self.layout_file = declare(self, "layout_file", "", description="camera layout YAML; '' = installed default")
         self.threshold_override = declare(
@@ -192,6 +193,7 @@ class MarginNode(Node):
         self.marker_pubs = {}
         self.counts: dict[str, int] = {}
         self.region_filters: dict[str, RegionFilter] = {}
+        self._pose_subs: dict[str, object] = {}
         for target in self.targets:
             self.region_filters[target] = RegionFilter(self.hysteresis)
             self.region_pubs[target] = self.create_publisher(
@@ -199,8 +201,9 @@ class MarginNode(Node):
             self.marker_pubs[target] = self.create_publisher(Marker, f"fullperc/{target}/region_marker",
                                                              self.qos_depth)
             self.counts[target] = 0
-            self.create_subscription(PoseStamped, self.pose_topic.format(target=target),
-                                     lambda msg, t=target: self.on_pose(t, msg), self.qos_depth)
+            self._pose_subs[target] = self.create_subscription(
+                PoseStamped, self.pose_topic.format(target=target), lambda msg, t=target: self.on_pose(t, msg),
+                self.qos_depth)
             self.diag.set(f"target {target}", WARN, "no pose received yet")
         if not self.base_from_param and self.base_pose_topic:
             self.create_subscription(PoseStamped, self.base_pose_topic, self.on_base, self.qos_depth)
@@ -355,6 +358,16 @@ class MarginNode(Node):
                            "model_label_changes": rf.raw_changes})
         self.region_pubs[target].publish(out)
         self.marker_pubs[target].publish(region_marker(out))
+
+
+    def close(self) -> None:
+        """Shutdown (run_node): label what the pose queues still hold. The demo stops fusion_node first, which
+        publishes its drained backlog as it exits; dropped here, the task's last region was never labelled (a
+        busy CI run recorded B-G for B-G-P)."""
+        for target, sub in self._pose_subs.items():
+            while batch := take_queued(sub):
+                for msg in batch:
+                    self.on_pose(target, msg)
 
 
 def main(args=None) -> int:
