@@ -86,3 +86,13 @@ def test_the_demo_stops_the_sources_then_fusion_then_margin_then_the_recorder():
     stage = {name: i for i, names in enumerate(graph["stop_stages"]) for name in names}
     assert sorted(stage) == sorted(p["name"] for p in graph["processes"])
     assert max(stage[n] for n in ("sim", "ndi", "diana", "omc")) < stage["fusion"] < stage["margin"] < stage["record"]
+
+
+def test_the_recorder_holds_a_burst_of_a_fusion_node_catching_up():
+    """A fusion_node behind its inputs publishes up to its ``qos_depth`` outputs per topic in one callback; the
+    recorder polls its queues every 10 ms, so its keep-last depth must hold such a burst (at 1000, a busy demo
+    run lost 594 of one side-by-side topic's 2,000 messages while the node's other topics came through)."""
+    from fullperc_eval.bag.record import build_parser
+    from fullperc_fusion.fusion_config import spec
+
+    assert build_parser().parse_args(["--topics", "/x"]).subscription_depth >= 2 * spec("qos_depth").default

@@ -11,8 +11,9 @@ Durability: the writer finishes its chunk / commits and refreshes metadata.yaml 
 SIGTERM drain what DDS already delivered and close the bag cleanly.
 
 Deviations from rosbag2, on purpose: subscriptions use keep_last ``--subscription-depth``
-(1000, rosbag2 uses 10) so a recorder that falls briefly behind a 1 kHz reliable stream drops
-nothing; messages are taken from every subscription's queue every 10 ms instead of through an
+(4000, rosbag2 uses 10) so a recorder that falls briefly behind a 1 kHz reliable stream drops
+nothing, nor a burst of a node catching up (fusion_node publishes up to its ``qos_depth``, 2000, per topic in
+one callback; at 1000 a busy demo run lost 594 of one topic's messages in one burst); messages are taken from every subscription's queue every 10 ms instead of through an
 executor callback each (``--take``, :meth:`Recorder.take_all`: a quarter of the CPU per message);
 no services (the node's parameter services are not served while it polls)/``--use-sim-time``/
 snapshot mode; ``--duration`` stops after that many seconds.
@@ -148,8 +149,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="how messages are taken from DDS: every subscription's queue every 10 ms, no executor "
                          "(poll, default); an executor callback that takes its topic's queue (callback); one "
                          "executor round per message, rosbag2's way (executor)")
-    ap.add_argument("--subscription-depth", type=int, default=1000, metavar="N",
-                    help="keep_last depth of the recording subscriptions (1000)")
+    ap.add_argument("--subscription-depth", type=int, default=4000, metavar="N",
+                    help="keep_last depth of the recording subscriptions (4000)")
     return ap
 
 
@@ -265,7 +266,7 @@ class Recorder:
         played twice at once, about what the demo graph publishes) rclpy's executor made the recorder spend ~330 us
         of CPU per message -- a core at that rate -- in building wait sets and dispatching a task per ready
         subscription, also when a callback took every other queue with its own (~310 us). DDS queues a
-        subscription's messages without an executor (keep_last ``--subscription-depth``: 1000, seconds at these
+        subscription's messages without an executor (keep_last ``--subscription-depth``: 4000, seconds at these
         rates), so taking them every :data:`POLL_PERIOD_S` loses nothing and costs a take (~4 us) per topic
         and round. Each topic's messages are written in the order they arrived, topics one after another (the
         bag's time is the reception time DDS stamped, not when they were taken; readers sort by it).
