@@ -15,8 +15,8 @@ Deviations from rosbag2, on purpose: subscriptions use keep_last ``--subscriptio
 nothing, nor a burst of a node catching up (fusion_node publishes up to its ``qos_depth``, 2000, per topic in
 one callback; at 1000 a busy demo run lost 594 of one topic's messages in one burst); messages are taken from
 every subscription's queue every 10 ms instead of through an executor callback each (``--take``,
-:meth:`Recorder.take_all`: a quarter of the CPU per message); no services (the node's parameter services are not served while it polls)/``--use-sim-time``/
-snapshot mode; ``--duration`` stops after that many seconds.
+:meth:`Recorder.take_all`: a quarter of the CPU per message); no services (the node's parameter services
+are not served while it polls)/``--use-sim-time``/snapshot mode; ``--duration`` stops after that many seconds.
 """
 
 from __future__ import annotations
