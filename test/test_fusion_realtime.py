@@ -213,7 +213,8 @@ def test_output_resumes_after_ten_minutes_of_silence(scenarios, request):
     t_jump = min(t for t in sent["omc"] if t > sent["omc"][0] + 590e9)
     before = [t for t, _ in out.pose if t < t_jump]
     after = [t for t, _ in out.pose if t >= t_jump]
-    assert before and after, "fused before and after the silence"
+    assert before and after, ("fused before and after the silence", len(before), len(after),
+                              out.diag[-1] if out.diag else None)
     sent_after = {t for d in ("omc", "ots") for t in sent[d] if t >= t_jump}
     assert set(after) <= sent_after, "stamps of the new samples"
     final_after = [t for t, _ in out.final if t >= t_jump]
