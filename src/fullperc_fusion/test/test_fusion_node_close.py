@@ -86,3 +86,41 @@ def test_close_settles_and_publishes_the_final_diagnostics(node_and_feeder):
     values = {kv.key: kv.value for kv in node._diag._status["target tool"].values}
     assert node.core.book.loss[("omc", "tool")].samples_lost == 1
     assert values["omc_samples_lost"] == "1", values
+
+
+def test_a_callback_takes_every_queued_sample_of_every_input(rclpy_context):
+    """A node seconds behind has more queued on a fast topic than on a slow one. Taking at most 1000 per
+    subscription, one callback took 8 s of the 120 Hz OMC topic but all 12 s of the 60 Hz Vega's; the next
+    callback's OMC samples were then older than the history and dropped as late (a CI demo lost 249 samples of
+    a target this way). One callback takes everything queued: nothing is late."""
+    import rclpy
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.duration import Duration
+    from rclpy.parameter import Parameter
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    from fullperc_common.testing import wait_for
+    from fullperc_fusion.fusion_node import FusionNode
+
+    node = FusionNode(context=rclpy_context, parameter_overrides=[Parameter("qos_depth", value=3000)])
+    feeder = rclpy.create_node("feeder", context=rclpy_context)
+    try:
+        qos = QoSProfile(depth=3000, reliability=ReliabilityPolicy.RELIABLE)
+        omc = feeder.create_publisher(PoseStamped, "/omc/tool/pose", qos)
+        ots = feeder.create_publisher(PoseStamped, "/ots/tool/pose", qos)
+        wait_for(lambda: omc.get_subscription_count() >= 1 and ots.get_subscription_count() >= 1, 60,
+                 what="fusion_node's subscriptions")
+        t0, n_omc, n_ots = 1_700_000_000_000_000_000, 1500, 750   # 12.5 s at 120 Hz and at 60 Hz
+        for k in range(n_omc):
+            omc.publish(pose_stamped(t0 + k * 8_333_333, "omc", (0.1, 0.2, 1.0), (0.0, 0.0, 0.0, 1.0)))
+        for k in range(n_ots):
+            ots.publish(pose_stamped(t0 + k * 16_666_667, "ots", (0.1, 0.2, -1.0), (0.0, 0.0, 0.0, 1.0)))
+        for p in (omc, ots):
+            assert p.wait_for_all_acked(Duration(seconds=60))
+        node.close()   # its first callback: one sample, then everything queued behind it
+        counts = node.core.pipes["tool"].counts
+        assert (counts["global_in"], counts["local_in"]) == (n_omc, n_ots), dict(counts)
+        assert counts["late"] == 0, dict(counts)
+    finally:
+        feeder.destroy_node()
+        node.destroy_node()
