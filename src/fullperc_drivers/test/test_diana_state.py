@@ -24,6 +24,7 @@ from scipy.spatial.transform import Rotation
 from fullperc_common.testing import side_by_side_fixture
 
 sys.path.insert(0, str(Path(__file__).parent))
+from test_diana_api import C_DIR, compile_double  # noqa: E402  (here, not in a scenario thread: test_stream_health)
 from test_diana_kinematics import _DOC_TABLE, _mdh_product  # noqa: E402
 from test_omc_driver import Listener as _OmcListener  # noqa: E402  (same spin helpers)
 from test_omc_driver import free_udp_port  # noqa: E402
@@ -167,8 +168,6 @@ def _stream_backend_across_processes(procs, rclpy_context, tmp_path, python_exe)
 
 
 def _api_backend_across_processes_with_c_double(procs, rclpy_context, tmp_path):
-    from test_diana_api import C_DIR, compile_double
-
     from fullperc_common.testing import installed_exe, wait_for
 
     lib = compile_double(C_DIR / "fake_diana_api.c", tmp_path / "libDianaApi.so")

@@ -19,7 +19,12 @@ import numpy as np
 from fullperc_common.testing import side_by_side_fixture
 
 sys.path.insert(0, str(Path(__file__).parent))
+from test_diana_state import Listener as DianaListener  # noqa: E402
 from test_omc_driver import Listener, free_udp_port  # noqa: E402
+
+# Test modules are imported here, in the main thread, never inside a scenario: side_by_side runs scenarios in
+# threads, and an import there has pytest rewrite the module with ast.parse, which the CPython 3.11.7 of CI does not
+# make thread-safe ("SystemError: AST constructor recursion depth mismatch", seen in CI).
 
 OK, WARN, ERROR = 0, 1, 2
 # each fault phase lasts until the level left OK, which takes the health ladder's stale_after_s: 1 s instead of the
@@ -104,8 +109,6 @@ def _omc_driver_frozen_frames_and_refused_poses(procs, rclpy_context):
 
 
 def _diana_state_frozen_sequence_and_refused_samples(procs, rclpy_context):
-    from test_diana_state import Listener as DianaListener
-
     from fullperc_common.testing import installed_exe, wait_for
     from fullperc_drivers.streams import DianaState, encode_diana
 
