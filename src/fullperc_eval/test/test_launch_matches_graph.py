@@ -96,3 +96,14 @@ def test_the_recorder_holds_a_burst_of_a_fusion_node_catching_up():
     from fullperc_fusion.fusion_config import spec
 
     assert build_parser().parse_args(["--topics", "/x"]).subscription_depth >= 2 * spec("qos_depth").default
+
+
+def test_the_demos_offline_evaluation_waits_as_long_as_its_node_takes_a_late_sample():
+    """The node fuses a sample up to ``history`` late; the offline evaluation of the recording must wait as long
+    (``reorder_delay``), or it drops what a busy machine's drivers delivered late and live and offline differ."""
+    from fullperc_eval.graph.demo import LIVE_HISTORY_S
+
+    cmd = next(p for p in yaml.safe_load((PKG / "config" / "demo_graph.yaml").read_text())["processes"]
+               if p["name"] == "fusion")["cmd"]
+    given = dict(cmd[i + 1].split(":=", 1) for i, w in enumerate(cmd) if w == "-p")
+    assert float(given["history"]) == LIVE_HISTORY_S

@@ -238,6 +238,12 @@ PARAMS: tuple[Param, ...] = (
           "|bias| of the global source above this -> WARN"),
     Param("alarm.reject_timeout", _H.reject_timeout_s, "float", *POSITIVE, "s",
           "every sample of a source rejected for this long -> ERROR"),
+    Param("publishers.allow", None, "str_list", lambda v: all(x.startswith("/") for x in v), "each starts with '/'",
+          "", "who may publish on the inputs: node names ('/omc_driver') or namespaces ending in '/'; none = the "
+          "first node seen on each input topic; any other publisher closes that input (ERROR; input_guard.py)"),
+    Param("plausibility.max_speed", 2.0, "float", *POSITIVE, "m/s", "a target sample further than plausibility."
+          "jump + max_speed x dt from its source's last accepted one is rejected (rejected_jump)"),
+    Param("plausibility.jump", 0.01, "float", *POSITIVE, "m", "a sample's jump allowed beyond max_speed x dt"),
     Param("tf.enabled", True, "bool", None, "", "",
           "broadcast /tf (base -> <target>) and /tf_static (omc -> base, base -> ots, base -> diana_base)"),
     Param("tf.diana_base", None, "pose7", None, "", "m, quaternion x y z w",
@@ -409,9 +415,9 @@ def target_config(get: Get | dict[str, Any], target: str, filters: tuple[str, ..
         params = nm.apply(filter_params(vals))
         params = replace(params, **target_overrides(vals, target)).validate()
         return TargetConfig(name=target, chain=chain, sources=sources, filters=tuple(filters),
-                            params=params, omc_model=nm.omc,
+                            params=params, omc_model=nm.omc, max_jump=vals["plausibility.jump"],
                             slop_ns=int(vals["slop"] * 1e9), delay_ns=int(vals["reorder_delay"] * 1e9),
-                            max_future_ns=int(round(vals["max_future"] * 1e9)),
+                            max_future_ns=round(vals["max_future"] * 1e9), max_speed=vals["plausibility.max_speed"],
                             processing=vals["processing"], history_ns=int(round(vals["history"] * 1e9)),
                             monitor=monitor_params(vals), layout=model_layout(vals, tuple(filters)))
     except ParameterError:

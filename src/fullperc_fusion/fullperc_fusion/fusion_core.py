@@ -35,6 +35,15 @@ nothing is checked.
 /tf_static: ``omc -> base`` (T_omc_base), ``base -> ots`` (T_base_ots, not with ``local_chain: tracked``, where
 the OTS moves) and ``base -> <source>`` of every further local source, from the first target whose link is known;
 ``base -> diana_base`` when ``tf.diana_base`` is given. Sent when first known and again when one changes.
+
+Publisher identity (:mod:`input_guard`, ``publishers.allow``): a sample or quality message of an input topic the
+guard holds closed (a publisher on it that is not accepted) is dropped and counted -- it reaches no pipeline, no
+health count and no calibration -- and every target that reads the topic is ERROR on /diagnostics, naming topic,
+node and GID. While a publisher of any input has no name yet, *every* input's samples and quality messages are held
+(at most the guard's 1 s): once it is named and accepted they are used in stamp order -- the order offline processing
+sees them in (holding only that topic's samples put a driver's first Vega samples behind OMC samples they preceded,
+and the static links averaged from the first samples came out different from the bag's evaluation); a refused
+publisher's topic is dropped from them. The node feeds the guard from discovery (:meth:`FusionCore.publishers_seen`).
 """
 
 from __future__ import annotations
@@ -50,11 +59,13 @@ from fullperc_fusion.calibration.se3_stats import CalibrationBodies
 from fullperc_fusion.fusion_config import calibration_settings, health_params, primary_and_extra, target_config
 from fullperc_fusion.fusion_health import GLOBAL, LOCAL, TargetHealth
 from fullperc_fusion.fusion_verdict import InputBook, Key, TargetVerdict
+from fullperc_fusion.input_guard import InputGuard, Publisher
 from fullperc_fusion.pipeline.arrival import ArrivalPipeline, make_pipeline
 from fullperc_fusion.pipeline.frame_chain import links_needed, pose_to_T
 from fullperc_fusion.pipeline.ordered import FusedOutput, TargetPipeline
 from fullperc_fusion.pipeline.sources import Route, routes
 
+HOLD_MAX = 10_000          # samples held in all while a publisher has no name (beyond: dropped, counted)
 DIAG_EVAL_PERIOD_S = 0.5   # [s] the diagnostics' evaluation timer (published every 1 s by diag.Diagnostics)
 
 Log = tuple[str, str]                                 # (info | warning | error, line)
@@ -125,6 +136,15 @@ class FusionCore:
         self.targets_of = {d: {b: list(dict.fromkeys(ts)) for b, ts in r.items()} for d, r in routed.items()}
         self.quality_topics: dict[Key, str] = quality
         self.book = InputBook(quality, vals["stale_timeout"], vals["problem_hold"], vals["lag_warn"])
+        self.topic_of: dict[Key, str] = {(d, b): topic for d, b, topic in self.pose_topics()}   # pose topics
+        self.input_topics: dict[str, list[str]] = {   # target -> its pose and quality topics
+            t: list(dict.fromkeys([*(self.topic_of[(r.tag, b)] for r in self.routes[t] for b in r.bodies),
+                                   *(quality[(r.tag, r.target)] for r in self.routes[t])])) for t in self.targets}
+        self._holding = False                     # a publisher of some input has no name yet: every input waits
+        self._held: list[tuple] = []              # (topic, kind, args) held meanwhile, in arrival order
+        self._released: list[tuple] = []          # held and then accepted: used first, in stamp order
+        self.guard = InputGuard([*self.topic_of.values(), *quality.values()], vals["publishers.allow"] or (),
+                                vals["problem_hold"])
 
     # ---- wiring -------------------------------------------------------------------------------------------------
     def pose_topics(self) -> list[tuple[str, str, str]]:
@@ -153,6 +173,18 @@ class FusionCore:
         """Push one pose into the pipelines of the targets it feeds; returns those targets. ``clock_ns``: the node
         clock for the time guard (0 or None: not started, nothing checked)."""
         clock_ns = clock_ns or None
+        topic = self.topic_of.get((dev, body), "")
+        if self._hold(topic, "pose", (dev, body, t_ns, p, q)):
+            return []
+        if self._released:   # what was held, its publishers named and accepted since: first, in stamp order
+            rel, self._released = self._released, []
+            done: list[str] = []
+            for kind, args in rel:
+                if kind == "pose":
+                    done += self.on_pose(*args, now, clock_ns)
+                else:
+                    self.quality(*args)
+            return list(dict.fromkeys(done + self.on_pose(dev, body, t_ns, p, q, now, clock_ns)))
         if self._cal is not None and dev in ("omc", "ots"):
             self._cal.add(dev, body, t_ns, p, q)
         targets = self.targets_of.get(dev, {}).get(body, [])
@@ -186,11 +218,42 @@ class FusionCore:
     def quality(self, key: Key, frame_number: int, t_ns: int, visible: bool, fit_error: float,
                 markers_used: float) -> None:
         """One TrackingQuality of ``key``: the loss count; a visible OMC frame's quality to the pipelines of the
-        targets of that body (the OMC model covariance of filters that use the models)."""
+        targets of that body (the OMC model covariance of filters that use the models). Dropped on a closed topic."""
+        if self._hold(self.quality_topics[key], "quality", (key, frame_number, t_ns, visible, fit_error, markers_used)):
+            return
         self.book.loss[key].quality(frame_number, t_ns, visible)
         if key[0] == "omc" and visible:
             for t in self.targets_of["omc"].get(key[1], ()):
                 self.pipes[t].push_omc_quality(key[1], t_ns, {"fit_error": fit_error, "markers_used": markers_used})
+
+    def publishers_seen(self, topic: str, publishers: list[Publisher], now: float) -> list[Log]:
+        """Discovery's publishers of an input topic ((node name, GID hex) each): the guard's verdict, log lines.
+        Samples held while a publisher had no name are used (with the next sample) when it was named and accepted,
+        else dropped."""
+        logs = self.guard.update(topic, publishers, now)
+        self.guard.take_release(topic)   # the held samples are decided below, for every topic at once
+        self._holding = any(self.guard.holding(x) for x in self.guard.topics)
+        if not self._holding and self._held:   # everyone named: the accepted topics' samples, in stamp order
+            held, self._held = self._held, []
+            for x, _kind, _args in held:
+                if not self.guard.is_open(x):
+                    self.guard.drop(x)
+            self._released += sorted(((kind, args) for x, kind, args in held if self.guard.is_open(x)),
+                                     key=lambda r: (r[1][2], 1 + (tuple(r[1][:2]) in self.book.loss))
+                                     if r[0] == "pose" else (r[1][2], 0))   # batch_key's order; a quality first
+        return logs
+
+    def _hold(self, topic: str, kind: str, args: tuple) -> bool:
+        """True if a sample (``kind`` pose or quality) of ``topic`` is not to be used now: dropped (its topic is closed)
+        or held (some input's publisher has no name yet; module docstring)."""
+        if self._holding and (self.guard.is_open(topic) or self.guard.holding(topic)):
+            if len(self._held) < HOLD_MAX:
+                self._held.append((topic, kind, args))
+                return True
+        if self._holding or not self.guard.is_open(topic):
+            self.guard.drop(topic)
+            return True
+        return False
 
     def input_done(self, batch: Sequence[tuple], delay_ns: int | None, clock_ns: int, now: float) -> bool:
         """The end of one input callback (:meth:`InputBook.callback`); True when the diagnostics' evaluation is a
@@ -362,6 +425,9 @@ class FusionCore:
         for t, pipe in self.pipes.items():
             level, msgs, values = self.verdicts[t].evaluate(now, pipe, self.health[t], self.last_rx[t], self.primary)
             level = self.book.overload(now, self.routes[t], level, msgs, values)
+            g_level, g_msgs, g_values = self.guard.status(self.input_topics[t], now)
+            level, msgs = max(level, g_level), [*g_msgs, *msgs]   # a closed input first: it explains the rest
+            values.update(g_values)
             out.append((f"target {t}", level, "; ".join(msgs) or "ok", values))
         self.book.load.reset_period()
         self._diag_sent = published

@@ -42,6 +42,8 @@ Services:
 Parameters: the table of :mod:`fullperc_fusion.fusion_config` (names, defaults, checks, units; the same
 mapping the offline evaluator uses); config/fusion.yaml lists every one with its unit and default (``--help``).
 
+Publisher identity: :mod:`input_guard` (``publishers.allow``); the services log the nodes with a client of them.
+
 What is decided -- routing, health, the flush policy (``processing``, ``clock``, ``idle_flush``), the time guard
 (``max_future``), calibration, the diagnostics verdict, the /tf_static links -- is :mod:`fusion_core` (ROS-free,
 unit-tested); this node keeps the parameters, publishers, subscriptions, message conversion, TF, services and timers.
@@ -49,13 +51,14 @@ unit-tested); this node keeps the parameters, publishers, subscriptions, message
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import time
 from functools import partial
 
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from rclpy.callback_groups import ReentrantCallbackGroup
-from rclpy.node import Node
+from rclpy.node import Node, NodeNameNonExistentError
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
@@ -70,6 +73,7 @@ from fullperc_common.tf import Broadcaster, StaticBroadcaster, transform_stamped
 from fullperc_fusion.fusion_config import read_values, spec
 from fullperc_fusion.fusion_core import DIAG_EVAL_PERIOD_S, FusionCore, Log
 from fullperc_fusion.fusion_publish import OutputPublisher, publish_outputs
+from fullperc_fusion.input_guard import CHECK_PERIOD_S, gid_hex, node_fqn, service_callers_line
 from fullperc_fusion.pipeline.arrival import ArrivalPipeline
 from fullperc_fusion.pipeline.ordered import FusedOutput
 from fullperc_msgs.msg import FusionStatus, Region, TrackingQuality
@@ -116,6 +120,9 @@ class FusionNode(Node):
         self._input_subs: list[tuple[str, str, object]] = [
             (dev, b, self.create_subscription(PoseStamped, topic, partial(self._on_input, dev, b), qos))
             for dev, b, topic in core.pose_topics()]
+        self._sub_of = {core.topic_of[(d, b)]: s for d, b, s in self._input_subs} | {
+            core.quality_topics[k]: s for k, s in self._quality_subs.items()}   # input topic -> its subscription
+        self._pub_counts: dict[str, int] = {}   # input topic -> its publisher count at the last check
         self.create_service(Trigger, "~/initialize", self._on_initialize)
         # own (reentrant) group: the answer waits for the collection, and the default group's callbacks (the data)
         # must run meanwhile; a second call is answered at once
@@ -125,6 +132,7 @@ class FusionNode(Node):
         self._send_static()
         self.create_timer(0.01, self._on_timer)
         self.create_timer(DIAG_EVAL_PERIOD_S, self._update_diagnostics)
+        self.create_timer(CHECK_PERIOD_S, lambda: self._settle_inputs(self._guard_inputs()))
         self._update_diagnostics()
         self.get_logger().info(core.startup_message())
 
@@ -162,6 +170,7 @@ class FusionNode(Node):
         for d, b, sub in self._input_subs:
             batch.extend((stamp_to_ns(m.header.stamp), d, b, m) for m in take_queued(sub, self._take_max))
         batch.sort(key=self.core.batch_key)
+        changed = self._guard_inputs({self.core.topic_of[(d, b)] for _, d, b, _ in batch})   # before fusing any
         touched: set[str] = set()
         for t_ns, d, b, m in batch:
             touched.update(self._on_pose(d, b, t_ns, m))
@@ -173,6 +182,7 @@ class FusionNode(Node):
         clock = self.get_clock().now().nanoseconds   # 0: sim time not started, no lag known
         if self.core.input_done(batch, None if not received else wall - int(received), clock, time.monotonic()):
             self._update_diagnostics()   # its timer is a period late: an overloaded node runs no timer
+        self._settle_inputs(changed)
         self._diag.publish_if_overdue()
 
     def _on_pose(self, dev: str, body: str, t_ns: int, msg: PoseStamped) -> list[str]:
@@ -184,9 +194,35 @@ class FusionNode(Node):
     def _on_quality(self, key: tuple[str, str], msg: TrackingQuality) -> None:
         """This quality message and every one queued behind it (one executor round each would fall behind)."""
         self.core.quality_rx(key, time.monotonic())
+        changed = self._guard_inputs([self.core.quality_topics[key]])
         for m in [msg, *take_queued(self._quality_subs[key], self._take_max)]:
             self.core.quality(key, int(m.frame_number), stamp_to_ns(m.header.stamp), bool(m.visible),
                               float(m.fit_error), float(m.markers_used))
+        self._settle_inputs(changed)
+
+    def _guard_inputs(self, topics=None) -> bool:
+        """Publishers of ``topics`` (a callback's: read if their count changed or a name is unknown; None: all) to the
+        guard; a topic acceptable again loses its queue (received while closed). True: one closed (or reopened)."""
+        now, guard, logs = time.monotonic(), self.core.guard, []
+        for topic in self._sub_of if topics is None else topics:
+            n = self.count_publishers(topic)
+            if topics is not None and n == self._pub_counts.get(topic) and not guard.unresolved(topic):
+                guard.touch(topic, now)
+                continue
+            self._pub_counts[topic] = n
+            logs += self.core.publishers_seen(topic, [(node_fqn(i.node_namespace, i.node_name), gid_hex(
+                i.endpoint_gid)) for i in self.get_publishers_info_by_topic(topic)], now)
+        for topic in guard.draining():
+            guard.drop(topic, len(take_queued(self._sub_of[topic], 1_000_000)))
+        self._log(logs)
+        return any(level != "info" for level, _ in logs)
+
+    def _settle_inputs(self, changed: bool) -> None:
+        """After the samples in hand: open the topics whose queue was discarded; a changed verdict is sent at once."""
+        if (logs := self.core.guard.settle(time.monotonic())) or changed:
+            self._log(logs)
+            self._update_diagnostics()
+            self._diag.publish()
 
     def close(self) -> None:
         """Shutdown (run_node, before it waits for the readers' acks): fuse and publish what the inputs still queue
@@ -213,15 +249,24 @@ class FusionNode(Node):
             self._publish_final(t)
 
     # ---- services ---------------------------------------------------------------------------
+    def _callers(self, service: str) -> str:
+        """Who could have called ``service``: the nodes with a client of it (rclpy gives no caller identity)."""
+        name, clients = self.resolve_service_name(service), []
+        with contextlib.suppress(NodeNameNonExistentError):   # a node gone meanwhile
+            clients = [node_fqn(ns, n) for n, ns in self.get_node_names_and_namespaces()
+                       if any(s == name for s, _ in self.get_client_names_and_types_by_node(n, ns))]
+        return service_callers_line(name, clients)
+
     def _on_initialize(self, _req, resp):
         resp.success = True
         resp.message = self.core.initialize()
-        self.get_logger().info(resp.message)
+        self.get_logger().info(f"{self._callers('~/initialize')}; {resp.message}")
         self._update_diagnostics()
         return resp
 
     async def _on_calibrate(self, _req, resp):
         """~/calibrate: answered when the collection is done (the executor keeps running every other callback)."""
+        self.get_logger().info(self._callers("~/calibrate"))
         started, message = self.core.start_calibration(time.monotonic())
         if not started:
             resp.success = False

@@ -36,8 +36,8 @@ from fullperc_fusion.pipeline.sources import Route
 LOSS_SILENCE_S = 4.0
 # the pipeline's problem counts that raise a held WARN (keys of TargetPipeline.counts)
 PROBLEM_KEYS = ("rejected_nonfinite", "rejected_nonunit", "rejected_pose", "rejected_stamp", "rejected_future",
-                "late", "duplicate", "rejected_cov", "local_skipped", "filter_error", "nonfinite_output",
-                "publish_error", "calibration_refused", "timeline_restart")
+                "rejected_jump", "late", "duplicate", "rejected_cov", "local_skipped", "filter_error",
+                "nonfinite_output", "publish_error", "calibration_refused", "timeline_restart")
 
 Key = tuple[str, str]   # (device tag, body): one source stream of a target body
 

@@ -442,3 +442,101 @@ def test_startup_message_names_targets_filters_and_links():
     assert make_core().startup_message() == (
         "fusing targets ['tool'] with cbkf (side by side: none), local chain 'static', clock 'stamps', static "
         "links: others: average of the first 3 samples")
+
+
+# ---- publisher identity (input_guard) -------------------------------------------------------------------------------
+def test_a_closed_input_topics_samples_never_reach_the_pipeline_nor_the_health_nor_the_calibration():
+    c = make_core()
+    honest, intruder = ("/omc_driver", "01" * 12 + "00000001"), ("/intruder", "02" * 12 + "00000001")
+    frames(c, 0, 5)                              # before any check: open (no graph, as offline)
+    n_in = c.pipes["tool"].counts["global_in"]
+    assert n_in == 5
+    c.publishers_seen("/omc/tool/pose", [honest], 0.05)
+    c.publishers_seen("/omc/tool/pose", [honest, intruder], 0.06)
+    last_rx = c.last_rx["tool"]["omc"]
+    assert push(c, "omc", "tool", 5, now=0.07) == [], "routed nowhere"
+    assert c.pipes["tool"].counts["global_in"] == n_in and c.last_rx["tool"]["omc"] == last_rx
+    assert c.guard.dropped["/omc/tool/pose"] == 1
+    assert push(c, "omc", "base", 5, now=0.07) == ["tool"], "the other topics stay open"
+    c.quality(("omc", "tool"), 6, T0 + 6 * S // 100, True, 0.1, 5.0)   # its quality topic is open: taken
+    assert c.guard.dropped["/omc/tool/quality"] == 0
+    c.publishers_seen("/omc/tool/quality", [honest], 0.08)
+    c.publishers_seen("/omc/tool/quality", [honest, intruder], 0.08)   # a quality topic closes the same way
+    loss = c.book.loss[("omc", "tool")]
+    before = (loss.frames_lost, loss.pending)
+    c.quality(("omc", "tool"), 500, T0 + S, True, 0.1, 5.0)
+    assert (loss.frames_lost, loss.pending) == before and c.guard.dropped["/omc/tool/quality"] == 1
+    c.publishers_seen("/omc/tool/pose", [honest], 0.1)   # gone: open once the queue is discarded (the node's part)
+    assert push(c, "omc", "tool", 6, now=0.1) == []
+    c.guard.settle(0.1)
+    assert push(c, "omc", "tool", 7, now=0.11) == ["tool"] and c.pipes["tool"].counts["global_in"] == n_in + 1
+    c.start_calibration(0.2)                     # nor does a closed topic feed ~/calibrate
+    c.publishers_seen("/omc/base/pose", [honest], 0.2)
+    c.publishers_seen("/omc/base/pose", [honest, intruder], 0.2)
+    push(c, "omc", "base", 8, now=0.2)
+    assert c._cal.collector.last_ns is None
+    push(c, "ots", "base", 8, now=0.2)
+    assert c._cal.collector.last_ns is not None
+
+
+def test_a_closed_input_is_an_error_of_every_target_reading_it_naming_topic_node_and_gid():
+    c = make_core(targets=["tool", "probe"], **{"probe.omc_body": "probe", "probe.ots_tool": "probe"})
+    intruder_gid = "02" * 12 + "00000001"
+    frames(c, 0, 20, bodies=(("omc", "base"), ("omc", "tool"), ("omc", "probe"), ("ots", "base"), ("ots", "tool"),
+                             ("ots", "probe")))
+    c.publishers_seen("/omc/tool/pose", [("/omc_driver", "01" * 12 + "00000001")], 0.2)
+    assert status(c, 0.2)[0] < 2
+    c.publishers_seen("/omc/tool/pose", [("/omc_driver", "01" * 12 + "00000001"), ("/intruder", intruder_gid)], 0.3)
+    level, msg, values = status(c, 0.3)
+    assert level == 2 and "/omc/tool/pose" in msg and "/intruder" in msg and intruder_gid in msg, msg
+    assert msg.startswith("input /omc/tool/pose closed"), "named first: it explains the rest"
+    assert values["inputs_closed"] == "/omc/tool/pose"
+    p_level, p_msg, p_values = status(c, 0.3, "probe")
+    assert "/intruder" not in p_msg and p_values["inputs_closed"] == "none", "probe does not read /omc/tool/pose"
+
+
+def test_samples_of_a_publisher_not_named_yet_are_held_then_used_when_it_is_named_and_accepted_else_dropped():
+    c = make_core()
+    nameless = [("/_NODE_NAME_UNKNOWN_", "01" * 12 + "00000001")]
+    honest = [("/omc_driver", "01" * 12 + "00000001")]
+    for topic in c.guard.topics:                 # a driver's first samples come before discovery names it
+        c.publishers_seen(topic, nameless, 0.0)
+    assert push(c, "omc", "base", 0, now=0.01) == [] and push(c, "omc", "tool", 0, now=0.01) == []
+    assert c.pipes["tool"].counts["global_in"] == 0 and c.guard.dropped["/omc/tool/pose"] == 0, "held, not used"
+    for topic in c.guard.topics:
+        c.publishers_seen(topic, honest, 0.02)
+    assert push(c, "omc", "tool", 1, now=0.03) == ["tool"]
+    assert c.pipes["tool"].counts["global_in"] == 2, "the held sample first, then this one"
+    c.publishers_seen("/omc/tool/pose", [*honest, ("/_NODE_NAME_UNKNOWN_", "02" * 12 + "00000001")], 0.1)
+    push(c, "omc", "tool", 2, now=0.11)
+    c.publishers_seen("/omc/tool/pose", [*honest, ("/intruder", "02" * 12 + "00000001")], 0.12)
+    push(c, "omc", "tool", 3, now=0.13)
+    assert c.pipes["tool"].counts["global_in"] == 2 and c.guard.dropped["/omc/tool/pose"] == 2, "named, refused"
+
+
+def test_while_one_publisher_has_no_name_every_input_waits_and_then_goes_in_stamp_order():
+    """A driver's first Vega samples come before discovery names it. Holding only its topics put them behind OMC
+    samples they preceded, and the static links averaged from the first samples differed from the bag's offline
+    evaluation (a demo: 0.056 mm in one column). Every input waits instead (at most the guard's 1 s), and what waited
+    goes in stamp order, as offline processing takes it."""
+    c = make_core()
+    honest = {"omc": [("/omc_driver", "01" * 12 + "00000001")], "ots": [("/ndi_driver", "02" * 12 + "00000001")]}
+    for topic in c.guard.topics:
+        c.publishers_seen(topic, honest["omc"] if topic.startswith("/omc") else
+                          [("/_NODE_NAME_UNKNOWN_", "02" * 12 + "00000001")], 0.0)
+    order: list[tuple[str, int]] = []
+    pipe = c.pipes["tool"]
+    for name in ("push_omc", "push_local"):
+        real = getattr(pipe, name)
+        setattr(pipe, name, lambda *a, real=real, name=name, **kw: (order.append((name, a[-2])), real(*a, **kw))[1])
+    for k in range(3):   # the OTS sample of frame k arrives after the OMC sample of frame k + 1
+        push(c, "omc", "base", k + 1, now=0.01)
+        push(c, "ots", "base", k, now=0.01)
+    assert order == [] and pipe.counts["global_in"] == 0, "the open OMC topic waits too"
+    for topic in c.guard.topics:
+        if topic.startswith("/ots"):
+            c.publishers_seen(topic, honest["ots"], 0.02)
+    push(c, "omc", "base", 4, now=0.03)
+    stamps = [t for _, t in order]
+    assert stamps == sorted(stamps) and len(order) == 7, order
+    assert [n for n, _ in order][:2] == ["push_local", "push_omc"], "frame 0's OTS sample before frame 1's OMC one"

@@ -277,6 +277,12 @@ def batch_replay(prep: Prepared, config: TargetConfig, idle_flush_s: float, t_st
             emitted.append((ig if use_g else -1, il if use_l else -1, Tob if use_g else None, Tbo if use_l else None))
 
     what = {1: f"OMC body '{c.omc_target}'", 2: f"OTS tool '{c.ots_target}'"}
+    # the target samples' positions as 3x4 [0 | p] blocks: what admit's plausibility check reads of a pose
+    tpos: dict[int, np.ndarray] = {}
+    for k, t in enumerate(topic_names):
+        if kind_of[k] in (1, 2):
+            tpos[k] = np.zeros((len(poses[t].p), 3, 4))
+            tpos[k][:, :, 3] = poses[t].p
     mats = {k: list(_matrices(poses[t].p, poses[t].q)) for k, t in enumerate(topic_names) if kind_of[k] >= 3}
     ts_list = raw.timestamp.tolist()
     topic_list = raw.topic.tolist()
@@ -291,9 +297,8 @@ def batch_replay(prep: Prepared, config: TargetConfig, idle_flush_s: float, t_st
             if last_recv is not None and pipe.sync.pending and recv - last_recv > idle_ns:
                 take(pipe.flush_items())
             last_recv = recv
-            r = pipe.enqueue(GLOBAL if kind == 1 else LOCAL, stamps[k][j], j, what[kind])
-            if r != "ok":
-                raise BatchUnsupported(f"a {r} sample")
+            if not pipe.admit(GLOBAL if kind == 1 else LOCAL, stamps[k][j], tpos[k][j], None, what[kind], j):
+                raise BatchUnsupported(f"a sample the pipeline did not take: {dict(pipe.counts)}")
             take(pipe.poll_items())
             continue
         if kind == 3 and not links.collecting:

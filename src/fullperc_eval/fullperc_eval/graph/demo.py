@@ -70,13 +70,24 @@ def graph_path(root: Path) -> Path:
     raise FileNotFoundError("demo_graph.yaml not found (is the workspace built?)")
 
 
-def fusion_params_with(calibration: Path, out: Path) -> Path:
-    """fusion_node's installed params file with ``calibration_file`` set, written to ``out/fusion.yaml``: the offline
-    evaluation must run with the links the live node loaded, or offline and live would differ by the calibration."""
+# [s] the demo's fusion_node takes a sample this late (its ``history``, demo_graph.yaml), and the offline evaluation of
+# the recording waits as long for one (``reorder_delay``). On a busy 2-core machine the Vega driver's samples reach the
+# recorder hundreds of ms after the OMC's: with the default 0.05 s the evaluation dropped 185 of them as late that the
+# node had fused, and live and offline differed by that, not by the node.
+LIVE_HISTORY_S = 1.0
+
+
+def fusion_params_with(calibration: Path | None, out: Path) -> Path:
+    """fusion_node's installed params file for the offline evaluation of the demo's recording, written to
+    ``out/fusion.yaml``: ``reorder_delay`` = :data:`LIVE_HISTORY_S`, and with ``calibration`` its
+    ``calibration_file`` (the evaluation must run with the links the live node loaded)."""
     from fullperc_fusion.fusion_config import default_fusion_config_path
 
     doc = yaml.safe_load(default_fusion_config_path().read_text()) or {}
-    doc.setdefault("fusion_node", {}).setdefault("ros__parameters", {})["calibration_file"] = str(calibration)
+    params = doc.setdefault("fusion_node", {}).setdefault("ros__parameters", {})
+    params["reorder_delay"] = LIVE_HISTORY_S
+    if calibration is not None:
+        params["calibration_file"] = str(calibration)
     path = out / "fusion.yaml"
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
     return path
@@ -99,12 +110,11 @@ def run_demo(task: str, seed: str, out: Path, root: Path, speed: str = "1.0",
         return 2
     out = out / f"{task}-{time.strftime('%Y%m%d-%H%M%S')}"
     out.mkdir(parents=True, exist_ok=False)
-    fusion_config = None
     extra = dict(extra or {})
     if calibration is not None:
         calibration = Path(calibration).resolve()
         extra["calibration_file"] = str(calibration)
-        fusion_config = fusion_params_with(calibration, out)
+    fusion_config = fusion_params_with(calibration, out)
     os.environ.setdefault("ROS_DOMAIN_ID", str(101 + os.getpid() % 100))
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     values = {"task": task, "seed": str(seed), "out": str(out.resolve()), "speed": str(speed),

@@ -200,6 +200,7 @@ class ArrivalPipeline(TargetPipeline):
         self.outbox.carried = self.poll()
         self.outbox.published_ns = None
         self.rules.restart()
+        self.plausibility.restart()   # the new timeline's first sample of each source is accepted as its first
         self.lane.reset()
         self.side.reset()
 

@@ -14,11 +14,12 @@ what the node published::
             ...                                    # FusedOutput: one per filter per processed item
     outputs = pipe.flush()                         # end of data
 
-Data flow: every pose is validated (:func:`frame_chain.pose_to_T`; NaN/inf, non-unit quaternions
+Data flow: every pose is validated (:func:`.plausibility.validate`: NaN/inf, non-unit quaternions
 and bad stamps are rejected, counted and described in :attr:`TargetPipeline.last_problem`, never
 raised), and so is its covariance when one is given (:func:`~fullperc_fusion.filters.api.check_covariance`: non-finite,
 non-symmetric or not positive definite -> ``rejected_cov``, the sample is dropped, never fused); base / rig
-samples feed the static links of the :class:`~frame_chain.FrameChain`; target
+samples feed the static links of the :class:`~frame_chain.FrameChain`; a target sample further from its source's last
+accepted one than the target can move is dropped as ``rejected_jump`` (:class:`.plausibility.Plausibility`); target
 samples go through the :class:`~synchronizer.ApproxSync` as raw device poses and are mapped into
 ``base`` only when they come out (so a base-marker sample of the same OTS frame that arrived a little
 later can still be used for eq. 2); each item then becomes one :class:`~fullperc_fusion.filters.api.Measurement`
@@ -81,8 +82,9 @@ holds ``vars(pipe)`` to these names).
 Stages (public, for a caller that runs some of them itself -- the batched evaluator, which validates, maps and
 filters a whole bag on arrays): ``push_*`` = validation + :meth:`~TargetPipeline.observe_omc` /
 :meth:`~TargetPipeline.observe_ots` / :meth:`~TargetPipeline.observe_local` (what a valid pose does to the links
-and the link monitor) + :meth:`~TargetPipeline.enqueue` (a target sample into the synchronizer under the stamp rules,
-:mod:`.stamp_rules`); :meth:`~TargetPipeline.poll` = fusing :meth:`~TargetPipeline.poll_items`.
+and the link monitor) + :meth:`~TargetPipeline.admit` (a target sample: plausibility, then
+:meth:`~TargetPipeline.enqueue` into the synchronizer under the stamp rules, :mod:`.stamp_rules`);
+:meth:`~TargetPipeline.poll` = fusing :meth:`~TargetPipeline.poll_items`.
 """
 
 from __future__ import annotations
@@ -94,12 +96,13 @@ import numpy as np
 from fullperc_common.transforms import inv_T
 from fullperc_fusion.calibration.monitor import LinkMonitor
 from fullperc_fusion.calibration.se3_stats import Calibration
-from fullperc_fusion.filters.api import SOURCE_GLOBAL, SOURCE_LOCAL, BadMeasurement, Filter, Step, check_covariance
+from fullperc_fusion.filters.api import SOURCE_GLOBAL, SOURCE_LOCAL, BadMeasurement, Filter, Step
 from fullperc_fusion.filters.measurement_models import link_covariance_at
 from fullperc_fusion.filters.registry import make_filter
-from fullperc_fusion.pipeline.frame_chain import BadSample, FrameChain, pose_to_T
+from fullperc_fusion.pipeline.frame_chain import FrameChain
 from fullperc_fusion.pipeline.lane import FilterLane, caps_of
 from fullperc_fusion.pipeline.measure import OmcQualities, measurement, model_measurements
+from fullperc_fusion.pipeline.plausibility import Plausibility, validate
 from fullperc_fusion.pipeline.problems import Problems
 from fullperc_fusion.pipeline.sources import fixed_cov, renamed_calibration
 from fullperc_fusion.pipeline.stamp_rules import OK
@@ -119,9 +122,10 @@ class TargetPipeline:
     # state a rewind keeps, the input side: the chains (static links: a replayed item is mapped with the links it
     # was resolved with, arrival.py), the synchronizer, the link monitor and what it was last set from, the OMC
     # qualities (an item fused again needs its quality again), the diagnostics (counters a rewind rolls back by
-    # what the rewound items added, arrival.py; reasons are not undone)
+    # what the rewound items added, arrival.py; reasons are not undone), the accepted samples plausibility compares
+    # with (a sample is judged once, on arrival, before the synchronizer: a rewind never judges it again)
     KEPT: tuple[str, ...] = ("chain", "extra_chains", "sync", "monitor", "_monitor_src", "_refusals_seen",
-                             "omc_quality", "diag")
+                             "omc_quality", "diag", "plausibility")
 
     def __init__(self, config: TargetConfig) -> None:
         self.config = config
@@ -140,6 +144,8 @@ class TargetPipeline:
         self._monitor_src: np.ndarray | None = None   # the T_base_ots the monitor's reference was made from
         self._refusals_seen = 0
         self.omc_quality = OmcQualities()   # TrackingQuality of the OMC target body by stamp (models lanes only)
+        self.plausibility = Plausibility(len(self.sync.names), config.max_speed, config.max_jump,
+                                         max(config.history_ns, 2 * config.slop_ns + config.delay_ns))
 
     # ---- what callers read -----------------------------------------------------------------------------------
     @property
@@ -182,37 +188,6 @@ class TargetPipeline:
         own rejections, and a caller's (``fusion_node``'s publish errors) the same way."""
         self.diag.report(key, msg, t_ns)
 
-    def _validate(self, what: str, t_ns, pose, cov=None,
-                  now_ns: int | None = None) -> tuple[int, np.ndarray, np.ndarray | None] | None:
-        report = self.diag.report
-        try:
-            t = int(t_ns)
-        except (TypeError, ValueError, OverflowError):
-            report("rejected_stamp", f"{what}: invalid stamp {t_ns!r}", None)
-            return None
-        if t <= 0:
-            report("rejected_stamp", f"{what}: invalid stamp {t}", None)
-            return None
-        if now_ns is not None and t - now_ns > self.config.max_future_ns:
-            report("rejected_future", f"{what}: stamp {t} ns is {(t - now_ns) * 1e-9:.3f} s ahead of the clock "
-                                      f"({now_ns} ns; max_future {self.config.max_future_ns * 1e-9:g} s); dropped", t)
-            return None
-        try:
-            T = pose_to_T(pose)
-        except BadSample as e:
-            why = str(e)
-            key = "rejected_nonfinite" if "non-finite" in why else "rejected_nonunit" if "non-unit" in why \
-                else "rejected_pose"
-            report(key, f"{what}: {why}", t)
-            return None
-        if cov is None:
-            return t, T, None
-        try:
-            return t, T, check_covariance(cov)
-        except BadMeasurement as e:
-            report("rejected_cov", f"{what}: {e}", t)
-            return None
-
     def push_omc(self, body: str, t_ns: int, pose, cov=None, now_ns: int | None = None,
                  quality: dict | None = None) -> bool:
         """One OMC sample of ``body`` (pose of the body in ``omc``, optional 6x6 covariance in ``omc``).
@@ -224,13 +199,13 @@ class TargetPipeline:
         if body not in (c.omc_target, c.omc_base, c.omc_rig) and \
                 not any(body in (ch.cfg.omc_base, ch.cfg.omc_rig) for ch in self.extra_chains):
             return False
-        v = self._validate(f"OMC body '{body}'", t_ns, pose, cov, now_ns)
+        v = validate(f"OMC body '{body}'", t_ns, pose, cov, now_ns, self.config.max_future_ns, self.diag)
         if v is None:
             return False
         t, T, C = v
         self.observe_omc(body, t, T)
         if body == c.omc_target:
-            return self.enqueue(GLOBAL, t, (T, C), f"OMC body '{body}'") == OK
+            return self.admit(GLOBAL, t, T, C, f"OMC body '{body}'")
         return True
 
     def push_ots(self, tool: str, t_ns: int, pose, cov=None, now_ns: int | None = None) -> bool:
@@ -239,13 +214,13 @@ class TargetPipeline:
         c = self.config.chain
         if tool not in (c.ots_target, c.ots_base):
             return False
-        v = self._validate(f"OTS tool '{tool}'", t_ns, pose, cov, now_ns)
+        v = validate(f"OTS tool '{tool}'", t_ns, pose, cov, now_ns, self.config.max_future_ns, self.diag)
         if v is None:
             return False
         t, T, C = v
         self.observe_ots(tool, t, T)
         if tool == c.ots_target:
-            return self.enqueue(LOCAL, t, (T, C), f"OTS tool '{tool}'") == OK
+            return self.admit(LOCAL, t, T, C, f"OTS tool '{tool}'")
         return True
 
     def push_local(self, k: int, tool: str, t_ns: int, pose, cov=None, now_ns: int | None = None) -> bool:
@@ -257,13 +232,13 @@ class TargetPipeline:
         if tool not in (ch.cfg.ots_target, ch.cfg.ots_base):
             return False
         what = f"{self.config.sources.locals[k].name} tool '{tool}'"
-        v = self._validate(what, t_ns, pose, cov, now_ns)
+        v = validate(what, t_ns, pose, cov, now_ns, self.config.max_future_ns, self.diag)
         if v is None:
             return False
         t, T, C = v
         self.observe_local(k, tool, t, T)
         if tool == ch.cfg.ots_target:
-            return self.enqueue(1 + k, t, (T, C), what) == OK
+            return self.admit(1 + k, t, T, C, what)
         return True
 
     def push_omc_quality(self, body: str, t_ns: int, quality: dict) -> None:
@@ -301,6 +276,19 @@ class TargetPipeline:
         else:
             self.extra_chains[k - 1].observe_ots(tool, t_ns, T)
 
+    def admit(self, stream: int, t: int, T: np.ndarray, C: np.ndarray | None, what: str, payload=None) -> bool:
+        """A valid target sample of ``stream``: dropped as ``rejected_jump`` if implausible (:mod:`.plausibility`),
+        else handed to :meth:`enqueue` (payload ``(T, C)``, or ``payload``: the batched evaluator's sample index);
+        once taken, the source's later samples are compared with it. True if taken."""
+        why = self.plausibility.check(stream, t, T, what)
+        if why is not None:
+            self.diag.report("rejected_jump", why, t)
+            return False
+        if self.enqueue(stream, t, (T, C) if payload is None else payload, what) != OK:
+            return False
+        self.plausibility.accept(stream, t, T)
+        return True
+
     def enqueue(self, stream: int, t_ns: int, payload, what: str) -> str:
         """A valid target sample of synchronizer ``stream`` (0 global, 1 + k local source k) at ``t_ns``: 'ok', or
         'late' / 'duplicate' (:mod:`.stamp_rules`), then dropped, counted and described naming ``what`` (source
@@ -313,7 +301,9 @@ class TargetPipeline:
 
     def request_initialize(self, mode: str | None = None) -> None:
         """Re-estimate the static links from the next samples (the old ones stay in use meanwhile); ``mode``
-        average | calibrate, default the configured ``static_links``."""
+        average | calibrate, default the configured ``static_links``. Plausibility starts again (the setup may have
+        changed: the next sample of each source is accepted as its first)."""
+        self.plausibility.restart()
         self.chain.reinitialize(mode)
         for ch in self.extra_chains:
             ch.reinitialize(mode)

@@ -7,6 +7,7 @@ Shared by the two processing modes (``ordered``: :class:`~.ordered.TargetPipelin
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -42,6 +43,10 @@ class TargetConfig:
     layout: Layout | None = None    # OR layout (omc frame) for the OMC model's view margin; None: margin unknown
     omc_model: OmcModelParams = field(default_factory=OmcModelParams)   # constants of the OMC model (noise_model_file)
     sources: SourceSet = field(default_factory=SourceSet)   # sources.py: global + first local (``chain``) + further
+    # plausibility.py: a target sample further than max_jump + max_speed x dt from its source's last accepted one is
+    # dropped (rejected_jump); the parameters plausibility.max_speed and plausibility.jump
+    max_speed: float = 2.0          # [m/s] the fastest the target moves
+    max_jump: float = 0.01          # [m] what a sample may be off besides (noise, the OMC's marker hops)
 
     def __post_init__(self) -> None:
         self.filters = tuple(self.filters)
@@ -60,6 +65,9 @@ class TargetConfig:
             raise ValueError(f"target '{self.name}': history must be > 0, got {self.history_ns * 1e-9} s")
         if not self.max_future_ns > 0:
             raise ValueError(f"target '{self.name}': max_future must be > 0, got {self.max_future_ns * 1e-9} s")
+        for what, v in (("plausibility.max_speed", self.max_speed), ("plausibility.jump", self.max_jump)):
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"target '{self.name}': {what} must be finite and > 0, got {v}")
 
 
 @dataclass
