@@ -76,6 +76,17 @@ def claim_domain(ids: range = DOMAIN_IDS, lock_dir: Path | None = None) -> Domai
     raise RuntimeError(f"every ROS domain id in {ids} is held by another test process (lock files in {d})")
 
 
+def load_by_path(path: Path, name: str):
+    """The Python module at ``path``, imported under ``name``: a sibling test module or script whose helpers a test
+    reuses (the suite runs with --import-mode=importlib, so test modules are not importable by name)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
 def installed_exe(pkg: str, exe: str) -> str:
     """Path of an executable as `ros2 run pkg exe` would exec it (install/<pkg>/lib/<pkg>/<exe>)."""
     path = workspace_root() / "install" / pkg / "lib" / pkg / exe

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import copy
-import importlib.util
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from fullperc_common.testing import load_by_path
 from fullperc_fusion.filters.api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement
 from fullperc_fusion.filters.registry import make_filter
 from fullperc_fusion.pipeline.arrival import ArrivalPipeline, make_pipeline
@@ -18,9 +18,7 @@ from fullperc_fusion.pipeline.synchronizer import GLOBAL, LOCAL, ApproxSync, Sam
 
 MS = 1_000_000
 # the device-level synthetic streams of test_pipeline.py (tests run with --import-mode=importlib: load by path)
-_spec = importlib.util.spec_from_file_location("_pipeline_streams", Path(__file__).with_name("test_pipeline.py"))
-_tp = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(_tp)
+_tp = load_by_path(Path(__file__).with_name("test_pipeline.py"), "_pipeline_streams")
 ALL, T0, S, stream = _tp.ALL, _tp.T0, _tp.S, _tp.stream
 
 

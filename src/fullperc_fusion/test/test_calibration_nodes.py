@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import re
 from pathlib import Path
@@ -11,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fullperc_common.testing import installed_exe, side_by_side_fixture, wait_for
+from fullperc_common.testing import installed_exe, load_by_path, side_by_side_fixture, wait_for
 from fullperc_common.transforms import inv_T
 
 HERE = Path(__file__).resolve().parent
@@ -20,10 +19,7 @@ pytestmark = pytest.mark.system
 
 
 def _load(name: str):
-    spec = importlib.util.spec_from_file_location(f"_calib_{name}", HERE / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_by_path(HERE / f"{name}.py", f"_calib_{name}")
 
 
 PUBMOD = _load("synthetic_driver_pub")

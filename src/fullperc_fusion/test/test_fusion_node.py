@@ -4,7 +4,6 @@ module's scenarios run side by side, each in a ROS domain of its own (``scenario
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import re
@@ -16,7 +15,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fullperc_common.testing import RosSession, SideBySide, installed_exe, selected_cases, wait_for, wait_for_first_line
+from fullperc_common.testing import (
+    RosSession,
+    SideBySide,
+    installed_exe,
+    load_by_path,
+    selected_cases,
+    wait_for,
+    wait_for_first_line,
+)
 
 HERE = Path(__file__).resolve().parent
 PUB = HERE / "synthetic_driver_pub.py"
@@ -24,10 +31,7 @@ pytestmark = pytest.mark.system
 
 
 def _load_pub_module():
-    spec = importlib.util.spec_from_file_location("synthetic_driver_pub", PUB)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_by_path(PUB, "synthetic_driver_pub")
 
 
 class Listener:

@@ -3,14 +3,13 @@ fusion_node in another; this test subscribes to /tf and /tf_static (a late, tran
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from fullperc_common.testing import SpunNode, installed_exe, side_by_side_fixture, wait_for
+from fullperc_common.testing import SpunNode, installed_exe, load_by_path, side_by_side_fixture, wait_for
 
 HERE = Path(__file__).resolve().parent
 PUB = HERE / "synthetic_driver_pub.py"
@@ -19,10 +18,7 @@ DIANA_BASE = [0.4, -0.3, 0.0, 0.0, 0.0, 0.7071067811865476, 0.7071067811865476]
 
 
 def _pub_module():
-    spec = importlib.util.spec_from_file_location("synthetic_driver_pub", PUB)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_by_path(PUB, "synthetic_driver_pub")
 
 
 def _ns(stamp) -> int:

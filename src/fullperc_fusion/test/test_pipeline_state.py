@@ -8,13 +8,13 @@ when a lane's snapshot misses part of the lane.
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 import pickle
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from fullperc_common.testing import load_by_path
 from fullperc_fusion.filters.fullperc_params import FullpercParams
 from fullperc_fusion.pipeline.arrival import ArrivalPipeline
 from fullperc_fusion.pipeline.frame_chain import ChainConfig
@@ -27,10 +27,7 @@ _HERE = Path(__file__).parent
 
 
 def _load(name: str):
-    spec = importlib.util.spec_from_file_location(f"_state_{name}", _HERE / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_by_path(_HERE / f"{name}.py", f"_state_{name}")
 
 
 _tp = _load("test_pipeline")

@@ -4,7 +4,6 @@ arrival. Pure: no ROS, no processes."""
 
 from __future__ import annotations
 
-import importlib.util
 import math
 from pathlib import Path
 
@@ -13,6 +12,7 @@ import pytest
 import yaml
 
 from fullperc_common.params import ParameterError
+from fullperc_common.testing import load_by_path
 from fullperc_fusion import fusion_config as fc
 from fullperc_fusion.fusion_health import GLOBAL, HealthParams, TargetHealth
 from fullperc_fusion.fusion_verdict import PROBLEM_KEYS, TargetVerdict
@@ -22,11 +22,11 @@ from fullperc_fusion.pipeline.ordered import TargetConfig, TargetPipeline
 from fullperc_fusion.pipeline.plausibility import Plausibility
 
 MS = 1_000_000
-# the device-level synthetic streams of test_pipeline.py (tests run with --import-mode=importlib: load by path)
-_spec = importlib.util.spec_from_file_location("_plaus_streams", Path(__file__).with_name("test_pipeline.py"))
-_tp = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(_tp)
-ALL, T0, S, stream = _tp.ALL, _tp.T0, _tp.S, _tp.stream
+# test_arrival.py's helpers: test_pipeline.py's device-level streams, pushed through ordered processing and on
+# arrival, and received out of order (tests run with --import-mode=importlib: loaded by path)
+_ta = load_by_path(Path(__file__).with_name("test_arrival.py"), "_plaus_arrival")
+ALL, T0, S, stream = _ta.ALL, _ta.T0, _ta.S, _ta.stream
+_push, _ordered, _arrival, _shuffled = _ta._push, _ta._ordered, _ta._arrival, _ta._shuffled
 
 
 def _T(p) -> np.ndarray:
@@ -41,31 +41,6 @@ def _moved(T: np.ndarray, off) -> np.ndarray:
     return out
 
 
-def _push(pipe, ev):
-    dev, body, ns, T = ev
-    return (pipe.push_omc if dev == "omc" else pipe.push_ots)(body, ns, T)
-
-
-def _ordered(cfg, events):
-    pipe = TargetPipeline(cfg)
-    outs = []
-    for ev in events:
-        _push(pipe, ev)
-        outs += pipe.poll()
-    return outs + pipe.flush(), pipe
-
-
-def _arrival(cfg, events):
-    pipe = ArrivalPipeline(cfg)
-    final = []
-    for ev in events:
-        _push(pipe, ev)
-        pipe.poll()
-        final += pipe.take_final()
-    pipe.flush()
-    return final + pipe.take_final(), pipe
-
-
 def _same(a, b):
     assert len(a) == len(b) > 100
     for x, y in zip(sorted(a, key=lambda o: (o.t_ns, o.filter)), sorted(b, key=lambda o: (o.t_ns, o.filter)),
@@ -73,13 +48,6 @@ def _same(a, b):
         assert (x.filter, x.t_ns, x.sources, x.t_global, x.t_local) == (y.filter, y.t_ns, y.sources, y.t_global,
                                                                         y.t_local)
         assert np.array_equal(x.p, y.p) and np.array_equal(x.cov, y.cov)
-
-
-def _shuffled(events, max_delay_ns, seed):
-    """The events received up to ``max_delay_ns`` late each (random), i.e. out of stamp order."""
-    rng = np.random.default_rng(seed)
-    recv = [ev[2] + int(rng.uniform(0, max_delay_ns)) for ev in events]
-    return [ev for _, ev in sorted(zip(recv, events, strict=True), key=lambda x: x[0])]
 
 
 def _injected(events, off, every: int, dt_ns: int = 4 * MS, dev: str = "omc"):
@@ -298,7 +266,7 @@ def test_ordered_and_arrival_reject_the_same_samples_and_give_the_same_estimates
     bad = {id(ev) for ev in (*bad_omc, *bad_ots)}
     cfg = TargetConfig(filters=ALL, chain=ChainConfig(static_links="average"))
     ordered, opipe = _ordered(cfg, events)
-    final, apipe = _arrival(cfg, events)
+    _, final, apipe = _arrival(cfg, events)
     assert opipe.counts["rejected_jump"] == apipe.counts["rejected_jump"] == len(bad) > 20
     _same(final, ordered)
     if reorder_ms:

@@ -3,7 +3,6 @@ per local source, arrival == ordered with two local sources, accuracy from the s
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +11,7 @@ import yaml
 from scipy.spatial.transform import Rotation as Rot
 
 from fullperc_common.params import ParameterError
+from fullperc_common.testing import load_by_path
 from fullperc_common.transforms import inv_T, make_T
 from fullperc_fusion import fusion_config as fc
 from fullperc_fusion.pipeline.arrival import ArrivalPipeline
@@ -21,9 +21,7 @@ from fullperc_fusion.pipeline.sources import SourceSet, SourceSpec
 from fullperc_fusion.pipeline.synchronizer import ApproxSync, Sample
 
 MS = 1_000_000
-_spec = importlib.util.spec_from_file_location("_pipeline_streams", Path(__file__).with_name("test_pipeline.py"))
-_tp = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(_tp)
+_tp = load_by_path(Path(__file__).with_name("test_pipeline.py"), "_pipeline_streams")
 T0, S, truth, T_OMC_BASE, T_OMC_OTS = _tp.T0, _tp.S, _tp.truth, _tp.T_OMC_BASE, _tp.T_OMC_OTS
 OMC_OFFSET = _tp.OMC_OFFSET
 ALL = ("cbkf", "ckf", "bkf", "kf", "omc")
