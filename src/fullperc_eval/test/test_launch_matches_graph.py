@@ -40,6 +40,13 @@ def test_launch_file_and_graph_agree():
     assert launch_topics == graph_topics
 
 
+def _graph_fusion_params() -> dict[str, str]:
+    """The ``-p name:=value`` parameters the demo graph gives fusion_node (values unparsed)."""
+    cmd = next(p for p in yaml.safe_load((PKG / "config" / "demo_graph.yaml").read_text())["processes"]
+               if p["name"] == "fusion")["cmd"]
+    return dict(cmd[i + 1].split(":=", 1) for i, w in enumerate(cmd) if w == "-p")
+
+
 def _fusion_yaml_target(target: str) -> dict:
     doc = yaml.safe_load((PKG.parent / "fullperc_fusion" / "config" / "fusion.yaml").read_text())
     return doc["fusion_node"]["ros__parameters"][target]
@@ -54,9 +61,7 @@ def test_the_targets_fusion_parameters_are_fusion_yamls_in_graph_and_launch_file
     tool = _fusion_yaml_target("tool")
     assert tool.keys() == {"omc_body", "ots_tool", "ang_accel_noise"}     # the device names are the target's name
     want["tool.ang_accel_noise"] = tool["ang_accel_noise"]
-    cmd = next(p for p in yaml.safe_load((PKG / "config" / "demo_graph.yaml").read_text())["processes"]
-               if p["name"] == "fusion")["cmd"]
-    given = dict(cmd[i + 1].split(":=", 1) for i, w in enumerate(cmd) if w == "-p")
+    given = _graph_fusion_params()
     assert {k: yaml.safe_load(given[k]) for k in want} == want
     tree = ast.parse((PKG / "launch" / "demo.launch.py").read_text())
     fusion = next(n for n in ast.walk(tree) if isinstance(n, ast.Call) and getattr(n.func, "id", "") == "Node"
@@ -103,7 +108,4 @@ def test_the_demos_offline_evaluation_waits_as_long_as_its_node_takes_a_late_sam
     (``reorder_delay``), or it drops what a busy machine's drivers delivered late and live and offline differ."""
     from fullperc_eval.graph.demo import LIVE_HISTORY_S
 
-    cmd = next(p for p in yaml.safe_load((PKG / "config" / "demo_graph.yaml").read_text())["processes"]
-               if p["name"] == "fusion")["cmd"]
-    given = dict(cmd[i + 1].split(":=", 1) for i, w in enumerate(cmd) if w == "-p")
-    assert float(given["history"]) == LIVE_HISTORY_S
+    assert float(_graph_fusion_params()["history"]) == LIVE_HISTORY_S

@@ -162,10 +162,7 @@ def pub_main(argv: list[str] | None = None) -> int:
 
     try:
         cls = get_message(args.type)
-        values = yaml.safe_load(args.values) or {}
-        if not isinstance(values, dict):
-            raise ValueError("values must be a mapping")
-        msg = fill(cls(), values)
+        msg = _filled(cls(), args.values)
     except (ValueError, TypeError, AssertionError, BagError, yaml.YAMLError) as e:
         print(f"pub: {e}", file=sys.stderr)
         return 2
@@ -195,6 +192,16 @@ def pub_main(argv: list[str] | None = None) -> int:
             rclpy.shutdown()
 
 
+def _filled(obj, text: str):
+    """``obj`` (a message or a service request) with the fields ``text`` gives as a JSON / YAML mapping."""
+    import yaml
+
+    values = yaml.safe_load(text) or {}
+    if not isinstance(values, dict):
+        raise ValueError("values must be a mapping")
+    return fill(obj, values)
+
+
 def get_service(srvtype: str):
     """Python class of 'pkg/srv/Name' (it has ``Request`` and ``Response``); BagError naming the type otherwise."""
     cls = get_message(srvtype)
@@ -218,10 +225,7 @@ def call_main(argv: list[str] | None = None) -> int:
 
     try:
         srv = get_service(args.type)
-        values = yaml.safe_load(args.values) or {}
-        if not isinstance(values, dict):
-            raise ValueError("values must be a mapping")
-        request = fill(srv.Request(), values)
+        request = _filled(srv.Request(), args.values)
     except (ValueError, TypeError, AssertionError, BagError, yaml.YAMLError) as e:
         print(f"call: {e}", file=sys.stderr)
         return 2
