@@ -231,15 +231,15 @@ class FusionCore:
         Samples held while a publisher had no name are used (with the next sample) when it was named and accepted,
         else dropped."""
         logs = self.guard.update(topic, publishers, now)
-        self.guard.take_release(topic)   # the held samples are decided below, for every topic at once
         self._holding = any(self.guard.holding(x) for x in self.guard.topics)
         if not self._holding and self._held:   # everyone named: the accepted topics' samples, in stamp order
-            held, self._held = self._held, []
-            for x, _kind, _args in held:
-                if not self.guard.is_open(x):
+            held, self._held, keep = self._held, [], []
+            for x, kind, args in held:
+                if self.guard.is_open(x):
+                    keep.append((kind, args))
+                else:
                     self.guard.drop(x)
-            self._released += sorted(((kind, args) for x, kind, args in held if self.guard.is_open(x)),
-                                     key=lambda r: (r[1][2], 1 + (tuple(r[1][:2]) in self.book.loss))
+            self._released += sorted(keep, key=lambda r: (r[1][2], 1 + (tuple(r[1][:2]) in self.book.loss))
                                      if r[0] == "pose" else (r[1][2], 0))   # batch_key's order; a quality first
         return logs
 
