@@ -30,7 +30,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from fullperc_eval.graph.demo import graph_path
+from fullperc_eval.graph.demo import free_port, graph_path
 from fullperc_eval.graph.sros2_policy import DEFAULT_PREFIX, NodeAccess, enclave_path, policy_xml
 from fullperc_eval.graph.supervisor import Graph, GraphError, Supervisor, load_graph
 
@@ -38,18 +38,12 @@ NOT_ROS = ("sim",)   # processes of the demo graph that create no ROS node
 INTROSPECTOR = "_fullperc_sros2_policy"   # hidden (leading _): left out of the policy, as generate_policy does
 
 
-def _free_port(kind: int) -> str:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return str(s.getsockname()[1])
-
-
 def demo_values(out: Path) -> dict[str, str]:
     """Values for the demo graph's placeholders: free ports (nothing listens on the Vega's: the NDI driver retries),
     a scratch output folder, and an identity arm base (it changes a /tf_static transform, not a topic)."""
     return {"task": "P-B-G-P", "seed": "0", "out": str(out), "speed": "1.0",
-            "omc_port": _free_port(socket.SOCK_DGRAM), "diana_port": _free_port(socket.SOCK_DGRAM),
-            "vega_port": _free_port(socket.SOCK_STREAM), "diana_base": "[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]"}
+            "omc_port": str(free_port(socket.SOCK_DGRAM)), "diana_port": str(free_port(socket.SOCK_DGRAM)),
+            "vega_port": str(free_port(socket.SOCK_STREAM)), "diana_base": "[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]"}
 
 
 def ros_nodes_only(graph: Graph, skip: tuple[str, ...]) -> Graph:

@@ -56,7 +56,8 @@ from fullperc_eval.sim.tasks import TaskPlanningError, plan_task
 from .supervisor import execute_graph
 
 
-def _free_port(kind: int) -> int:
+def free_port(kind: int) -> int:
+    """A port nothing listens on now (``kind``: socket.SOCK_DGRAM or SOCK_STREAM), for a graph's devices."""
     with socket.socket(socket.AF_INET, kind) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
@@ -118,8 +119,8 @@ def run_demo(task: str, seed: str, out: Path, root: Path, speed: str = "1.0",
     os.environ.setdefault("ROS_DOMAIN_ID", str(101 + os.getpid() % 100))
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     values = {"task": task, "seed": str(seed), "out": str(out.resolve()), "speed": str(speed),
-              "omc_port": str(_free_port(socket.SOCK_DGRAM)), "diana_port": str(_free_port(socket.SOCK_DGRAM)),
-              "vega_port": str(_free_port(socket.SOCK_STREAM)), "profile": profile}
+              "omc_port": str(free_port(socket.SOCK_DGRAM)), "diana_port": str(free_port(socket.SOCK_DGRAM)),
+              "vega_port": str(free_port(socket.SOCK_STREAM)), "profile": profile}
     try:
         values["diana_base"] = "[" + ", ".join(repr(v) for v in sim_diana_base(task, seed, profile)) + "]"
     except (ValueError, KeyError, TaskPlanningError) as e:   # the simulator will say the same, in its own log
