@@ -28,6 +28,8 @@ import xml.etree.ElementTree as ET
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
+from fullperc_fusion.input_guard import node_fqn  # the node name discovery reports, as fusion_node forms it
+
 POLICY_VERSION = "0.2.0"
 DEFAULT_PREFIX = "/fullperc"
 
@@ -47,25 +49,20 @@ class PolicyError(ValueError):
     """A policy document that sros2 would refuse (it validates against policy.xsd); the message says where."""
 
 
-def node_fqn(node: str, ns: str = "/") -> str:
-    """``/ns/node`` (``/node`` in the root namespace)."""
-    return ns.rstrip("/") + "/" + node
-
-
 def fully_qualified(name: str, node: str, ns: str = "/") -> str:
     """A policy expression resolved as sros2's permissions.xsl does: ``/x`` as is, ``~/x`` under the node, ``x``
     under the node's namespace."""
     if name.startswith("/"):
         return name
     if name.startswith("~"):
-        return node_fqn(node, ns) + name[1:]
+        return node_fqn(ns, node) + name[1:]
     return ns.rstrip("/") + "/" + name
 
 
 def enclave_path(node: str, ns: str = "/", prefix: str = DEFAULT_PREFIX) -> str:
     """The node's enclave: ``<prefix>/<node>`` (``<prefix>/<ns>/<node>`` in a namespace): one key per node, the
     name a deployment passes as ``--ros-args --enclave``."""
-    return prefix.rstrip("/") + node_fqn(node, ns)
+    return prefix.rstrip("/") + node_fqn(ns, node)
 
 
 @dataclass(frozen=True)
@@ -82,7 +79,7 @@ class NodeAccess:
 
     @property
     def fqn(self) -> str:
-        return node_fqn(self.node, self.ns)
+        return node_fqn(self.ns, self.node)
 
     def with_ros_internal(self) -> NodeAccess:
         """This access plus what every rclpy node uses (``ROS_INTERNAL_PUBLISH``, ``NODE_SERVICES``)."""
