@@ -21,6 +21,7 @@ import importlib.util
 import json
 import os
 import pickle
+import signal
 import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -31,6 +32,13 @@ import pytest
 from fullperc_common.testing import Procs, claim_domain, installed_exe, wait_for  # noqa: F401 (re-exported)
 
 ROOT = Path(__file__).resolve().parent
+
+# A suite started in the background by a non-interactive shell (`make test &`, a CI runner's job) inherits SIGINT
+# ignored, and so does every process a test starts: a child that does not install its own handler then ignores the
+# SIGINT that Procs.stop sends, and each stop waited its 10 s grace for SIGKILL (one test took 20 s instead of 1 s).
+# A Python-level handler is reset to SIG_DFL by exec, so the children get the default action back.
+if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture

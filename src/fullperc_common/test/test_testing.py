@@ -39,3 +39,16 @@ def test_wait_for_first_line_returns_once_the_process_wrote_or_exited(tmp_path):
             wait_for_first_line(procs, mute, 0.2)
     finally:
         procs.stop_all()
+
+
+def test_a_child_of_the_suite_stops_on_sigint_even_when_the_suite_was_started_in_the_background():
+    """conftest.py undoes an inherited ignored SIGINT (a job started with ``&`` by a non-interactive shell): the
+    processes tests start must react to the SIGINT Procs.stop sends, not sit out its 10 s grace."""
+    import signal
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", "import signal; print(signal.getsignal(signal.SIGINT).__name__)"],
+                         capture_output=True, text=True, check=True).stdout.strip()
+    assert signal.getsignal(signal.SIGINT) != signal.SIG_IGN
+    assert out == "default_int_handler"
