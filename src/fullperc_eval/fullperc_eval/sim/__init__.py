@@ -17,6 +17,7 @@ Layer: below :mod:`fullperc_eval.evaluation`, above :mod:`fullperc_eval.bag` and
 * :mod:`.walker` — the second target: a hand-held instrument a staff member carries through the room (own
   random streams, truth in ``run.extra_truth``);
 * :mod:`.runner` — :func:`run_task`: plan a task and simulate it (and the second target);
+* :mod:`.sync_take` — a short take for time alignment: the tool waved in view of both trackers;
 * :mod:`.live` — plays a run out on the UDP streams and the Vega emulator;
 * :mod:`.dataset` — ``make dataset``: the six tasks as rosbag2 bags with their calibration;
 * :mod:`.cli` — the ``sim`` executable.

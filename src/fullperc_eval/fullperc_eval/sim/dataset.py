@@ -452,7 +452,8 @@ def content_from_sim(run, epoch_ns: int = EPOCH_NS, wire_precision: bool = True)
     """The bag content of one :class:`.run.SimRun` (simulator time + ``epoch_ns``).
 
     ``wire_precision``: poses as the drivers publish them from the devices' float32 replies
-    (:func:`device_precision`); False keeps the simulator's float64 values.
+    (:func:`device_precision`); False keeps the simulator's float64 values. The Vega's stamps (and receive times)
+    are late by the run's ``ots.stamp_offset_s`` (0 unless a test set it: an unsubtracted latency).
     """
     o, v = run.omc, run.ots
     wp = device_precision if wire_precision else (lambda b, _d: b)
@@ -460,7 +461,7 @@ def content_from_sim(run, epoch_ns: int = EPOCH_NS, wire_precision: bool = True)
                        {n: wp(BodyArrays(b.tracked, b.position, b.quat_xyzw, b.mean_error, b.markers_used), "omc")
                         for n, b in o.bodies.items()},
                        latency_ns=int(round(o.latency_s * 1e9)), frame_number=o.frame_number, qos_depth=10)
-    ots = DeviceStream("ots", np.asarray(v.t_ns, np.int64) + epoch_ns,
+    ots = DeviceStream("ots", np.asarray(v.t_ns, np.int64) + epoch_ns + int(round(v.stamp_offset_s * 1e9)),
                        {n: wp(BodyArrays(t.visible, t.position, t.quat_xyzw, t.rms, t.markers_used), "ots")
                         for n, t in v.tools.items()},
                        latency_ns=int(round(v.latency_s * 1e9)), frame_number=v.frame_number,

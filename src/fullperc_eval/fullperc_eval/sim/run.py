@@ -25,7 +25,9 @@ Ground truth from joint states: T_omc_tool = T_omc_diana_base · FK(q) · T_flan
 :class:`fullperc_drivers.diana_kinematics.DianaKinematics`, and T_base_tool = inv(T_omc_base) · T_omc_tool.
 
 Times are integer nanoseconds from the task start (the live server adds the host clock). The OMC
-reports each frame ``omc.latency_s`` after capture, the Vega ``ots.latency_s`` after capture.
+reports each frame ``omc.latency_s`` after capture, the Vega ``ots.latency_s`` after capture. The Vega's stamps
+can be made late by ``ots.stamp_offset_s`` (scene key, default 0: not in scene.yaml, so the profiles' twin_hash
+is unchanged) to test time alignment; ``ots.t_ns`` stays the true capture time.
 Same task + seed + configuration -> bit-identical arrays (tested).
 """
 
@@ -80,6 +82,10 @@ class OtsSeries:
     frame_number: np.ndarray
     latency_s: float
     tools: dict[str, ToolSeries]
+    # the Vega's stamps are late by this much relative to the truth (scene ``ots.stamp_offset_s``, default 0): a
+    # capture-to-stamp delay its driver does not subtract, for testing time alignment (evaluation.time_align).
+    # ``t_ns`` stays the true capture time; only the stamps written (dataset.content_from_sim) carry it
+    stamp_offset_s: float = 0.0
 
 
 @dataclass
@@ -297,7 +303,7 @@ def simulate(scene: Scene, arc: JointArc, task: str = "", noise: bool = True, st
         tools[n] = ToolSeries(f.tracked, f.position, f.quat_xyzw, f.rms_error, f.markers_used, part)
     first_v = int(cfg["ots"].get("first_frame_number", 1))
     ots = OtsSeries(ots_t, (first_v + np.arange(len(ots_t))).astype(np.uint32), float(cfg["ots"]["latency_s"]),
-                    tools)
+                    tools, float(cfg["ots"].get("stamp_offset_s", 0.0)))
     Q, dQ = arc.sample(dia_t / 1e9)
     return SimRun(task=task, seed=scene.seed, arc=arc, omc=omc, ots=ots, diana=DianaSeries(dia_t, Q, dQ),
                   truth=_truth(scene, arc, omc_t), truth_ots=_truth(scene, arc, ots_t),
