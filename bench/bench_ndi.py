@@ -33,7 +33,7 @@ from fullperc_drivers.ndi.protocol import FrameReader, encode_binary_reply, enco
 from fullperc_drivers.ndi.rom import TOOLS  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-CONFIG = ROOT / "src" / "fullperc_drivers" / "config"
+CONFIG = ROOT / "src" / "fullperc_drivers" / "config" / "emulator_roms"   # synthetic
 NAMES = list(TOOLS)
 
 

@@ -30,7 +30,7 @@ from fullperc_drivers.ndi.driver import DriverConfig, NdiDriver, ToolConfig
 from fullperc_eval.emulators.vega_device import ToolPose
 from fullperc_eval.emulators.vega_server import FaultConfig, VegaEmulator
 
-CONFIG = Path(__file__).resolve().parents[1] / "src" / "fullperc_drivers" / "config"
+CONFIG = Path(__file__).resolve().parents[1] / "src" / "fullperc_drivers" / "config" / "emulator_roms"   # synthetic
 NAMES = ["tool", "base"]
 FRAMES = 150
 

@@ -26,7 +26,7 @@ from fullperc_drivers.ndi import replies as R
 from fullperc_drivers.ndi.protocol import FrameReader, decode_command, encode_ascii_reply, encode_binary_reply
 
 ROOT = Path(__file__).resolve().parents[1]
-CONFIG = ROOT / "src" / "fullperc_drivers" / "config"
+CONFIG = ROOT / "src" / "fullperc_drivers" / "config" / "emulator_roms"   # synthetic
 OK, WARN, ERROR = 0, 1, 2
 GARBAGE_STATUSES = 3  # link statuses (1 s period, and at level changes) watched during garbage: none may be OK
 
@@ -289,7 +289,7 @@ def _a_rom_the_device_refuses_is_named_and_the_other_tool_keeps_tracking(procs, 
 def _a_garbage_rom_file_stops_the_driver_naming_the_file(procs, tmp_path, content):
     bad = tmp_path / "broken.rom"
     bad.write_bytes(content)
-    p = start_driver(procs, free_tcp_port(), f"tool_roms:=[{bad}, base.rom]")
+    p = start_driver(procs, free_tcp_port(), f"tool_roms:=[{bad}, emulator_roms/base.rom]")
     wait_for(lambda: p.poll() is not None, timeout=40, what="ndi_driver to exit")
     log = procs.log(p)
     assert p.returncode == 2, log

@@ -13,7 +13,10 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
-        (os.path.join("share", package_name, "config"), glob("config/*.yaml") + glob("config/*.rom")),
+        (os.path.join("share", package_name, "config"), glob("config/*.yaml")),
+        # synthetic NDI tool definitions for the Vega emulator only (config/emulator_roms/README.md)
+        (os.path.join("share", package_name, "config", "emulator_roms"),
+         glob("config/emulator_roms/*.rom") + glob("config/emulator_roms/*.md")),
         (os.path.join("share", package_name, "launch"), glob("launch/*.launch.py")),
     ],
     install_requires=["setuptools"],

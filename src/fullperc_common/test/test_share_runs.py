@@ -23,8 +23,8 @@ def test_share_path_names_every_place_it_looked():
 
 def test_source_tree_is_always_a_candidate():
     src = Path(__file__).resolve().parents[2]
-    assert src / "fullperc_drivers" / "config" / "tool.rom" in share_candidates("fullperc_drivers", "config",
-                                                                                "tool.rom")
+    assert src / "fullperc_drivers" / "config" / "emulator_roms" / "tool.rom" in share_candidates(
+        "fullperc_drivers", "config", "emulator_roms", "tool.rom")
 
 
 def test_runs_inclusive_ends():

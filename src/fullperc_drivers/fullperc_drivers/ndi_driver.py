@@ -19,9 +19,11 @@ which a consumer counting ``frame_number`` gaps of the quality topic cannot tell
 
 Parameters (defaults in brackets; units and comments in ``config/ndi_vega.yaml``): transport [tcp] | serial;
 host [127.0.0.1]; port [8765]; serial_device [/dev/ttyUSB0]; baud [115200]; tools [tool, base]; tool_roms
-[tool.rom, base.rom] (relative paths are looked up in share/fullperc_drivers/config; every file is checked at
-start: exit 2 naming a file that is not an NDI tool definition); tool_priorities [] (S/D/B per tool, default
-D); mode [BX] | TX; reply_option [1] (0x0001; 0x0801 also reports out-of-volume tools); rate_hz [60.0];
+[emulator_roms/tool.rom, emulator_roms/base.rom]: the synthetic ROMs of the Vega emulator -- a real tracker needs
+its tool maker's ROMs, and the node WARNs when it uploads an emulator ROM to anything but a TCP device on this
+host (relative paths are looked up in share/fullperc_drivers/config; every file is checked at start: exit 2 naming
+a file that is not an NDI tool definition); tool_priorities [] (S/D/B per tool, default D); mode [BX] | TX;
+reply_option [1] (0x0001; 0x0801 also reports out-of-volume tools); rate_hz [60.0];
 frame_rate_hz [60.0]; device_latency_s [0.0]; volume [-1: keep]; read_timeout_s [0.5]; frame_id [ots];
 topic_prefix [ots: relative, /ots in the default namespace]; qos_depth [2000]; health.stale_after_s [2.0];
 health.reconnect_window_s [10.0]; health.max_reconnects [3]. Every parameter is read-only (:mod:`.node_common`).
@@ -49,7 +51,7 @@ from fullperc_msgs.msg import TrackingQuality
 
 from .handoff import Handoff
 from .ndi.driver import DriverConfig, DriverEvent, FrameResult, NdiDriver, ToolConfig
-from .ndi.rom import RomFileError
+from .ndi.rom import EMULATOR_ROM_DIR, RomFileError
 from .node_common import HEALTH_PERIOD_S, ConsoleThrottle, HealthReport, declare_health
 
 FATAL = (ParameterError, RomFileError)
@@ -64,6 +66,17 @@ def resolve_rom(tool: str, path: str) -> Path:
         return share_path("fullperc_drivers", "config", path)
     except FileNotFoundError as e:
         raise ParameterError(f"parameter 'tool_roms': ROM file for tool '{tool}' not found: {e}") from e
+
+
+def is_emulator_rom(path: Path) -> bool:
+    """True for a file in fullperc_drivers' ``config/emulator_roms``: the synthetic ROMs written for the Vega
+    emulator, which a real tracker must never be given (the node says so when it uploads one)."""
+    return path.resolve().parent.name == EMULATOR_ROM_DIR and path.resolve().parent.parent.name == "config"
+
+
+def is_loopback(host: str) -> bool:
+    """``host`` names this machine (where the emulator runs; a real Vega is never on the loopback)."""
+    return host in ("localhost", "::1") or host.startswith("127.")
 
 
 def tool_topic(prefix: str, tool: str, what: str) -> str:
@@ -87,7 +100,7 @@ class NdiDriverNode(Node):
         baud = declare_fixed(self, "baud", 115200, lambda v: v in (9600, 14400, 19200, 38400, 57600, 115200,
                                                                      230400, 921600, 1228739), "a COMM rate")
         names = list(declare_fixed(self, "tools", ["tool", "base"], lambda v: len(v) > 0, "at least one tool"))
-        roms = list(declare_fixed(self, "tool_roms", ["tool.rom", "base.rom"]))
+        roms = list(declare_fixed(self, "tool_roms", [f"{EMULATOR_ROM_DIR}/tool.rom", f"{EMULATOR_ROM_DIR}/base.rom"]))
         prios = list(declare_fixed(self, "tool_priorities", [""]))
         mode = declare_fixed(self, "mode", "BX", lambda v: v in ("BX", "TX"), "BX or TX")
         option = declare_fixed(self, "reply_option", 1, lambda v: v in (0x0001, 0x0801, 0x0009, 0x0809),
@@ -150,6 +163,10 @@ class NdiDriverNode(Node):
         self._update_diag()
         self.driver.start()
         self.get_logger().info(f"NDI driver: {transport} {self.where}, tools {names}, {mode} {option:04X}")
+        if emulator := [t.name for t in tools if is_emulator_rom(Path(t.source))]:
+            log = self.get_logger().info if transport == "tcp" and is_loopback(host) else self.get_logger().warning
+            log(f"tools {emulator}: fullperc's synthetic emulator ROMs ({EMULATOR_ROM_DIR}/); a real tracker needs "
+                "its tool maker's ROM files in tool_roms (docs/hardware.md)")
 
     # ---- executor side ------------------------------------------------------------------------------
     def _drain(self) -> None:

@@ -1,4 +1,4 @@
-"""Tool definition files: the writer, the reader, and the .rom files shipped in config/."""
+"""Tool definition files: the writer, the reader, and the emulator .rom files shipped in config/emulator_roms/."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 from fullperc_drivers.ndi.protocol import NdiProtocolError
 from fullperc_drivers.ndi.rom import ROM_SIZE, TOOLS, read_rom, write_rom
 
-CONFIG = Path(__file__).resolve().parents[1] / "config"
+CONFIG = Path(__file__).resolve().parents[1] / "config" / "emulator_roms"   # synthetic
 
 # ndi.md §6, geometries of real NDI tools (copied from the reference, not from rom.py).
 NDI_GEOMETRIES = {

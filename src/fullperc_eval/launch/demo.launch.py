@@ -71,6 +71,7 @@ def generate_launch_description():
     ndi = Node(package="fullperc_drivers", executable="ndi_driver", name="ndi_driver",
                parameters=[{"transport": "tcp", "host": "127.0.0.1", "port": C("vega_port"),
                             "tools": ["tool", "base", "instrument"],
-                            "tool_roms": ["tool.rom", "base.rom", "tool_d.rom"]}])
+                            "tool_roms": ["emulator_roms/tool.rom", "emulator_roms/base.rom",
+                                          "emulator_roms/tool_d.rom"]}])
     done = RegisterEventHandler(OnProcessExit(target_action=sim, on_exit=[EmitEvent(event=Shutdown())]))
     return LaunchDescription([*args, record, fusion, margin, omc, diana, sim, ndi, done])

@@ -49,7 +49,8 @@ def _graph_fusion_params() -> dict[str, str]:
 
 def _fusion_yaml_target(target: str) -> dict:
     doc = yaml.safe_load((PKG.parent / "fullperc_fusion" / "config" / "fusion.yaml").read_text())
-    return doc["fusion_node"]["ros__parameters"][target]
+    section = next(v for k, v in doc.items() if k.split("/")[-1] == "fusion_node")   # fusion_node or /**/fusion_node
+    return section["ros__parameters"][target]
 
 
 def test_the_targets_fusion_parameters_are_fusion_yamls_in_graph_and_launch_file():
@@ -109,3 +110,94 @@ def test_the_demos_offline_evaluation_waits_as_long_as_its_node_takes_a_late_sam
     from fullperc_eval.graph.demo import LIVE_HISTORY_S
 
     assert float(_graph_fusion_params()["history"]) == LIVE_HISTORY_S
+
+
+# ----------------------------------------------------------------------------------------------- bring-up graph
+def _graph_params(proc: dict) -> dict[str, str]:
+    """A graph process's ``-p name:=value`` parameters (values unfilled: ``{placeholder}`` as written)."""
+    cmd = proc["cmd"]
+    return dict(cmd[i + 1].split(":=", 1) for i, w in enumerate(cmd) if w == "-p")
+
+
+def _launch_nodes(tree: ast.AST) -> dict[str, ast.Call]:
+    """executable -> the Node(...) call of a launch file."""
+    return {kw["executable"].value: n for n in ast.walk(tree)
+            if isinstance(n, ast.Call) and getattr(n.func, "id", "") == "Node"
+            for kw in [{k.arg: k.value for k in n.keywords}]}
+
+
+def _launch_value(v: ast.AST) -> str:
+    """A launch parameter value as the graph writes it: a constant as is, ``C("x")`` as ``{x}``."""
+    if isinstance(v, ast.Call) and getattr(v.func, "id", "") == "C":
+        return "{" + v.args[0].value + "}"
+    assert isinstance(v, ast.Constant), ast.dump(v)
+    return str(v.value)
+
+
+def test_bringup_launch_file_and_graph_agree():
+    """launch/bringup.launch.py and config/bringup_graph.yaml: the same executables, each with the same parameters
+    from the same arguments, the same parameter file for fusion_node, the same optional diana_state, and the same
+    arguments with the same defaults (required in both where the graph has no default)."""
+    import re
+
+    graph = yaml.safe_load((PKG / "config" / "bringup_graph.yaml").read_text())
+    tree = ast.parse((PKG / "launch" / "bringup.launch.py").read_text())
+    procs = {p["cmd"][0].split("/")[1]: p for p in graph["processes"]}
+    nodes = _launch_nodes(tree)
+    assert set(nodes) == set(procs) == {"fusion_node", "margin_node", "omc_driver", "ndi_driver", "diana_state"}
+    assert _launch_executables(tree) == {p["cmd"][0] for p in graph["processes"]}
+    for exe, proc in procs.items():
+        params = next(k.value for k in nodes[exe].keywords if k.arg == "parameters").elts
+        files = [_launch_value(e) for e in params if not isinstance(e, ast.Dict)]
+        launch = {k.value: _launch_value(v) for d in params if isinstance(d, ast.Dict)
+                  for k, v in zip(d.keys, d.values, strict=True)}
+        cmd = proc["cmd"]
+        assert files == [cmd[i + 1] for i, w in enumerate(cmd) if w == "--params-file"], exe
+        assert launch == _graph_params(proc), exe
+    # diana_state is optional in both, on the same argument
+    cond = next(k.value for k in nodes["diana_state"].keywords if k.arg == "condition")
+    assert _launch_value(cond.args[0]) == procs["diana_state"]["when"] == "{with_diana}"
+    assert all("when" not in p for n, p in procs.items() if n != "diana_state")
+    # the arguments: every placeholder of the graph, with the graph's defaults
+    launch_args = ast.literal_eval(next(n.value for n in ast.walk(tree) if isinstance(n, ast.Assign)
+                                        and getattr(n.targets[0], "id", "") == "ARGUMENTS"))
+    text = yaml.safe_dump(graph["processes"])
+    placeholders = set(re.findall(r"\{(\w+)\}", text))
+    assert set(launch_args) == placeholders
+    defaults = {k: str(v) for k, v in graph["vars"].items()}
+    only_optional = {"diana_library"}       # needed by diana_state alone: launch declares it with '' (its docstring)
+    assert {k: v for k, v in launch_args.items() if v is not None and k not in only_optional} == defaults
+    assert {k for k, v in launch_args.items() if v is None} == placeholders - set(defaults) - only_optional
+    assert launch_args["diana_library"] == "" and "{diana_library}" in str(procs["diana_state"]["cmd"])
+    fusion = next(k.value.value for k in nodes["fusion_node"].keywords if k.arg == "sigterm_timeout")
+    assert float(fusion) == float(procs["fusion_node"]["grace"])
+
+
+def test_the_bringup_graph_offers_no_rom_and_loads_only_with_every_device_named(tmp_path):
+    """The bring-up must never upload fullperc's synthetic emulator ROMs to a real tracker: no default names a ROM,
+    and without the user's arguments the graph does not load, naming each one that is missing."""
+    from fullperc_eval.graph.supervisor import GraphError, load_graph
+
+    path = PKG / "config" / "bringup_graph.yaml"
+    graph = yaml.safe_load(path.read_text())
+    assert not any(".rom" in str(v) or "emulator_roms" in str(v) for v in graph["vars"].values())
+    assert "tool_roms" not in graph["vars"]
+    try:
+        load_graph(path, {})
+    except GraphError as e:
+        msg = str(e)
+    else:
+        raise AssertionError("the bring-up graph loaded without a device address")
+    for name in ("ndi_address", "tools", "tool_roms", "nokov_server", "nokov_sdk", "bodies", "targets",
+                 "fusion_params"):
+        assert f"{{{name}}}" in msg and f"--set {name}=" in msg
+    assert "diana_library" not in msg                    # diana_state is off by default
+    given = {n: "x" for n in ("ndi_address", "tools", "tool_roms", "nokov_server", "nokov_sdk", "bodies",
+                              "targets", "fusion_params")}
+    assert [p.name for p in load_graph(path, given).processes] == ["fusion", "margin", "omc", "ndi"]
+    try:
+        load_graph(path, given | {"with_diana": "true"})
+    except GraphError as e:
+        assert "{diana_library}" in str(e)
+    else:
+        raise AssertionError("diana_state started without its library")

@@ -135,7 +135,8 @@ def test_ready_when_every_listed_regex_matched(tmp_path):
     ("processes: 3", "'processes'"),
     ("processes:\n  - name: a\n", "'name' and 'cmd'"),
     ("processes:\n  - {name: a, cmd: [x], after: [b]}\n", "not an earlier process"),
-    ("processes:\n  - {name: a, cmd: ['{nope}']}\n", "placeholder {nope}"),
+    ("processes:\n  - {name: a, cmd: ['{nope}']}\n", "no value for {nope} (processes[0].cmd); give --set nope=..."),
+    ("processes:\n  - {name: a, cmd: [x], when: maybe}\n", "when: must be true or false"),
     ("processes:\n  - {name: a, cmd: [x], grace: 0}\n", "grace: must be a number"),
     ("processes:\n  - {name: a, cmd: [x], grace: soon}\n", "grace: must be a number"),
     ("processes:\n  - {name: a, cmd: [x]}\nstop_stages: [a]\n", "stop_stages: must be a list of non-empty lists"),
@@ -230,3 +231,52 @@ def test_stop_stages_stop_a_stage_together_and_the_stages_in_order(tmp_path):
     assert codes == {"end": 0, "b": 0, "a": 0, "c": 0}, codes
     assert set(events[:2]) == {"a got", "b got"} and set(events[2:4]) == {"a done", "b done"}, events
     assert events[4:] == ["c got", "c done"], events
+
+
+def test_every_missing_argument_is_named_at_once_with_where_it_is_needed(tmp_path):
+    """A placeholder without a ``vars`` default is a required argument (a bring-up's device addresses): one error
+    names all of them, each once, with the first field that needs it, and how to give them."""
+    g = tmp_path / "g.yaml"
+    g.write_text(textwrap.dedent("""
+        vars: {port: "8765"}
+        env: {LIB: "{lib}"}
+        processes:
+          - {name: a, cmd: [x, "{host}:{port}", "{host}"], ready: {log: "{pattern}"}}
+        """))
+    with pytest.raises(GraphError) as e:
+        load_graph(g, {"pattern": "up"})
+    msg = str(e.value)
+    assert msg == (f"{g}: no value for {{host}} (processes[0].cmd), {{lib}} (env.LIB); give --set host=... "
+                   "--set lib=...")
+    graph = load_graph(g, {"pattern": "up", "host": "h", "lib": "/l.so"})
+    assert graph.processes[0].cmd == ["x", "h:8765", "h"] and graph.env == {"LIB": "/l.so"}
+
+
+@pytest.mark.parametrize("value, started", [("false", ["a", "c"]), ("true", ["a", "b", "c"]), ("no", ["a", "c"]),
+                                            ("yes", ["a", "b", "c"])])
+def test_when_leaves_a_process_out_with_its_arguments(tmp_path, value, started):
+    """``when`` (filled, then YAML true/false) leaves an optional process out -- the bring-up's diana_state without
+    an arm: its placeholders are then not required, and ``after`` / ``stop_stages`` naming it still load."""
+    g = tmp_path / "g.yaml"
+    g.write_text(textwrap.dedent("""
+        vars: {with_b: "false"}
+        processes:
+          - {name: a, cmd: [x]}
+          - {name: b, cmd: [x, "{b_only}"], when: "{with_b}", after: [a]}
+          - {name: c, cmd: [x], after: [a, b]}
+        stop_stages: [[b], [a, c]]
+        """))
+    values = {"with_b": value} | ({"b_only": "1"} if value in ("true", "yes") else {})
+    graph = load_graph(g, values)
+    assert [p.name for p in graph.processes] == started
+    assert graph.stop_stages == ([["b"], ["a", "c"]] if "b" in started else [["a", "c"]])
+    assert graph.processes[-1].after == [n for n in ("a", "b") if n in started]
+
+
+def test_when_is_false_by_default_only_when_the_graph_says_so(tmp_path):
+    """An empty ``when`` (a placeholder given as '') is false; a missing one is the usual required argument."""
+    g = tmp_path / "g.yaml"
+    g.write_text("processes:\n  - {name: a, cmd: [x]}\n  - {name: b, cmd: [x], when: '{on}'}\n")
+    assert [p.name for p in load_graph(g, {"on": ""}).processes] == ["a"]
+    with pytest.raises(GraphError, match="no value for {on}"):
+        load_graph(g, {})

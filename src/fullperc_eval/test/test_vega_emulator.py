@@ -15,7 +15,7 @@ from fullperc_drivers.ndi.rom import read_rom
 from fullperc_eval.emulators.vega_device import ToolPose, pyramid_frustum
 from fullperc_eval.emulators.vega_server import FaultConfig, VegaEmulator
 
-CONFIG = Path(__file__).resolve().parents[2] / "fullperc_drivers" / "config"
+CONFIG = Path(__file__).resolve().parents[2] / "fullperc_drivers" / "config" / "emulator_roms"   # synthetic
 ROMS = {n: (CONFIG / f"{n}.rom").read_bytes() for n in ("tool", "base")}
 POSE = ToolPose(np.array([12.5, -7.25, -1500.0]), np.array([0.0, 0.0, 0.6, 0.8]), 0.07)
 

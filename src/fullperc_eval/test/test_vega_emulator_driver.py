@@ -15,7 +15,7 @@ from fullperc_drivers.ndi.rom import TOOLS
 from fullperc_eval.emulators.vega_device import ToolPose
 from fullperc_eval.emulators.vega_server import FaultConfig, VegaEmulator
 
-CONFIG = Path(__file__).resolve().parents[2] / "fullperc_drivers" / "config"
+CONFIG = Path(__file__).resolve().parents[2] / "fullperc_drivers" / "config" / "emulator_roms"   # synthetic
 NAMES = list(TOOLS)  # six tools
 ROMS = {n: (CONFIG / f"{n}.rom").read_bytes() for n in NAMES}
 

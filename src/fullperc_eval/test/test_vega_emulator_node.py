@@ -21,7 +21,7 @@ import pytest
 
 from fullperc_common.testing import installed_exe, side_by_side_fixture, wait_for
 
-CONFIG = Path(__file__).resolve().parents[2] / "fullperc_drivers" / "config"
+CONFIG = Path(__file__).resolve().parents[2] / "fullperc_drivers" / "config" / "emulator_roms"   # synthetic
 
 
 class Listener:

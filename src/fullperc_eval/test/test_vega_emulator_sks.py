@@ -17,7 +17,7 @@ from fullperc_common.testing import installed_exe, wait_for
 sks = pytest.importorskip("sksurgerynditracker.nditracker")
 ndicapy = pytest.importorskip("ndicapy")
 
-CONFIG = Path(__file__).resolve().parents[2] / "fullperc_drivers" / "config"
+CONFIG = Path(__file__).resolve().parents[2] / "fullperc_drivers" / "config" / "emulator_roms"   # synthetic
 ALL = ["tool", "base", "tool_b", "tool_c", "tool_d", "tool_e"]
 Q_XYZW = np.array([0.1, 0.2, 0.3, np.sqrt(1 - 0.14)])
 

@@ -8,7 +8,9 @@ differ per file); our writer stores a CRC-16/ARC of bytes 6..751 at bytes 4-5 â€
 convention, checked only by :func:`read_rom` with ``verify=True``, never required of real files.
 
 ``python -m fullperc_drivers.ndi.rom OUTDIR`` (re)writes the .rom files shipped in
-``fullperc_drivers/config`` from the geometries in :data:`TOOLS`.
+``fullperc_drivers/config/emulator_roms`` (:data:`EMULATOR_ROM_DIR`) from the geometries in :data:`TOOLS`. They are
+synthetic, for the Vega emulator: a real tracker needs its tool maker's ROMs, which is why they live in a folder
+whose name says so (config/emulator_roms/README.md).
 """
 
 from __future__ import annotations
@@ -24,6 +26,9 @@ from .crc import crc16
 from .protocol import NdiProtocolError
 
 ROM_SIZE = 752
+# Sub-folder of fullperc_drivers' config/ holding the synthetic emulator ROMs (share_path("fullperc_drivers", "config",
+# EMULATOR_ROM_DIR)). Every default or demo reference names it, so no path to one of them can pass for a real ROM.
+EMULATOR_ROM_DIR = "emulator_roms"
 MAGIC = b"NDI\x00"
 OFF_CHECKSUM = 4
 OFF_MARKER_COUNT = 0x1C

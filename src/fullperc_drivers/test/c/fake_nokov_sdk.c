@@ -13,6 +13,11 @@
  *     clock) in units of `ts_unit_ns`; fLatency = `latency_s` (seconds).
  * If the environment variable FAKE_NOKOV_START_FILE is set, playback starts only once that file exists
  * (lets a multi-process test start the frames after its subscribers are matched).
+ * Environment for a node in another process, which the FakeNokov_* functions cannot reach (read at Initialize):
+ * FAKE_NOKOV_FRAMES=n plays n frames (default 300, at most TRUTH_MAX); FAKE_NOKOV_RATE_HZ=r at r Hz (default 200;
+ * a system test on a busy machine asks for less); FAKE_NOKOV_STEADY=1 plays a steady scene
+ * (both bodies at rest at their frame-0 poses, "tool" never lost, no frame-number gap): what a system test of the
+ * whole graph needs, where the static links are averaged from bodies at rest (test/test_bringup_graph.py).
  * Test-only FakeNokov_* functions configure the scenario and return the truth (capture time on the
  * host realtime clock of each frame index, and the positions in mm as a function of the frame index).
  * Build: gcc -shared -fPIC -O1 -pthread -o libfake_nokov.so fake_nokov_sdk.c
@@ -96,6 +101,16 @@ static char g_server[64] = "10.1.1.198";
 #define TRUTH_MAX 100000
 static long long g_truth_capture_ns[TRUTH_MAX];
 static volatile int g_emitted = 0;
+static int g_steady = 0;
+
+static void apply_env(void) {
+    const char *frames = getenv("FAKE_NOKOV_FRAMES");
+    if (frames && atoi(frames) > 0) g_frames = atoi(frames) < TRUTH_MAX ? atoi(frames) : TRUTH_MAX;
+    const char *rate = getenv("FAKE_NOKOV_RATE_HZ");
+    if (rate && atoi(rate) > 0) g_rate_hz = atoi(rate);
+    const char *steady = getenv("FAKE_NOKOV_STEADY");
+    if (steady && strcmp(steady, "1") == 0) { g_steady = 1; g_lost_from = g_lost_to = -1; g_gap = 0; }
+}
 
 API void FakeNokov_Configure(int frames, int rate_hz, int appear_at, int lost_from, int lost_to, int gap_at, int gap,
                              long long ts_unit_ns, float latency_s, const char *server) {
@@ -139,6 +154,7 @@ static void add_rb_desc(Client *c, int idx, int id, const char *name) {
 
 static void fill_body(sRigidBodyData *rb, int id, int k, bool lost) {
     memset(rb, 0, sizeof(*rb));
+    if (g_steady) k = 0;
     double p[3]; FakeNokov_BodyPositionMm(id, k, p);
     double a = 0.01 * k * (id == 1 ? 1.0 : -2.0);
     rb->ID = id;
@@ -210,6 +226,7 @@ API int Initialize(void *h, const char *ip) {
     Client *c = (Client *)h;
     if (!ip || strcmp(ip, g_server) != 0) { usleep(20000); return 3; } /* ErrorCode_Network */
     if (c->initialized) return 0;
+    apply_env();
     c->running = 1; c->initialized = 1;
     g_emitted = 0;
     return pthread_create(&c->thread, NULL, player, c) == 0 ? 0 : 1;

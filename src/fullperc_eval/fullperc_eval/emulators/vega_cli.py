@@ -1,6 +1,7 @@
 """``vega_emulator`` executable: a scripted NDI Polaris Vega on TCP (and a pty), for drivers and third-party clients.
 
-Tools and ROMs default to ``tool`` and ``base`` from ``fullperc_drivers/config`` at fixed poses; ``--config``
+Tools and ROMs default to ``tool`` and ``base`` from ``fullperc_drivers/config/emulator_roms`` (synthetic ROMs, which
+a real Vega must never get) at fixed poses; ``--config``
 YAML, ``--tool``, ``--pose``, ``--circle`` and ``--hidden`` script other pose sets, the fault options exercise a
 client's error handling (see :mod:`.vega_server`). ``--help`` lists everything.
 """
@@ -21,14 +22,16 @@ import numpy as np
 import yaml
 
 from fullperc_common.share import share_path
+from fullperc_drivers.ndi.rom import EMULATOR_ROM_DIR
 
 from .vega_device import PoseSource, ToolPose
 from .vega_server import FaultConfig, VegaEmulator
 
 
 def _default_rom_dir() -> Path:
-    """``config/`` of fullperc_drivers (installed share directory, else the source tree): the tool ROMs."""
-    return share_path("fullperc_drivers", "config")
+    """``config/emulator_roms`` of fullperc_drivers (installed share directory, else the source tree): the synthetic
+    tool ROMs a relative ``rom`` is looked up in."""
+    return share_path("fullperc_drivers", "config", EMULATOR_ROM_DIR)
 
 
 @dataclass
@@ -87,7 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--pty", action="store_true", help="also serve the serial protocol on a pty")
     ap.add_argument("--pty-link", help="symlink to create to the pty slave")
     ap.add_argument("--tool", action="append", default=[], metavar="NAME=ROM",
-                    help="tool name and .rom path (default: tool and base from fullperc_drivers/config)")
+                    help="tool name and .rom path (default: tool and base from fullperc_drivers/config/emulator_roms)")
     ap.add_argument("--pose", action="append", default=[], metavar="NAME=x,y,z[,qx,qy,qz,qw]",
                     help="static pose [mm] in the ots frame")
     ap.add_argument("--hidden", action="append", default=[], metavar="NAME", help="tool never visible")

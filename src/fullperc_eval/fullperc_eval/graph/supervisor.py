@@ -17,9 +17,14 @@ that nothing outlives the supervisor. The graph format (see config/demo_graph.ya
         ends_graph: true                 # when it exits, the whole graph is shut down (task done)
         required: true                   # a non-zero exit of a required process fails the run
         grace: 30                        # its own shutdown grace [s] (default: the graph's ``grace``)
+        when: "{with_diana}"             # optional: started only when this is true (YAML true/false, after filling)
     stop_stages: [[sim, omc], [fusion], [record]]   # optional; names every process once
 
-`{name}` placeholders in cmd and env are filled from ``--set name=value`` and the graph's ``vars``.
+`{name}` placeholders in cmd, env, ready and when are filled from ``--set name=value`` and the graph's ``vars``
+(the defaults). A placeholder without either is a required argument: the graph does not load, and the one error
+names every such argument at once (a bring-up with five device addresses to give should not fail five times). A
+process whose ``when`` is false is left out, with its placeholders (its arguments are then not required); ``after``
+and ``stop_stages`` may still name it.
 Shutdown: SIGINT to each process group in reverse start order, SIGTERM after ``grace`` seconds (the
 process's own, else the graph's), SIGKILL after another ``grace``. With ``stop_stages`` the stages stop in
 order instead, the processes of one stage together (SIGINT to all, then each waited for): a node takes 1-2 s to
@@ -94,25 +99,31 @@ def load_graph(path: str | Path, values: dict[str, str]) -> Graph:
         raise GraphError(f"{path}: field 'processes' (a list) is missing")
     subst = {str(k): str(v) for k, v in (doc.get("vars") or {}).items()}
     subst.update(values)
+    missing: dict[str, str] = {}   # placeholder -> where it was first needed
 
     def fill(s: str, where: str) -> str:
         def rep(m: re.Match) -> str:
             if m.group(1) not in subst:
-                raise GraphError(f"{path}: {where}: no value for placeholder {{{m.group(1)}}}")
+                missing.setdefault(m.group(1), where)
+                return ""
             return subst[m.group(1)]
 
         return re.sub(r"\{(\w+)\}", rep, str(s))
 
     procs = []
     names = set()
+    skipped = set()
     for i, p in enumerate(doc["processes"]):
         where = f"processes[{i}]"
         if not isinstance(p, dict) or "name" not in p or "cmd" not in p:
             raise GraphError(f"{path}: {where}: 'name' and 'cmd' are required")
-        if p["name"] in names:
+        if p["name"] in names | skipped:
             raise GraphError(f"{path}: {where}: duplicate name {p['name']!r}")
+        if "when" in p and not _when(fill(p["when"], f"{where}.when"), f"{path}: {where}.when"):
+            skipped.add(p["name"])
+            continue
         names.add(p["name"])
-        after = list(p.get("after") or [])
+        after = [a for a in (p.get("after") or []) if a not in skipped]
         for a in after:
             if a not in names:
                 raise GraphError(f"{path}: {where}.after: {a!r} is not an earlier process")
@@ -129,10 +140,25 @@ def load_graph(path: str | Path, values: dict[str, str]) -> Graph:
             required=bool(p.get("required", True)),
             env={k: fill(v, f"{where}.env.{k}") for k, v in (p.get("env") or {}).items()},
             grace=_grace(p.get("grace"), f"{path}: {where}.grace")))
-    return Graph(name=str(doc.get("name", path.stem)), processes=procs,
-                 env={k: fill(v, f"env.{k}") for k, v in (doc.get("env") or {}).items()},
+    env = {k: fill(v, f"env.{k}") for k, v in (doc.get("env") or {}).items()}
+    if missing:
+        raise GraphError(f"{path}: no value for " + ", ".join(f"{{{n}}} ({w})" for n, w in missing.items())
+                         + "; give " + " ".join(f"--set {n}=..." for n in missing))
+    stages = doc.get("stop_stages")
+    if isinstance(stages, list):   # a left-out process stops with nothing; an emptied stage goes
+        stages = [st for st in ([n for n in st if n not in skipped] if isinstance(st, list) else st
+                                for st in stages) if st != []] if skipped else stages
+    return Graph(name=str(doc.get("name", path.stem)), processes=procs, env=env,
                  grace=float(doc.get("grace", 5.0)), ready_timeout=float(doc.get("ready_timeout", 60.0)),
-                 stop_stages=_stop_stages(doc.get("stop_stages"), [q.name for q in procs], f"{path}: stop_stages"))
+                 stop_stages=_stop_stages(stages, [q.name for q in procs], f"{path}: stop_stages"))
+
+
+def _when(v: str, where: str) -> bool:
+    """A process's ``when``, filled: YAML true/false (``true``, ``false``, ``yes``, ``no``, ``on``, ``off``)."""
+    b = yaml.safe_load(v) if v.strip() else False
+    if not isinstance(b, bool):
+        raise GraphError(f"{where}: must be true or false, got {v!r}")
+    return b
 
 
 def _stop_stages(v, names: list[str], where: str) -> list[list[str]] | None:

@@ -36,6 +36,7 @@ from collections.abc import Callable
 import numpy as np
 
 from fullperc_common.share import share_path
+from fullperc_drivers.ndi.rom import EMULATOR_ROM_DIR
 from fullperc_drivers.streams import DianaState, OmcBody, OmcFrame, encode_diana, encode_omc
 from fullperc_eval.emulators.vega_device import ToolPose
 from fullperc_eval.emulators.vega_server import VegaEmulator
@@ -49,12 +50,12 @@ _ALIGN_TOLERANCE_NS = 1_000   # rounding between the host and the simulation clo
 
 
 def _roms(extra: dict[str, str] | None = None) -> dict[str, bytes]:
-    """The NDI tool definitions the driver uploads (fullperc_drivers/config/{tool,base}.rom, and ``extra``: tool name
-    -> ROM file there, the second target's); missing ones left out."""
+    """The NDI tool definitions the driver uploads (fullperc_drivers/config/emulator_roms/{tool,base}.rom, and
+    ``extra``: tool name -> ROM file there, the second target's); missing ones left out."""
     out: dict[str, bytes] = {}
     for name, file in {"tool": "tool.rom", "base": "base.rom", **(extra or {})}.items():
         try:
-            out[name] = share_path("fullperc_drivers", "config", file).read_bytes()
+            out[name] = share_path("fullperc_drivers", "config", EMULATOR_ROM_DIR, file).read_bytes()
         except FileNotFoundError:
             pass
     return out

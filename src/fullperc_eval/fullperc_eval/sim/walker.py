@@ -47,7 +47,7 @@ class HandHeldDef:
     """``scene.yaml`` ``second_target``: the instrument, its path, its carrier and the hand's jitter."""
 
     body: BodyDef
-    rom_file: str                 # NDI tool definition in fullperc_drivers/config (what ndi_driver uploads)
+    rom_file: str                 # NDI tool definition in fullperc_drivers/config/emulator_roms (ndi_driver uploads it)
     waypoints: np.ndarray         # (N, 3) [m] in omc
     dwell_s: np.ndarray           # (N,) [s] held at each waypoint
     speed: float                  # [m/s] mean walking speed of a leg
