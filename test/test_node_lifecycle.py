@@ -10,7 +10,7 @@
   new messages arrived): exit 0, no traceback. While the first run's data
   flows, the node's declared parameters are listed over its ``list_parameters`` service and each must appear
   in the parameter file that ``--help`` prints. soak/soak_signals.py repeats the SIGINT run 20 times per node.
-* ROS naming and parameters (the drivers and margin_node, :data:`NS_NAMES`; docs/nodes.md "Namespaces and
+* ROS naming and parameters (the drivers, margin_node and fusion_node, :data:`NS_NAMES`; docs/nodes.md "Namespaces and
   parameters"): started with ``-r __ns:=/or1`` and its shipped parameter file, every topic the node publishes or
   subscribes and every service it offers is under ``/or1`` (seen through the graph API of a node in this process),
   except the global ``/tf``, ``/tf_static``, ``/diagnostics`` and rclpy's ``/rosout`` and ``/parameter_events``.
@@ -69,17 +69,20 @@ CASES_OF = {"omc_driver": ("help", "int_for_float", "control"),
             "fusion_node": ("h", "string_for_float", "broken_yaml"),
             "margin_node": ("help", "int_for_float")}
 RCLPY_BUILTIN = {"use_sim_time", "start_type_description_service"}  # declared by rclpy in every node
-# the nodes whose names and parameters follow the ROS conventions (fusion_node's follow later)
-NS_NAMES = ["omc_driver", "ndi_driver", "diana_state", "margin_node"]
+# the nodes whose names and parameters follow the ROS conventions
+NS_NAMES = ["omc_driver", "ndi_driver", "diana_state", "margin_node", "fusion_node"]
 NS = "/or1"
 GLOBAL_TOPICS = {"/tf", "/tf_static", "/diagnostics", "/rosout", "/parameter_events"}
 # the parameters each node validates and applies at run time (all others are read-only); value for the set test
 WRITABLE = {"omc_driver": {}, "ndi_driver": {}, "diana_state": {},
             "margin_node": {"layout_file": "", "threshold_deg": -1.0, "map_resolution": 0.2, "publish_map": True,
-                            "hysteresis.margin_band_deg": 1.0, "hysteresis.min_dwell": 0.3}}
+                            "hysteresis.margin_band_deg": 1.0, "hysteresis.min_dwell": 0.3},
+            "fusion_node": {"alarm.hop_window": 3.0, "alarm.hop_max": 6, "alarm.bias_max": 0.03,
+                            "alarm.reject_timeout": 2.0, "lag_warn": 0.3, "status_rate": 10.0}}
 # a topic that shows the node is up and named (omc_driver makes its pose topics at the first frame of a body)
 NS_READY = {"omc_driver": "/or1/omc/base/pose", "ndi_driver": "/or1/ots/tool/pose",
-            "diana_state": "/or1/diana/joint_states", "margin_node": "/or1/fullperc/tool/region"}
+            "diana_state": "/or1/diana/joint_states", "margin_node": "/or1/fullperc/tool/region",
+            "fusion_node": "/or1/fullperc/tool/pose"}
 
 
 def reference_text(name: str) -> str:

@@ -8,6 +8,8 @@ import math
 import re
 from pathlib import Path
 
+from fullperc_fusion.fusion_config import node_key
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -37,7 +39,7 @@ def test_the_hand_held_instrument_needs_a_motion_model_of_its_own(load_script, c
     assert 0.5 < inst["v_max"] < 1.5 and 1.0 < inst["acc_max"] < 5.0     # a walking hand (0.88 m/s, 2.4 m/s^2)
     assert inst["q_cv"] > 100 * tool["q_cv"]
     doc = yaml.safe_load((ROOT / "src/fullperc_fusion/config/fusion.yaml").read_text())
-    block = doc["fusion_node"]["ros__parameters"]["instrument"]
+    block = doc[node_key(doc)]["ros__parameters"]["instrument"]
     assert block["accel_noise"] == float(f"{inst['q_cv']:.1g}"), (block, inst["q_cv"])
     assert block["init_vel_std"] == float(f"{inst['v_max']:.1g}"), (block, inst["v_max"])   # its top speed
     mod.main(["--target", "instrument", str(ROOT / "bags" / "spec" / "G-B-P")])
@@ -56,5 +58,5 @@ def test_the_arm_held_tools_turn_model_is_its_truth_motion(load_script):
     q = max(mod.motion_figures(str(bag), "tool")["q_turn"] for bag in sorted((ROOT / "bags" / "paper").iterdir())
             if bag.is_dir())
     doc = yaml.safe_load((ROOT / "src/fullperc_fusion/config/fusion.yaml").read_text())
-    assert doc["fusion_node"]["ros__parameters"]["tool"]["ang_accel_noise"] == float(f"{q:.1g}"), q
+    assert doc[node_key(doc)]["ros__parameters"]["tool"]["ang_accel_noise"] == float(f"{q:.1g}"), q
     assert q < FullpercParams().ang_accel_noise / 50

@@ -164,6 +164,15 @@ class _EventsAdapter:
         self.pending = keep
 
 
+def adapt_subscription(node, sub) -> None:
+    """A subscription made after :func:`adapt_for_events` (a node remaking one at run time): wrapped the same way if
+    the node spins on the EventsExecutor, else left alone."""
+    ad = getattr(node, "_fullperc_events_adapter", None)
+    if ad is not None and getattr(sub, "_callback_type", None) is not None \
+            and sub._callback_type.name == "WithMessageInfo":
+        ad.wrap_info(sub)
+
+
 def adapt_for_events(node) -> None:
     """Make ``node``'s callbacks work on rclpy 7.1's EventsExecutor (module docstring); call before add_node."""
     ad = _EventsAdapter(node)

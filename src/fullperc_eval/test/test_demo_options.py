@@ -15,7 +15,7 @@ import yaml
 from fullperc_eval.graph.cli import main as supervisor_main
 from fullperc_eval.graph.demo import LIVE_HISTORY_S, fusion_params_with, graph_path, sim_diana_base
 from fullperc_eval.graph.supervisor import load_graph
-from fullperc_fusion.fusion_config import default_fusion_config_path, read_params_file
+from fullperc_fusion.fusion_config import default_fusion_config_path, node_key, read_params_file
 
 ROOT = Path(__file__).resolve().parents[3]
 VALUES = {"task": "B-G-P", "out": "demo-out", "omc_port": "1", "diana_port": "2", "vega_port": "3",
@@ -66,7 +66,7 @@ def test_offline_evaluation_uses_the_same_calibration(tmp_path):
     assert {k: v for k, v in got.items() if k not in ("calibration_file", "reorder_delay")} == \
         {k: v for k, v in default.items() if k not in ("calibration_file", "reorder_delay")}
     assert got["reorder_delay"] == LIVE_HISTORY_S
-    assert yaml.safe_load(path.read_text())["fusion_node"]["ros__parameters"]["calibration_file"] == str(cal)
+    assert (d := yaml.safe_load(path.read_text()))[node_key(d)]["ros__parameters"]["calibration_file"] == str(cal)
 
 
 def test_a_missing_calibration_file_is_refused_before_anything_starts(tmp_path, capsys):

@@ -15,7 +15,7 @@ import pytest
 import yaml
 
 from fullperc_eval.evaluation.metrics import evaluate_bag
-from fullperc_fusion.fusion_config import default_fusion_config_path
+from fullperc_fusion.fusion_config import default_fusion_config_path, node_key
 
 ROOT = Path(__file__).resolve().parents[3]
 BAG = ROOT / "bags" / "paper" / "G-B-P"
@@ -45,7 +45,7 @@ def test_with_the_spec_omc_ckf_and_fullperc_stay_near_it():
 
 def test_with_the_arms_motion_model_and_hop_rule_the_walk_goes_into_the_bias(shipped, tmp_path):
     doc = yaml.safe_load(default_fusion_config_path().read_text())
-    del doc["fusion_node"]["ros__parameters"]["instrument"]
+    del doc[node_key(doc)]["ros__parameters"]["instrument"]
     path = tmp_path / "arm_tuning.yaml"
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
     arm = evaluate_bag(BAG, target="instrument", progress=False, fusion_config=path).result["mae_mm"]

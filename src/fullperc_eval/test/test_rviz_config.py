@@ -44,11 +44,15 @@ def test_rviz_topics_are_published_by_our_nodes():
     for cmd in (fusion, margin):   # the demo's targets, fused and labelled
         assert f"targets:=[{', '.join(TARGETS)}]" in cmd, cmd
     fusion_src = (SRC / "fullperc_fusion" / "fullperc_fusion" / "fusion_node.py").read_text()
+    interface_src = (SRC / "fullperc_fusion" / "fullperc_fusion" / "fusion_interface.py").read_text()
     margin_src = (SRC / "fullperc_fusion" / "fullperc_fusion" / "margin_node.py").read_text()
     published = {
         # margin_node's names are relative: these in the default namespace (docs/nodes.md "Namespaces and parameters")
         "/fullperc/margin_map": 'MAP_TOPIC = "fullperc/margin_map"' in margin_src,
-        **{f"/fullperc/{t}/pose_cov": 'f"/fullperc/{t}/pose_cov"' in fusion_src for t in TARGETS},
+        # fusion_node's too (issue 39): fusion_interface.output_topic(t, "pose_cov") = fullperc/<t>/pose_cov
+        **{f"/fullperc/{t}/pose_cov": 'output_topic(t, "pose_cov")' in fusion_src
+           and 'return f"fullperc/{target}/{filter}/{what}" if filter else f"fullperc/{target}/{what}"' in interface_src
+           for t in TARGETS},
         **{f"/fullperc/{t}/region_marker": 'f"fullperc/{target}/region_marker"' in margin_src for t in TARGETS},
     }
     _, displays = _displays()

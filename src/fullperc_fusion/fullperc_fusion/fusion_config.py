@@ -35,6 +35,7 @@ from fullperc_fusion.filters.fullperc_params import HOP_INTO
 from fullperc_fusion.filters.paper_family import FilterParams
 from fullperc_fusion.filters.registry import FILTERS
 from fullperc_fusion.fusion_health import HealthParams
+from fullperc_fusion.fusion_interface import INTERFACE_PARAMS, TARGET_FRAME
 from fullperc_fusion.pipeline.frame_chain import LOCAL_CHAINS, STATIC_LINK_MODES, ChainConfig
 from fullperc_fusion.pipeline.ordered import FILTER_NAMES, TargetConfig
 from fullperc_fusion.pipeline.param_table import (
@@ -87,7 +88,7 @@ def _filter_row(name: str, field: str, kind: str, check: Callable[[Any], bool] |
 
 PARAMS: tuple[Param, ...] = (
     Param("targets", ["tool"], "str_list", lambda v: len(v) > 0 and all(v), "at least one non-empty name", "",
-          "fused targets; one output namespace /fullperc/<target>/ each"),
+          "fused targets; one output namespace fullperc/<target>/ each"),
     Param("sources", None, "str_list", None, "", "",
           "measurement sources (sources.py): one global, one or more local, a block '<name>: {role: ...}' each; "
           "none = the built-in omc (global, /omc) + ots (local, /ots)"),
@@ -134,7 +135,7 @@ PARAMS: tuple[Param, ...] = (
     Param("filter", "cbkf", "str", *one_of(FILTER_NAMES), "",
           "primary filter (omc = raw OMC pass-through)"),
     Param("filters", None, "str_list", lambda v: all(f in FILTER_NAMES for f in v),
-          f"every entry one of {FILTER_NAMES}", "", "side-by-side filters under /fullperc/<target>/<filter>/"),
+          f"every entry one of {FILTER_NAMES}", "", "side-by-side filters under fullperc/<target>/<filter>/"),
     _filter_row("noise.accel", "accel_noise", "float", *NONNEGATIVE, "m^2/s^3",
           "white-acceleration density q_a"),
     _filter_row("noise.bias_walk", "bias_walk", "float", *NONNEGATIVE, "m^2/s",
@@ -217,19 +218,10 @@ PARAMS: tuple[Param, ...] = (
     Param("lag_warn", 0.2, "float", *POSITIVE, "s",
           "processing lag (node clock - stamp of the newest fused sample) above this for a whole /diagnostics "
           "period -> WARN (overload; beyond `history` late samples are dropped)"),
-    Param("publish_final", True, "bool", None, "", "",
-          "arrival: publish /fullperc/<target>/final, the primary filter's estimates once final (= offline)"),
-    Param("status_rate", 0.0, "float", *NONNEGATIVE, "Hz",
-          "most FusionStatus messages per second per target and filter, by fused stamp (0 = one per fused output); "
-          "an output flagged as a hop, or whose link_bumped changed, always goes out"),
     Param("stale_timeout", 1.0, "float", *POSITIVE, "s",
           "silence after which /diagnostics reports a source as silent"),
     Param("problem_hold", _H.hold_s, "float", *POSITIVE, "s",
           "a problem or alarm stays on /diagnostics this long after it was last seen"),
-    Param("qos_reliability", "reliable", "str", *one_of(("reliable", "best_effort"), "reliable or best_effort"), "",
-          "QoS reliability of inputs and outputs"),
-    Param("qos_depth", 2000, "int", *COUNT, "messages",
-          "QoS history depth of inputs and outputs: > 3 s at 400 Hz, so a node stalled for seconds loses nothing"),
     Param("alarm.hop_window", _H.hop_window_s, "float", *POSITIVE, "s",
           "window of the hop-rate alarm"),
     Param("alarm.hop_max", _H.hop_max, "int", *at_least(1), "hops",
@@ -244,10 +236,7 @@ PARAMS: tuple[Param, ...] = (
     Param("plausibility.max_speed", 2.0, "float", *POSITIVE, "m/s", "a target sample further than plausibility."
           "jump + max_speed x dt from its source's last accepted one is rejected (rejected_jump)"),
     Param("plausibility.jump", 0.01, "float", *POSITIVE, "m", "a sample's jump allowed beyond max_speed x dt"),
-    Param("tf.enabled", True, "bool", None, "", "",
-          "broadcast /tf (base -> <target>) and /tf_static (omc -> base, base -> ots, base -> diana_base)"),
-    Param("tf.diana_base", None, "pose7", None, "", "m, quaternion x y z w",
-          "optional T_base_diana_base (the arm's base in base) for /tf_static [x y z qx qy qz qw]"),
+    *INTERFACE_PARAMS,   # topics, frames, QoS, optional outputs (fusion_interface.py)
 )
 """Every node-wide parameter of fusion_node."""
 
@@ -272,6 +261,7 @@ TARGET_PARAMS: tuple[Param, ...] = (
           "prior std of this target's velocity at (re)initialisation (unset: init.vel_std): its top speed; a target "
           "already moving when first seen otherwise puts its motion into the bias",
           field="init_vel_std"),
+    TARGET_FRAME,
 )
 
 BY_NAME = {p.name: p for p in PARAMS}
@@ -460,15 +450,26 @@ def flatten(d: dict, prefix: str = "") -> dict[str, Any]:
     return out
 
 
+NODE_KEYS = ("/**/fusion_node", "fusion_node", "/fusion_node", "/**")
+"""The keys a params file may give fusion_node's block under, in the order they are looked up."""
+
+
+def node_key(doc: Any) -> str:
+    """The key of fusion_node's block in a params file's YAML ``doc`` (the first of :data:`NODE_KEYS` present; the
+    shipped files' ``/**/fusion_node`` when none is): a program that edits a copy must edit that block, not add one
+    that the reader never looks at."""
+    return next((k for k in NODE_KEYS if isinstance(doc, dict) and k in doc), NODE_KEYS[0])
+
+
 def read_params_file(path: str | Path) -> dict[str, Any]:
-    """The flat ``ros__parameters`` of fusion_node in a params file (``fusion_node:`` or ``/**:``)."""
+    """The flat ``ros__parameters`` of fusion_node in a file (``/**/fusion_node:``, ``fusion_node:``, ``/**``)."""
     from fullperc_common.yaml_file import RosParamsLoader, load_yaml_file
 
     p = Path(path)
     data = load_yaml_file(p, "fusion config", FusionConfigError, RosParamsLoader) or {}   # numbers read as rcl does
     node = None
     if isinstance(data, dict):
-        node = data.get("fusion_node", data.get("/**", data))
+        node = data[node_key(data)] if node_key(data) in data else data
     params = node.get("ros__parameters", node) if isinstance(node, dict) else None
     if not isinstance(params, dict):
         raise FusionConfigError(f"fusion config {p}: expected 'fusion_node: ros__parameters: {{...}}'")

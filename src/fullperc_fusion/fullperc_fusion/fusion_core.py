@@ -34,7 +34,11 @@ nothing is checked.
 
 /tf_static: ``omc -> base`` (T_omc_base), ``base -> ots`` (T_base_ots, not with ``local_chain: tracked``, where
 the OTS moves) and ``base -> <source>`` of every further local source, from the first target whose link is known;
-``base -> diana_base`` when ``tf.diana_base`` is given. Sent when first known and again when one changes.
+``base -> diana_base`` when ``tf.diana_base`` is given. Sent when first known and again when one changes. The frame
+names are the node's ``frames.*`` (:mod:`fusion_interface`; these are the defaults).
+
+Run-time parameters (:data:`LIVE_PARAMS`, :meth:`FusionCore.apply_live`): the alarm thresholds, ``lag_warn`` and
+``status_rate`` are checked as at start-up and applied; every other parameter is read-only (module comment there).
 
 Publisher identity (:mod:`input_guard`, ``publishers.allow``): a sample or quality message of an input topic the
 guard holds closed (a publisher on it that is not accepted) is dropped and counted -- it reaches no pipeline, no
@@ -48,16 +52,25 @@ publisher's topic is dropped from them. The node feeds the guard from discovery 
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any, NamedTuple
 
 import numpy as np
 
+from fullperc_common.params import ParameterError
 from fullperc_fusion.calibration.io import save_calibration
 from fullperc_fusion.calibration.run import CalibrationRun, summary
 from fullperc_fusion.calibration.se3_stats import CalibrationBodies
-from fullperc_fusion.fusion_config import calibration_settings, health_params, primary_and_extra, target_config
+from fullperc_fusion.fusion_config import (
+    BY_NAME,
+    calibration_settings,
+    convert,
+    health_params,
+    primary_and_extra,
+    target_config,
+)
 from fullperc_fusion.fusion_health import GLOBAL, LOCAL, TargetHealth
+from fullperc_fusion.fusion_interface import frames_of
 from fullperc_fusion.fusion_verdict import InputBook, Key, TargetVerdict
 from fullperc_fusion.input_guard import InputGuard, Publisher
 from fullperc_fusion.pipeline.arrival import ArrivalPipeline, make_pipeline
@@ -73,6 +86,35 @@ Status = tuple[str, int, str, dict]                   # (name, level, message, v
 StaticLink = tuple[str, str, np.ndarray]              # (parent frame, child frame, T_parent_child)
 
 
+# What fusion_node applies at run time (every other parameter is read-only): what judges or reports the estimates --
+# the alarms, the overload threshold, the status rate -- never what changes one (noise, slop, history, chains): the
+# live /final estimates must stay those the offline evaluator computes from the node's params file.
+LIVE_PARAMS = ("alarm.hop_window", "alarm.hop_max", "alarm.bias_max", "alarm.reject_timeout", "lag_warn",
+               "status_rate")
+
+
+def check_live(vals: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]:
+    """The values after a run-time set of ``changes`` (name -> raw value), checked as at start-up: each by its row,
+    then the values together (:func:`health_params`). ParameterError naming the parameter and the check (a parameter
+    not in :data:`LIVE_PARAMS`: read-only)."""
+    new = dict(vals)
+    for name, raw in changes.items():
+        if name not in LIVE_PARAMS:
+            raise ParameterError(f"parameter '{name}' is read-only: set it in the params file and restart the node")
+        new[name] = convert(BY_NAME[name], raw)
+    try:
+        health_params(new)
+    except ValueError as e:
+        raise ParameterError(str(e)) from None
+    return new
+
+
+def default_namespace(topic: str) -> str:
+    """A topic name resolved as in the default namespace without remapping (offline use and the unit tests): a
+    relative name gets a leading ``/``."""
+    return topic if topic.startswith("/") else f"/{topic}"
+
+
 class CalibrationAnswer(NamedTuple):
     """How a ``~/calibrate`` run ended: the service's answer and the line to log at ``level``."""
 
@@ -83,10 +125,15 @@ class CalibrationAnswer(NamedTuple):
 
 class FusionCore:
     """The ROS-free decisions of fusion_node for every target (module docstring); ``vals``: the node's parameter
-    values (:func:`fusion_config.read_values`), ``now``: monotonic time [s] at construction."""
+    values (:func:`fusion_config.read_values`), ``now``: monotonic time [s] at construction; ``resolve``: the node's
+    name resolution (``Node.resolve_topic_name``), applied to every input topic the core names -- the guard compares
+    them with what discovery lists, and a namespaced node's inputs are ``/<ns>/omc/...``."""
 
-    def __init__(self, vals: dict[str, Any], now: float) -> None:
+    def __init__(self, vals: dict[str, Any], now: float, resolve: Callable[[str], str] = default_namespace) -> None:
+        self.vals = vals
         self.targets: list[str] = list(vals["targets"])
+        self.frames = frames_of(vals)
+        self._resolve = resolve
         self.primary, self.extra = primary_and_extra(vals)
         self.filters = tuple(dict.fromkeys([self.primary, *self.extra]))
         self.clock_mode: str = vals["clock"]
@@ -131,7 +178,7 @@ class FusionCore:
                 self.local_k[r.tag] = r.k
                 for b in r.bodies:
                     routed.setdefault(r.tag, {}).setdefault(b, []).append(t)
-                quality.setdefault((r.tag, r.target), f"{r.prefix.rstrip('/')}/{r.target}/quality")
+                quality.setdefault((r.tag, r.target), resolve(f"{r.prefix.rstrip('/')}/{r.target}/quality"))
             self.last_rx[t] = {r.tag: None for r in rts}
         self.targets_of = {d: {b: list(dict.fromkeys(ts)) for b, ts in r.items()} for d, r in routed.items()}
         self.quality_topics: dict[Key, str] = quality
@@ -148,9 +195,9 @@ class FusionCore:
 
     # ---- wiring -------------------------------------------------------------------------------------------------
     def pose_topics(self) -> list[tuple[str, str, str]]:
-        """(device tag, body, topic) of every pose stream a target uses, one per topic."""
-        return [(dev, b, f"{self.prefix[dev].rstrip('/')}/{b}/pose") for dev, rt in self.targets_of.items()
-                for b in rt]
+        """(device tag, body, resolved topic) of every pose stream a target uses, one per topic."""
+        return [(dev, b, self._resolve(f"{self.prefix[dev].rstrip('/')}/{b}/pose"))
+                for dev, rt in self.targets_of.items() for b in rt]
 
     def startup_message(self) -> str:
         links = next(iter(self.pipes.values())).chain.links
@@ -323,17 +370,18 @@ class FusionCore:
     def static_links(self) -> list[StaticLink]:
         """(parent, child, T_parent_child) of the static links known now (the first target whose links are set)."""
         out: dict[str, StaticLink] = {}
+        f = self.frames
         for pipe in self.pipes.values():
             L = pipe.chain.links
             if L.T_omc_base is not None:
-                out.setdefault("base", ("omc", "base", L.T_omc_base))
+                out.setdefault("base", (f.omc, f.base, L.T_omc_base))
             if L.T_base_ots is not None and pipe.config.chain.local_chain != "tracked":
-                out.setdefault("ots", ("base", "ots", L.T_base_ots))
+                out.setdefault("ots", (f.base, f.ots, L.T_base_ots))
             for x, ch in zip(pipe.config.sources.extras, pipe.extra_chains, strict=True):   # base -> <source>
                 if ch.links.T_base_ots is not None and ch.cfg.local_chain != "tracked":
-                    out.setdefault(x.name, ("base", x.name, ch.links.T_base_ots))
+                    out.setdefault(x.name, (f.base, x.name, ch.links.T_base_ots))
         if self.T_base_diana is not None:
-            out["diana_base"] = ("base", "diana_base", self.T_base_diana)
+            out["diana_base"] = (f.base, f.diana_base, self.T_base_diana)
         return list(out.values())
 
     def static_links_to_send(self) -> list[StaticLink] | None:
@@ -414,6 +462,19 @@ class FusionCore:
         for pipe in self.pipes.values():
             pipe.apply_calibration(cal, "~/calibrate")
         return CalibrationAnswer(True, f"{summary(cal)}; links of {list(self.pipes)} swapped{written}", "info")
+
+    # ---- run-time parameters ------------------------------------------------------------------------------------
+    def apply_live(self, changes: dict[str, Any]) -> dict[str, Any]:
+        """A run-time set of ``changes`` (name -> raw value): checked by :func:`check_live` (ParameterError naming the
+        parameter and the check: nothing applied), then applied -- the alarm thresholds to every target's health
+        monitor, ``lag_warn`` to the overload verdict. Returns the new values (the node applies ``status_rate``)."""
+        new = check_live(self.vals, changes)
+        health = health_params(new)
+        for h in self.health.values():
+            h.params = health
+        self.book.lag_warn_s = new["lag_warn"]
+        self.vals = new
+        return new
 
     # ---- diagnostics --------------------------------------------------------------------------------------------
     def diagnostics(self, now: float, published: int) -> list[Status]:

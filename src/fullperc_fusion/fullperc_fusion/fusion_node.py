@@ -1,18 +1,24 @@
 """fusion_node: driver poses in, fused target poses in ``base`` out. A thin ROS wrapper of :class:`FusionCore`.
 
+Names (:mod:`fusion_interface`): every topic below is relative -- the names shown are those of the default namespace,
+``-r __ns:=/or1`` puts every input and output under ``/or1`` -- but ``/tf``, ``/tf_static`` and ``/diagnostics``;
+frames are ``frames.base`` / ``frames.omc`` / ``frames.ots`` / ``<target>.frame`` (defaults below). QoS, overrides,
+incompatible-QoS warnings and the run-time parameters: :mod:`fusion_endpoints`.
+
 Subscribes (per target, shared between targets where the topic is the same; prefixes and further local sources
 from ``sources``, :mod:`sources`):
-  /omc/<body>/pose  for the target's OMC body, the base body and the OTS rig body (PoseStamped, ``omc``)
-  /ots/<tool>/pose  for the target's OTS tool and the base tool (PoseStamped, ``ots``)
+  omc/<body>/pose  for the target's OMC body, the base body and the OTS rig body (PoseStamped, ``omc``)
+  ots/<tool>/pose  for the target's OTS tool and the base tool (PoseStamped, ``ots``)
   <prefix>/<tool>/pose  of every further local source: the target's tool and its base tool
-  /fullperc/<target>/region (fullperc_msgs/Region, optional: fills FusionStatus.region)
+  fullperc/<target>/region (fullperc_msgs/Region, optional: fills FusionStatus.region)
 Publishes:
-  /fullperc/<target>/pose      PoseStamped, frame ``base``, stamp = acquisition stamp of the newest sample
-  /fullperc/<target>/pose_cov  PoseWithCovarianceStamped (same stamp/frame)
-  /fullperc/<target>/status    fullperc_msgs/FusionStatus
-  /fullperc/<target>/<filter>/pose and .../status  for every filter listed in ``filters`` (side by side; with
+  fullperc/<target>/pose      PoseStamped, frame ``base``, stamp = acquisition stamp of the newest sample
+  fullperc/<target>/pose_cov  PoseWithCovarianceStamped (same stamp/frame)
+  fullperc/<target>/status    fullperc_msgs/FusionStatus
+  fullperc/<target>/velocity  TwistWithCovarianceStamped of the primary filter (``publish_velocity``; fusion_publish)
+  fullperc/<target>/<filter>/pose and .../status  for every filter listed in ``filters`` (side by side; with
                                ``processing: arrival`` fused when an item leaves the history: final, ``history`` late)
-  /fullperc/<target>/final     PoseStamped (``processing: arrival``, ``publish_final``): the primary filter's estimate
+  fullperc/<target>/final     PoseStamped (``processing: arrival``, ``publish_final``): the primary filter's estimate
                                of each item once it left the history -- final, equal to the offline evaluator's
   /tf                          tf2_msgs/TFMessage ``base`` -> ``<target>`` per fused output of the primary filter
                                (stamp = fused stamp); with ``tf.enabled`` (default true)
@@ -40,7 +46,8 @@ Services:
                answers success=false + the reason and keeps the old links. The node keeps fusing meanwhile.
 
 Parameters: the table of :mod:`fullperc_fusion.fusion_config` (names, defaults, checks, units; the same
-mapping the offline evaluator uses); config/fusion.yaml lists every one with its unit and default (``--help``).
+mapping the offline evaluator uses); config/fusion.yaml lists every one with its unit and default (``--help``). All
+read-only but ``fusion_core.LIVE_PARAMS``, checked and applied at run time.
 
 Publisher identity: :mod:`input_guard` (``publishers.allow``); the services log the nodes with a client of them.
 
@@ -56,69 +63,63 @@ import sys
 import time
 from functools import partial
 
-from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, TwistWithCovarianceStamped
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node, NodeNameNonExistentError
-from rclpy.parameter import Parameter
-from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 from std_srvs.srv import Trigger
 
 from fullperc_common import diagnostics as diag
 from fullperc_common.drain import take_queued
 from fullperc_common.node_main import run_node
-from fullperc_common.params import ParameterError, declare
+from fullperc_common.params import ParameterError
 from fullperc_common.ros_conv import ns_to_stamp, pose_msg, pose_to_pq, stamp_to_ns
 from fullperc_common.tf import Broadcaster, StaticBroadcaster, transform_stamped
-from fullperc_fusion.fusion_config import read_values, spec
+from fullperc_fusion.fusion_config import read_values
 from fullperc_fusion.fusion_core import DIAG_EVAL_PERIOD_S, FusionCore, Log
+from fullperc_fusion.fusion_endpoints import Endpoints, declare_row, live_parameters
+from fullperc_fusion.fusion_interface import output_topic
 from fullperc_fusion.fusion_publish import OutputPublisher, publish_outputs
 from fullperc_fusion.input_guard import CHECK_PERIOD_S, gid_hex, node_fqn, service_callers_line
 from fullperc_fusion.pipeline.arrival import ArrivalPipeline
 from fullperc_fusion.pipeline.ordered import FusedOutput
 from fullperc_msgs.msg import FusionStatus, Region, TrackingQuality
 
-# ROS type of a parameter declared without a default value (optional ones, empty lists)
-_ROS_TYPES = {"str_list": Parameter.Type.STRING_ARRAY, "pose7": Parameter.Type.DOUBLE_ARRAY,
-              "str": Parameter.Type.STRING, "float": Parameter.Type.DOUBLE, "bool": Parameter.Type.BOOL}
-
 
 class FusionNode(Node):
     def __init__(self, **kw) -> None:
         super().__init__("fusion_node", **kw)
-        vals = read_values(self._declare)   # every parameter of fusion_config.PARAMS, declared, converted, checked
-        self.core = core = FusionCore(vals, time.monotonic())
+        vals = read_values(partial(declare_row, self))   # every parameter of fusion_config.PARAMS, declared, checked
+        self.core = core = FusionCore(vals, time.monotonic(), self.resolve_topic_name)
         # a callback takes *everything* queued (a queue holds at most qos_depth): with a cap per subscription, a node
         # seconds behind took 8 s of each 120 Hz topic but 16 s of the 60 Hz Vega's, and the next batch's OMC
         # samples were then older than the history -- dropped as late (a CI demo lost 249 instrument samples)
         self._take_max = vals["qos_depth"]
-        qos = QoSProfile(depth=vals["qos_depth"], reliability=ReliabilityPolicy.RELIABLE
-                         if vals["qos_reliability"] == "reliable" else ReliabilityPolicy.BEST_EFFORT)
-        self._diag = diag.Diagnostics(self, hardware_id="fullperc_fusion")
+        self._ep = ep = Endpoints(self, vals)   # also remakes auto-QoS inputs best effort (timer)
+        self._diag = diag.Diagnostics(self, hardware_id=f"fullperc_fusion {self.get_fully_qualified_name()}")
         self._cal_future: Future | None = None
         self._region: dict[str, int] = {}
         pubs: dict[tuple[str, str], tuple] = {}
         self._final_pubs: dict[str, object] = {}
         for t in core.targets:
-            pubs[(t, "")] = (
-                self.create_publisher(PoseStamped, f"/fullperc/{t}/pose", qos),
-                self.create_publisher(PoseWithCovarianceStamped, f"/fullperc/{t}/pose_cov", qos),
-                self.create_publisher(FusionStatus, f"/fullperc/{t}/status", qos))
+            pubs[(t, "")] = (ep.publisher(PoseStamped, output_topic(t, "pose")),
+                             ep.publisher(PoseWithCovarianceStamped, output_topic(t, "pose_cov")),
+                             ep.publisher(FusionStatus, output_topic(t, "status")))
             if vals["publish_final"] and isinstance(core.pipes[t], ArrivalPipeline):
-                self._final_pubs[t] = self.create_publisher(PoseStamped, f"/fullperc/{t}/final", qos)
+                self._final_pubs[t] = ep.publisher(PoseStamped, output_topic(t, "final"))
             for f in core.extra:
-                pubs[(t, f)] = (
-                    self.create_publisher(PoseStamped, f"/fullperc/{t}/{f}/pose", qos), None,
-                    self.create_publisher(FusionStatus, f"/fullperc/{t}/{f}/status", qos))
-            self.create_subscription(Region, f"/fullperc/{t}/region",
-                                     lambda m, t=t: self._region.__setitem__(t, int(m.label)), 10)
-        self._out_sets = {k: OutputPublisher(*v, always_pose=k[1] == "", status_rate=vals["status_rate"])
+                pubs[(t, f)] = (ep.publisher(PoseStamped, output_topic(t, "pose", f)), None,
+                                ep.publisher(FusionStatus, output_topic(t, "status", f)))
+            ep.subscription(Region, output_topic(t, "region"), lambda m, t=t: self._region.__setitem__(t, int(m.label)))
+        vel = {t: ep.publisher(TwistWithCovarianceStamped, output_topic(t, "velocity"))
+               for t in core.targets if vals["publish_velocity"]}
+        self._out_sets = {k: OutputPublisher(*v, always_pose=k[1] == "", status_rate=vals["status_rate"],
+                                             frame=core.frames.base, vel_pub=vel.get(k[0]) if k[1] == "" else None)
                           for k, v in pubs.items()}
-        self._quality_subs = {key: self.create_subscription(TrackingQuality, topic,
-                                                            partial(self._on_quality, key), qos)
+        self._quality_subs = {key: ep.subscription(TrackingQuality, topic, partial(self._on_quality, key))
                               for key, topic in core.quality_topics.items()}
         self._input_subs: list[tuple[str, str, object]] = [
-            (dev, b, self.create_subscription(PoseStamped, topic, partial(self._on_input, dev, b), qos))
+            (dev, b, ep.subscription(PoseStamped, topic, partial(self._on_input, dev, b)))
             for dev, b, topic in core.pose_topics()]
         self._sub_of = {core.topic_of[(d, b)]: s for d, b, s in self._input_subs} | {
             core.quality_topics[k]: s for k, s in self._quality_subs.items()}   # input topic -> its subscription
@@ -134,16 +135,14 @@ class FusionNode(Node):
         self.create_timer(DIAG_EVAL_PERIOD_S, self._update_diagnostics)
         self.create_timer(CHECK_PERIOD_S, lambda: self._settle_inputs(self._guard_inputs()))
         self._update_diagnostics()
+        # last: rclpy runs this callback for every parameter declared after it (the qos_overrides above)
+        self.add_on_set_parameters_callback(live_parameters(core, self._apply_live, self.get_logger().info))
         self.get_logger().info(core.startup_message())
 
-    def _declare(self, name: str, default):
-        """fusion_config's getter: declare ``name`` (once, via params.declare) and return its value."""
-        if self.has_parameter(name):
-            return self.get_parameter(name).value
-        p = spec(name)
-        if default is None or (isinstance(default, list) and not default):
-            default = _ROS_TYPES[p.kind]
-        return declare(self, name, default, description=p.description)
+    def _apply_live(self, vals: dict) -> None:
+        """What the node itself holds of a run-time set the core accepted: the status cap of every topic set."""
+        for out in self._out_sets.values():
+            out.status_rate = vals["status_rate"]
 
     def _log(self, lines: list[Log]) -> None:
         """The core's log lines. One call site per level: rclpy refuses a call site whose severity changes."""
@@ -241,6 +240,7 @@ class FusionNode(Node):
         self._diag.publish()
 
     def _on_timer(self) -> None:
+        self._ep.switch_pending()
         now = time.monotonic()
         if self.core.calibrating:
             self._finish_calibration(now)
@@ -316,12 +316,12 @@ class FusionNode(Node):
             self._out_sets, target, outs, core.primary, core.extra, self._region.get(target, 0),
             on_primary=partial(core.primary_output, target, now), on_error=partial(core.publish_error, target),
             tf_of=None if self._tf is None else
-            lambda o: transform_stamped(o.t_ns, "base", target, p=o.p, q_xyzw=o.q))
+            lambda o: transform_stamped(o.t_ns, core.frames.base, core.frames.of(target), p=o.p, q_xyzw=o.q))
         if tfs:
             self._tf.send(tfs)
 
     def _publish_final(self, target: str) -> None:
-        """/fullperc/<target>/final: the primary filter's estimates of the items that left the history."""
+        """fullperc/<target>/final: the primary filter's estimates of the items that left the history."""
         outs = self.core.final_outputs(target)
         pub = self._final_pubs.get(target)
         if pub is None:
@@ -329,7 +329,7 @@ class FusionNode(Node):
         for o in outs:
             ps = PoseStamped()
             ps.header.stamp = ns_to_stamp(o.t_ns)
-            ps.header.frame_id = "base"
+            ps.header.frame_id = self.core.frames.base
             try:
                 ps.pose = pose_msg(o.p, o.q)
             except ValueError:

@@ -17,6 +17,15 @@ a 36-element list checked element by element. Here:
   per ``1 / status_rate`` of fused stamps per topic set -- by stamp, not by the host clock, so a replay gives the
   same messages -- except that an output flagged as a hop, or whose ``link_bumped`` differs from the last status
   sent, always goes out: a reader never misses the events the status exists for. 0 = every output.
+* velocity (``publish_velocity``, issue 39): a TwistWithCovarianceStamped per output of the primary filter, in the
+  outputs' frame (``frames.base``). Linear: the filter's constant-velocity state v and its covariance block
+  (:meth:`FusedOutput.velocity`, read only here: nothing else the pipeline computes changes). Angular: not estimated
+  by the paper's filters, so zero with a variance of :data:`ANGULAR_VAR_UNKNOWN` per axis -- "unknown" in ROS terms,
+  which a consumer's fusion then ignores -- rather than a finite difference of orientations, whose noise (the OMC's
+  few mrad per sample at 120 Hz: ~1 rad/s) would be presented as a measurement. The raw ``omc`` filter has no
+  velocity state: nothing is published for it.
+
+Every header's frame is the node's ``frames.base`` (``frame`` here).
 """
 
 from __future__ import annotations
@@ -26,12 +35,14 @@ from collections.abc import Callable, Iterable
 from typing import Any
 
 import numpy as np
-from geometry_msgs.msg import Pose, PoseStamped, PoseWithCovarianceStamped
+from geometry_msgs.msg import Pose, PoseStamped, PoseWithCovarianceStamped, TwistWithCovarianceStamped
 
 from fullperc_fusion.pipeline.ordered import FusedOutput
 from fullperc_msgs.msg import FusionStatus
 
-__all__ = ["OutputPublisher", "fill_pose", "publish_outputs"]
+__all__ = ["ANGULAR_VAR_UNKNOWN", "OutputPublisher", "fill_pose", "publish_outputs"]
+
+ANGULAR_VAR_UNKNOWN = 1.0e6   # [(rad/s)^2] variance of the angular velocity, which no filter estimates (docstring)
 
 
 def fill_pose(pose: Pose, p: Any, q_xyzw: Any) -> None:
@@ -59,17 +70,31 @@ class OutputPublisher:
     """The messages of one (target, key) topic set, built once and refilled per output (module docstring)."""
 
     def __init__(self, pose_pub: Any, cov_pub: Any | None, status_pub: Any, always_pose: bool,
-                 status_rate: float = 0.0) -> None:
-        self.pose_pub, self.cov_pub, self.status_pub = pose_pub, cov_pub, status_pub
+                 status_rate: float = 0.0, frame: str = "base", vel_pub: Any | None = None) -> None:
+        self.pose_pub, self.cov_pub, self.status_pub, self.vel_pub = pose_pub, cov_pub, status_pub, vel_pub
         self.always_pose = always_pose      # the primary's pose (and pose_cov) are never skipped
-        self.status_period_ns = int(round(1e9 / status_rate)) if status_rate > 0 else 0
+        self.status_rate = status_rate
         self._status_last: tuple[int, bool] | None = None   # (stamp, link_bumped) of the last status sent
         self.ps = PoseStamped()
-        self.ps.header.frame_id = "base"
+        self.ps.header.frame_id = frame
         self.pc = PoseWithCovarianceStamped()
-        self.pc.header.frame_id = "base"
+        self.pc.header.frame_id = frame
         self.st = FusionStatus()
-        self.st.header.frame_id = "base"
+        self.st.header.frame_id = frame
+        self.tw = TwistWithCovarianceStamped()
+        self.tw.header.frame_id = frame
+        cov = np.zeros((6, 6))
+        cov[3:6, 3:6] = np.eye(3) * ANGULAR_VAR_UNKNOWN
+        self._twist_cov = cov
+
+    @property
+    def status_rate(self) -> float:
+        """[Hz] the status cap (0: every output); settable at run time (``status_rate`` is a live parameter)."""
+        return 1e9 / self.status_period_ns if self.status_period_ns else 0.0
+
+    @status_rate.setter
+    def status_rate(self, rate: float) -> None:
+        self.status_period_ns = int(round(1e9 / rate)) if rate > 0 else 0
 
     @staticmethod
     def _wanted(pub: Any) -> bool:
@@ -95,6 +120,16 @@ class OutputPublisher:
             dst.position, dst.orientation = src.position, src.orientation
             pc.pose.covariance = np.array(o.cov, dtype=np.float64).reshape(36)
             self.cov_pub.publish(pc)
+        if self.vel_pub is not None and (vel := o.velocity()) is not None and np.isfinite(vel[1]).all() \
+                and np.isfinite(vel[0]).all():
+            tw = self.tw
+            stamp = tw.header.stamp
+            stamp.sec, stamp.nanosec = sec, nsec
+            _fill_vector3(tw.twist.twist.linear, vel[0])
+            cov = self._twist_cov
+            cov[0:3, 0:3] = vel[1]
+            tw.twist.covariance = cov.reshape(36)
+            self.vel_pub.publish(tw)
         if st_on:
             st = self.st
             stamp = st.header.stamp

@@ -9,7 +9,8 @@ the labelled position in the pose's frame, coloured by the published label: BVV 
 grey; the colours of the margin map) goes out with every Region, for RViz (docs/nodes.md "TF and RViz2").
 ``/diagnostics`` reports the layout and, per target, the last label.
 
-Frames. The layout (cameras, OTS volume) is in ``omc``; fused poses are in ``base``. A pose whose frame_id is the
+Frames. The layout (cameras, OTS volume) is in ``omc``; fused poses are in ``base`` (``base_frame``: fusion_node's
+``frames.base``, renamed per OR when two share one /tf). A pose whose frame_id is the
 layout frame is labelled directly; a pose in ``base`` needs T_omc_base, which we take (decision) from the
 ``/omc/base/pose`` stream (``base_pose_topic``; the base marker is fixed on the table, so the latest sample is
 enough for a region label) or, if ``T_omc_base`` is given as a parameter [x y z qx qy qz qw], from that (then the
@@ -161,6 +162,8 @@ class MarginNode(Node):
                                           lambda v: "{target}" in v, "must contain {target}")
         self.base_pose_topic = declare_fixed(self, "base_pose_topic", "omc/base/pose",
                                              description="PoseStamped of the base marker in the layout frame")
+        self.base_frame = declare_fixed(self, "base_frame", "base", bool, "must not be empty",
+                                        "frame of the fused poses (fusion_node's frames.base)")
         t_param = declare_fixed(self, "T_omc_base", [0.0], lambda v: len(v) in (1, 7), "needs [x y z qx qy qz qw]",
                                 "fixed T_omc_base instead of base_pose_topic; [0.0] = not given")
         self.map_resolution = declare(self, "map_resolution", 0.1, lambda v: 0.01 <= v <= 1.0,
@@ -322,16 +325,17 @@ class MarginNode(Node):
         p_omc = None
         if frame == layout.frame_id:
             p_omc = p_in
-        elif frame == "base":
+        elif frame == self.base_frame:
             T = self.T_omc_base
             if T is None:
                 self.diag.set(f"target {target}", WARN,
-                              f"pose in 'base' but T_omc_base unknown: waiting for {self.base_pose_topic}")
+                              f"pose in '{frame}' but T_omc_base unknown: waiting for {self.base_pose_topic}")
             else:
                 p_omc = T[:3, :3] @ p_in + T[:3, 3]
         else:
             self.diag.set(f"target {target}", ERROR,
-                          f"pose frame '{frame}' is neither the layout frame '{layout.frame_id}' nor 'base'")
+                          f"pose frame '{frame}' is neither the layout frame '{layout.frame_id}' nor "
+                          f"'{self.base_frame}'")
         if p_omc is not None:
             rf = self.region_filters[target]
             r = rf.update(stamp_to_ns(msg.header.stamp), label_point(layout, p_omc), float(layout.threshold_deg))

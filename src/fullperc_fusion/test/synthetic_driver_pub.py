@@ -1,5 +1,6 @@
 """Stand-in for the three drivers in fusion_node's multi-process test: publishes synthetic
-/omc/<body>/pose (120 Hz, frame omc) and /ots/<tool>/pose (60 Hz, frame ots) in real time.
+omc/<body>/pose (120 Hz, frame omc) and ots/<tool>/pose (60 Hz, frame ots) in real time -- relative names, so
+``--ns /or1`` publishes /or1/omc/... (the default namespace: /omc/...).
 
 The target (OMC body and OTS tool ``tool``) moves slowly in ``base``; the OMC sees it with a constant
 offset, the OTS sees it only during [ots_from, ots_to) seconds. With ``--bad`` it also publishes a NaN
@@ -23,6 +24,11 @@ Static links (calibration, link monitoring):
   --move-base AT:DX       from AT s on the reference marker is DX m further along omc x (OMC and Vega see it)
   --bump-ots AT:DX        from AT s on the Vega stands DX m further along its own x axis (its views of the base
                           and of the tool both change; the OMC's view of the rig too)
+
+Namespaces and QoS (issue 39):
+  --ns NS                 the node's namespace (every topic under it)
+  --shift DX              the target's path DX m further along base x (two namespaces, two different poses)
+  --best-effort           publish best effort (the sensor-data profile's reliability), not reliable
 
 Run: python synthetic_driver_pub.py --log out.jsonl [--duration 4] [--bad] [--extra-bodies probe,broken]
      [--omc-jump tool:2.0:1.0] [--omc-nan broken:1.0]
@@ -82,6 +88,9 @@ def main() -> int:
     ap.add_argument("--bump-ots", default=None, metavar="AT:DX")
     ap.add_argument("--future", default=None, metavar="AT:AHEAD")
     ap.add_argument("--pause", default=None, metavar="AT:LEN")
+    ap.add_argument("--ns", default="")
+    ap.add_argument("--shift", type=float, default=0.0)
+    ap.add_argument("--best-effort", action="store_true")
     a = ap.parse_args()
     future = tuple(float(x) for x in a.future.split(":")) if a.future else None
     pause = tuple(float(x) for x in a.pause.split(":")) if a.pause else None
@@ -92,11 +101,12 @@ def main() -> int:
     nans = {b: float(at) for b, at in (j.split(":") for j in a.omc_nan)}
 
     rclpy.init()
-    node = rclpy.create_node("synthetic_driver_pub")
-    qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-    topics = ("/omc/base/pose", "/omc/ots_rig/pose", "/ots/base/pose") if a.static_only else \
-        ("/omc/base/pose", "/omc/ots_rig/pose", "/omc/tool/pose", "/ots/base/pose", "/ots/tool/pose",
-         *(f"/omc/{b}/pose" for b in extra))
+    node = rclpy.create_node("synthetic_driver_pub", namespace=a.ns or None)
+    qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT if a.best_effort
+                     else ReliabilityPolicy.RELIABLE)
+    topics = ("omc/base/pose", "omc/ots_rig/pose", "ots/base/pose") if a.static_only else \
+        ("omc/base/pose", "omc/ots_rig/pose", "omc/tool/pose", "ots/base/pose", "ots/tool/pose",
+         *(f"omc/{b}/pose" for b in extra))
     pubs = {k: node.create_publisher(PoseStamped, k, qos) for k in topics}
     end = time.monotonic() + a.wait
     while time.monotonic() < end and any(p.get_subscription_count() == 0 for p in pubs.values()):
@@ -126,7 +136,7 @@ def main() -> int:
     final_max = [0]   # newest stamp of the node's final estimates (--bad: when to send the backwards sample)
     if a.bad:
         node.create_subscription(
-            PoseStamped, "/fullperc/tool/final",
+            PoseStamped, "fullperc/tool/final",
             lambda m: final_max.__setitem__(0, max(final_max[0], m.header.stamp.sec * 10**9 + m.header.stamp.nanosec)),
             QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT))
     t0_ns = time.time_ns()
@@ -151,7 +161,7 @@ def main() -> int:
             T_omc_ots = T_OMC_OTS @ make_T([bump_ots[1], 0.0, 0.0])
             flags_links["bumped"] = bump_ots[1]
         T_ots_base = inv_T(T_omc_ots) @ T_omc_base
-        Tt = T_OMC_BASE @ truth(t)
+        Tt = T_OMC_BASE @ make_T([a.shift, 0.0, 0.0]) @ truth(t)
         p0, q = T_to_pq(Tt)
         p = p0 + OMC_OFFSET + rng.normal(0, 2e-4, 3)
         for b in ("tool", *extra):
@@ -167,29 +177,29 @@ def main() -> int:
                 p = pb
                 tool_flags = flags
             else:
-                pub(f"/omc/{b}/pose", "omc", b, ns, "omc", pb, q, **flags)
-        pub("/omc/base/pose", "omc", "base", ns, "omc", *seen(T_omc_base, 1e-4, 1e-3), **flags_links)
-        pub("/omc/ots_rig/pose", "omc", "ots_rig", ns, "omc", *seen(T_omc_ots, 1e-4, 1e-3), **flags_links)
+                pub(f"omc/{b}/pose", "omc", b, ns, "omc", pb, q, **flags)
+        pub("omc/base/pose", "omc", "base", ns, "omc", *seen(T_omc_base, 1e-4, 1e-3), **flags_links)
+        pub("omc/ots_rig/pose", "omc", "ots_rig", ns, "omc", *seen(T_omc_ots, 1e-4, 1e-3), **flags_links)
         if a.bad and t >= 1.5 and "nan" not in bad_done:
             bad_done.add("nan")
-            pub("/omc/tool/pose", "omc", "tool", ns, "omc", [math.nan, p[1], p[2]], q, bad="nan")
+            pub("omc/tool/pose", "omc", "tool", ns, "omc", [math.nan, p[1], p[2]], q, bad="nan")
         else:
-            pub("/omc/tool/pose", "omc", "tool", ns, "omc", p, q, **tool_flags)
+            pub("omc/tool/pose", "omc", "tool", ns, "omc", p, q, **tool_flags)
         if future is not None and t >= future[0] and "future" not in bad_done:
             bad_done.add("future")
-            pub("/omc/tool/pose", "omc", "tool", ns + round(future[1] * 1e9), "omc", p, q, bad="future")
+            pub("omc/tool/pose", "omc", "tool", ns + round(future[1] * 1e9), "omc", p, q, bad="future")
         if k % 2 == 0:
             ns_l = ns + 3_000_000
-            pub("/ots/base/pose", "ots", "base", ns_l, "ots", *seen(T_ots_base, 5e-5, 5e-4), **flags_links)
+            pub("ots/base/pose", "ots", "base", ns_l, "ots", *seen(T_ots_base, 5e-5, 5e-4), **flags_links)
             if a.ots_from <= t < a.ots_to and not a.static_only:
-                Tl = T_ots_base @ truth(t + 0.003)
+                Tl = T_ots_base @ make_T([a.shift, 0.0, 0.0]) @ truth(t + 0.003)
                 pl, ql = T_to_pq(Tl)
                 pl = pl + rng.normal(0, 1e-4, 3)
                 if a.bad and t >= 1.7 and "nonunit" not in bad_done:
                     bad_done.add("nonunit")
-                    pub("/ots/tool/pose", "ots", "tool", ns_l, "ots", pl, 1.5 * ql, bad="nonunit")
+                    pub("ots/tool/pose", "ots", "tool", ns_l, "ots", pl, 1.5 * ql, bad="nonunit")
                 else:
-                    pub("/ots/tool/pose", "ots", "tool", ns_l, "ots", pl, ql)
+                    pub("ots/tool/pose", "ots", "tool", ns_l, "ots", pl, ql)
         rclpy.spin_once(node, timeout_sec=0)
         last_ns, last_p, last_q = ns, p, q
         k += 1
@@ -198,7 +208,7 @@ def main() -> int:
         end = time.monotonic() + a.wait
         while time.monotonic() < end and final_max[0] < back_ns + 200_000_000:
             rclpy.spin_once(node, timeout_sec=0.05)
-        pub("/omc/tool/pose", "omc", "tool", back_ns, "omc", last_p, last_q, bad="backwards",
+        pub("omc/tool/pose", "omc", "tool", back_ns, "omc", last_p, last_q, bad="backwards",
             node_final_ns=final_max[0])
     log.write(json.dumps({"kind": "meta", "t0_ns": t0_ns}) + "\n")
     log.close()

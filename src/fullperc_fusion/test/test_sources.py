@@ -75,7 +75,7 @@ def test_two_local_sources_are_mapped(tmp_path):
     ({"atracsys": {"role": "local", "chain": "flying"}}, "'atracsys.chain'"),
     ({"atracsys": {"role": "local", "noise_std": -1.0}}, "'atracsys.noise_std'"),
     ({"atracsys": {"role": "local", "noise_model": "omc"}}, "'atracsys.noise_model'"),
-    ({"atracsys": {"role": "local", "topic_prefix": "atracsys"}}, "'atracsys.topic_prefix'"),
+    ({"atracsys": {"role": "local", "topic_prefix": "/"}}, "'atracsys.topic_prefix'"),   # relative is fine (issue 39)
     ({"ots": {"role": "local", "T_base": [0, 0, 0, 0, 0, 0, 1]}, "T_base_ots": [0, 0, 0, 0, 0, 0, 1]}, "give it once"),
     ({"sources": ["atracsys", "omc", "ots"]}, "omc and ots are kept"),
 ])
@@ -87,7 +87,7 @@ def test_bad_source_configurations_are_refused_naming_the_parameter(tmp_path, ch
 def test_shipped_two_local_example_loads():
     path = Path(__file__).resolve().parents[1] / "config" / "fusion_two_local.yaml"
     cfg, _ = fc.load_fusion_config(path, filters=("cbkf",))
-    assert len(cfg.sources.locals) == 2 and cfg.sources.extras[0].topic_prefix == "/atracsys"
+    assert len(cfg.sources.locals) == 2 and cfg.sources.extras[0].topic_prefix == "atracsys"   # relative (issue 39)
 
 
 def test_a_source_blocks_keys_are_rows_with_their_rule(tmp_path):

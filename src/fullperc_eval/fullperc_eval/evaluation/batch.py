@@ -88,7 +88,8 @@ def unsupported_reason(config: TargetConfig) -> str:
         return "further local sources"
     if any(s.noise_std is not None for s in (src.glob, *src.locals)):
         return "a source with its own noise_std"
-    if (src.glob.topic_prefix, src.locals[0].topic_prefix) != ("/omc", "/ots"):
+    # names as resolved in the default namespace (a bag records them absolute): omc and /omc are the same topics
+    if tuple("/" + s.topic_prefix.strip("/") for s in (src.glob, src.locals[0])) != ("/omc", "/ots"):
         return "sources on other topics"
     return ""
 

@@ -82,10 +82,10 @@ def fusion_params_with(calibration: Path | None, out: Path) -> Path:
     """fusion_node's installed params file for the offline evaluation of the demo's recording, written to
     ``out/fusion.yaml``: ``reorder_delay`` = :data:`LIVE_HISTORY_S`, and with ``calibration`` its
     ``calibration_file`` (the evaluation must run with the links the live node loaded)."""
-    from fullperc_fusion.fusion_config import default_fusion_config_path
+    from fullperc_fusion.fusion_config import default_fusion_config_path, node_key
 
     doc = yaml.safe_load(default_fusion_config_path().read_text()) or {}
-    params = doc.setdefault("fusion_node", {}).setdefault("ros__parameters", {})
+    params = doc.setdefault(node_key(doc), {}).setdefault("ros__parameters", {})
     params["reorder_delay"] = LIVE_HISTORY_S
     if calibration is not None:
         params["calibration_file"] = str(calibration)

@@ -445,7 +445,7 @@ class TargetPipeline:
                 orientation_source=osrc, time_since_local=since, reset=st.reset,
                 t_global=tg if st.sources & SOURCE_GLOBAL else None,
                 t_local=tl if st.sources & SOURCE_LOCAL else None,
-                local_equation=eq if st.sources & SOURCE_LOCAL else "", link_bumped=self.monitor.bumped)
+                local_equation=eq if st.sources & SOURCE_LOCAL else "", link_bumped=self.monitor.bumped, step=st)
             state.last_output[name] = o
             outs.append(o)
         counts["items"] += 1

@@ -4,9 +4,9 @@ Why: the node used to hard-code one global (OMC, ``/omc/<body>/pose``) and one l
 source; a second local tracker (an Atracsys, a second Vega) meant editing code. Now a params file lists them::
 
     sources: [omc, ots, atracsys]
-    omc:      {role: global, topic_prefix: /omc}
-    ots:      {role: local, topic_prefix: /ots, chain: static, noise_model: vega}
-    atracsys: {role: local, topic_prefix: /atracsys, chain: static, base_tool: base, noise_std: 2.0e-4}
+    omc:      {role: global, topic_prefix: omc}
+    ots:      {role: local, topic_prefix: ots, chain: static, noise_model: vega}
+    atracsys: {role: local, topic_prefix: atracsys, chain: static, base_tool: base, noise_std: 2.0e-4}
     tool:     {omc_body: tool, ots_tool: tool, atracsys: tool}     # per target: the device name per source
 
 Rules (checked at start, :class:`~fullperc_common.params.ParameterError` naming the parameter, exit 2):
@@ -68,9 +68,9 @@ _RESERVED = {*ROLE_LABELS, "base"}
 # noise_model's rule depends on the role (_MODEL_RULE)
 SOURCE_KEYS: dict[str, Param] = {p.name: p for p in (
     Param("role", None, "str", *one_of(ROLES), "", "global (exactly one) | local (one or more)"),
-    Param("topic_prefix", None, "str", lambda v: v.startswith("/") and v.rstrip("/") != "",
-          "an absolute topic prefix such as /atracsys", "",
-          "pose topic <prefix>/<device>/pose, quality .../quality; default /<name>"),
+    Param("topic_prefix", None, "str", lambda v: v.strip("/") != "" and not v.startswith("~"),
+          "a topic prefix such as atracsys (relative: under the node's namespace) or /atracsys (absolute)", "",
+          "pose topic <prefix>/<device>/pose, quality .../quality; default <name> (relative)"),
     Param("noise_std", None, "float", *POSITIVE, "m",
           "per-axis position noise of its samples (replaces noise.global_std / local_std)"),
     Param("noise_model", None, "str", None, "", "",
@@ -123,8 +123,8 @@ class SourceSpec:
 class SourceSet:
     """The sources of one target: ``glob`` and ``locals`` (``locals[0]`` pairs with the global source)."""
 
-    glob: SourceSpec = field(default_factory=lambda: SourceSpec("omc", GLOBAL, "/omc", None, "omc"))
-    locals: tuple[SourceSpec, ...] = field(default_factory=lambda: (SourceSpec("ots", LOCAL, "/ots", None, "vega"),))
+    glob: SourceSpec = field(default_factory=lambda: SourceSpec("omc", GLOBAL, "omc", None, "omc"))
+    locals: tuple[SourceSpec, ...] = field(default_factory=lambda: (SourceSpec("ots", LOCAL, "ots", None, "vega"),))
 
     @property
     def extras(self) -> tuple[SourceSpec, ...]:
@@ -188,7 +188,7 @@ def read_source_values(get: Get, vals: dict[str, Any], targets: list[str], taken
 
     for s in names:
         out[f"{s}.role"] = roles[s]
-        rd(s, "topic_prefix", f"/{s}")
+        rd(s, "topic_prefix", s)
         rd(s, "noise_std", None)
         first = s == loc[0]
         if roles[s] == GLOBAL:

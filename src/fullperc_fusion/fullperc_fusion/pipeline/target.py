@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fullperc_fusion.calibration.monitor import MonitorParams
+from fullperc_fusion.filters.api import Step
 from fullperc_fusion.filters.fullperc_params import FullpercParams
 from fullperc_fusion.filters.measurement_models import OmcModelParams
 from fullperc_fusion.filters.paper_family import FilterParams
@@ -92,6 +93,18 @@ class FusedOutput:
     t_local: int | None = None
     local_equation: str = ""       # 'eq1' | 'eq2' | 'static' for the local measurement used
     link_bumped: bool = False      # the link monitor sees the OTS's view of the base off its calibration
+    # the filter's step (read by :meth:`velocity` only): kept, not copied, so an output costs nothing more unless its
+    # velocity is asked for (the fast filters assemble their full covariance on first access); not compared
+    step: Step | None = field(default=None, repr=False, compare=False)
+
+    def velocity(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(linear velocity [m/s] in ``base``, its 3x3 covariance) from the filter's constant-velocity state -- every
+        filter's state holds v after p (``Step.v``, ``P[3:6, 3:6]``) --, or None for a filter without one (``omc``,
+        the raw pass-through, whose step has v = 0 with a zero covariance: not an estimate)."""
+        st = self.step
+        if st is None or self.filter == "omc":
+            return None
+        return np.array(st.v, dtype=float), np.array(st.P[3:6, 3:6], dtype=float)
 
 
 def rotation_stds(config: TargetConfig) -> tuple[float, float]:
