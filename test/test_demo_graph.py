@@ -112,7 +112,7 @@ def _live_vs_offline(run_dir: Path, target: str) -> dict[str, dict[str, float]]:
     from fullperc_eval.evaluation.config import PAPER_METHODS, replay_config
     from fullperc_eval.evaluation.replay import live_replay, replay
 
-    config, _ = replay_config(run_dir / "fusion.yaml", target)   # the demo's own: reorder_delay = the node's history
+    config, _ = replay_config(run_dir / "fusion.yaml", target)   # the demo's: reorder_delay = the node's
     off = replay(run_dir / "bag", config, progress=False).outputs
     live = live_replay(run_dir / "bag", target=target).outputs
     out = {}

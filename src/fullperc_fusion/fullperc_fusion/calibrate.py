@@ -1,9 +1,10 @@
 """calibrate: calibrate the static links of the frame chain from live sightings, write a calibration YAML, exit.
 
-Subscribes (names as fusion_node's parameters ``omc_base_body``, ``omc_rig_body``, ``ots_base_tool``):
-  /omc/<omc_base_body>/pose   the OMC's sightings of the reference marker          -> T_omc_base
-  /ots/<ots_base_tool>/pose   the OTS's sightings of the reference marker (eq. 2)  -> T_base_ots
-  /omc/<omc_rig_body>/pose    the OMC's sightings of the marker on the OTS (eq. 1) -> T_rig_ots (with both above)
+Subscribes (names as fusion_node's parameters ``omc_base_body``, ``omc_rig_body``, ``ots_base_tool``; relative, as
+fusion_node's: ``-r __ns:=/or1`` reads ``/or1/omc/...``):
+  omc/<omc_base_body>/pose   the OMC's sightings of the reference marker          -> T_omc_base
+  ots/<ots_base_tool>/pose   the OTS's sightings of the reference marker (eq. 2)  -> T_base_ots
+  omc/<omc_rig_body>/pose    the OMC's sightings of the marker on the OTS (eq. 1) -> T_rig_ots (with both above)
 for ``duration`` seconds of sensor stamps from the first sighting, while the setup stands still; then estimates
 each link in ``links`` separately with the robust SE(3) mean of :mod:`fullperc_fusion.calibration.se3_stats` (outliers
 rejected, 6x6 covariance of the mean) and writes ``output`` (:mod:`fullperc_fusion.calibration.io`; written to a
@@ -96,9 +97,9 @@ class CalibrateNode(Node):
         topics = []
         for key in self.run.collector.counts():
             dev, body = key.split(":", 1)
-            topic = f"/{dev}/{body}/pose"
-            topics.append(topic)
-            self.create_subscription(PoseStamped, topic, lambda m, d=dev, b=body: self._on_pose(d, b, m), qos)
+            topic = f"{dev}/{body}/pose"   # relative: under the node's namespace, as fusion_node's inputs
+            sub = self.create_subscription(PoseStamped, topic, lambda m, d=dev, b=body: self._on_pose(d, b, m), qos)
+            topics.append(sub.topic_name)
         self.create_timer(0.05, self._on_timer)
         self.get_logger().info(f"calibrating {list(self.run.collector.links)} from {topics} over {v['duration']:g} s "
                                f"of sightings; keep the OTS and the reference marker still")

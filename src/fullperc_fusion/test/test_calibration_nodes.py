@@ -195,3 +195,19 @@ def test_fusion_node_calibration_file_service_and_a_bumped_vega(scenarios, reque
 
 def test_calibrate_help_documents_the_parameters_and_the_exit_status(scenarios, request):
     scenarios.result(request.node.name)
+
+
+def test_calibrate_reads_its_sightings_under_the_nodes_namespace(rclpy_context):
+    """Relative input names, as fusion_node's: started with ``-r __ns:=/or1`` (here in-process, the same remapping
+    rule) calibrate reads /or1/omc/... and /or1/ots/..., so a calibration of one OR never takes another's poses."""
+    from fullperc_fusion.calibrate import CalibrateNode
+
+    ns = CalibrateNode(context=rclpy_context, cli_args=["--ros-args", "-r", "__ns:=/or1"])
+    plain = CalibrateNode(context=rclpy_context)
+    try:
+        got = sorted(s.topic_name for s in ns.subscriptions)
+        assert got and all(t.startswith("/or1/omc/") or t.startswith("/or1/ots/") for t in got), got
+        assert sorted(s.topic_name for s in plain.subscriptions) == [t[len("/or1"):] for t in got]
+    finally:
+        ns.destroy_node()
+        plain.destroy_node()
