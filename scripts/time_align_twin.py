@@ -18,11 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
-from fullperc_eval.evaluation.time_align import AlignmentError
 from fullperc_eval.evaluation.time_align_cli import align_bag
 from fullperc_eval.evaluation.twin_report import parse_seeds
 from fullperc_eval.sim.dataset import content_from_sim, write_bag
 from fullperc_eval.sim.sync_take import sync_take
+from fullperc_fusion.calibration.time_offset import AlignmentError
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -129,6 +129,11 @@ def _stream_backend_across_processes(procs, rclpy_context, tmp_path, python_exe)
             st, _ = lis.last_status("diana")
             return st is not None and "stream stopped" in st.message
         wait_for(stopped, timeout=20, what="'stream stopped' diagnosis")
+        # the three topics' last messages can still be in flight when the diagnosis arrives (a loaded run: one
+        # flange pose short): wait, spinning, until the counts agree -- a liveness bound, the equality asserted below
+        wait_for(lambda: (lis.spin(), len(lis.js) == len(lis.flange) == len(lis.tool))[1], timeout=20,
+                 what="the last joint state, flange and tool pose", detail=lambda: (len(lis.js), len(lis.flange),
+                                                                                   len(lis.tool)))
         assert node.poll() is None, procs.log(node)
     finally:
         lis.close()

@@ -20,10 +20,10 @@ import pytest
 import yaml
 
 from fullperc_common.testing import installed_exe
-from fullperc_eval.evaluation import time_align as ta
 from fullperc_eval.evaluation.time_align_cli import main as cli_main
 from fullperc_eval.sim.dataset import EPOCH_NS, content_from_sim, write_bag
 from fullperc_eval.sim.sync_take import sync_take
+from fullperc_fusion.calibration import time_offset as ta
 
 TOL_TWIN_S = 0.0005         # the brief: 5 ms recovered to <= 0.5 ms in the twin
 

@@ -344,7 +344,7 @@ def noise_model(vals: dict[str, Any]):
 def health_params(vals: dict[str, Any]) -> HealthParams:
     return HealthParams(hop_window_s=vals["alarm.hop_window"], hop_max=vals["alarm.hop_max"],
                         bias_max_m=vals["alarm.bias_max"], reject_timeout_s=vals["alarm.reject_timeout"],
-                        hold_s=vals["problem_hold"]).validate()
+                        hold_s=vals["problem_hold"], offset_warn_s=max(vals["slop"] / 2, 1e-4)).validate()
 
 
 def calibration_settings(vals: dict[str, Any]) -> CalibrationSettings:

@@ -241,20 +241,21 @@ class FusionCore:
             if dev == "omc":
                 ok = pipe.push_omc(body, t_ns, (p, q), now_ns=clock_ns)
                 if body == c.omc_target:
-                    self._target_sample(t, "omc", GLOBAL, ok, now)
+                    self._target_sample(t, "omc", GLOBAL, ok, now, t_ns, p)
             else:   # ots: the first local source; a further one by its index (sources.py)
                 k = self.local_k[dev]
                 ok = pipe.push_local(k, body, t_ns, (p, q), now_ns=clock_ns)
                 if body == (c if k == 0 else pipe.extra_chains[k - 1].cfg).ots_target:
-                    self._target_sample(t, dev, LOCAL, ok, now)
+                    self._target_sample(t, dev, LOCAL, ok, now, t_ns, p)
         return targets
 
-    def _target_sample(self, target: str, dev: str, source: str, accepted: bool, now: float) -> None:
+    def _target_sample(self, target: str, dev: str, source: str, accepted: bool, now: float, t_ns: int,
+                       p: np.ndarray) -> None:
         self.last_rx[target][dev] = now
         self.last_target_rx = now
         h = self.health[target]
-        if accepted:
-            h.accepted(source, now)
+        if accepted:   # the stamp-offset watch pairs the global source with the first local one only
+            h.accepted(source, now, t_ns, p if source == GLOBAL or self.local_k.get(dev) == 0 else None)
         else:
             h.rejected(source, now, self.pipes[target].last_problem)
 

@@ -26,6 +26,13 @@ The rules (thresholds are :class:`HealthParams`, node parameters ``alarm.*`` in 
   quaternion, bad stamp, late, duplicate) or skipped by the chain (local_skipped); "accepted" = taken by the
   pipeline at the input. Outputs of samples accepted before the run (they come out up to ``reorder_delay`` or
   ``idle_flush`` later) do not end it; samples waiting for the static links neither start nor end one.
+* **stamp offset** (WARN, local source): the OMC's and the Vega's stamps of one instant disagree. Every
+  ``offset_period_s`` of stamps the last ``offset_window_s`` of the target's accepted samples of each source go to
+  :func:`~fullperc_fusion.calibration.time_offset.align_tracks` (the speed of the target seen by each device,
+  cross-correlated: frame-free, so no link is needed); an offset ``|d| > offset_warn_s`` (half of ``slop``: pairs
+  then form with the wrong partner, and a moving target is ``speed x d`` off) that is also more than 3 sigma is a
+  WARN naming it and ``time_align`` (docs/time_alignment.md). Windows without enough motion are skipped. Run in
+  :meth:`TargetHealth.alarms` (the diagnostics timer), never on the input path: one estimate costs ~50 ms.
 * every alarm stays raised ``hold_s`` seconds after its condition last held (a burst between two /diagnostics
   publications is not lost; as the node's other problems, ``problem_hold``), with "(cleared N s ago)". The
   conditions are evaluated at every input and again at every :meth:`TargetHealth.alarms` call; the bias rule
@@ -59,9 +66,13 @@ class HealthParams:
     bias_max_m: float = 0.02      # [m] |b| above this -> WARN
     reject_timeout_s: float = 1.0  # [s] every sample rejected for this long -> ERROR
     hold_s: float = 10.0          # [s] an alarm stays raised this long after its condition last held
+    offset_warn_s: float = 0.002  # [s] |stamp offset| OMC vs OTS above this -> WARN (fusion_node: slop / 2)
+    offset_window_s: float = 10.0  # [s] of samples per stamp-offset estimate
+    offset_period_s: float = 10.0  # [s] of stamps between two estimates
 
     def validate(self) -> HealthParams:
-        for name in ("hop_window_s", "bias_max_m", "reject_timeout_s", "hold_s"):
+        for name in ("hop_window_s", "bias_max_m", "reject_timeout_s", "hold_s", "offset_warn_s", "offset_window_s",
+                     "offset_period_s"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
                 raise ValueError(f"health parameter {name} must be finite and > 0, got {v!r}")
@@ -73,7 +84,7 @@ class HealthParams:
 @dataclass(frozen=True)
 class Alarm:
     level: int          # WARN or ERROR
-    rule: str           # 'hop_rate' | 'bias' | 'rejected'
+    rule: str           # 'hop_rate' | 'bias' | 'rejected' | 'stamp_offset'
     source: str         # GLOBAL | LOCAL
     message: str        # names the target and the source
 
@@ -98,6 +109,60 @@ class _Held:
         return self.message if age <= 0 else f"{self.message} (cleared {age:.1f} s ago)"
 
 
+class StampOffsetWatch:
+    """The stamp offset of the local source against the global one from the target's accepted samples (the rule
+    "stamp offset" of the module docstring): a ring of (stamp, position) per source, an estimate every ``period_s``
+    of stamps."""
+
+    MIN_STEP_NS = 4_000_000   # a sample closer than this to the ring's newest is skipped: <= 250 Hz per source,
+    # so one estimate costs ~25 ms whatever the devices' rates (1 kHz streams: 54 ms without it)
+
+    def __init__(self, window_s: float, period_s: float) -> None:
+        # imported here, at the node's start: scipy's signal/interpolate/optimize take ~0.7 s to import, a stall
+        # the first estimate would otherwise make mid-stream (fusion_health is imported by offline tools too)
+        from fullperc_fusion.calibration import time_offset
+
+        self._align, self._error = time_offset.align_tracks, time_offset.AlignmentError
+        self.window_ns, self.period_ns = int(window_s * 1e9), int(period_s * 1e9)
+        self.rings: dict[str, deque] = {GLOBAL: deque(), LOCAL: deque()}
+        self.newest_ns: int | None = None
+        self.due_ns: int | None = None
+        self.last = None          # the newest Alignment (time_offset), None before one succeeded
+
+    def add(self, source: str, t_ns: int, p) -> None:
+        ring = self.rings[source]
+        if ring and t_ns - ring[-1][0] < self.MIN_STEP_NS:
+            if ring[-1][0] - t_ns <= self.window_ns:   # a late or too close sample: the ring keeps stamp order
+                return
+            for r in self.rings.values():           # stamps went back for good (a restarted timeline): anew
+                r.clear()
+            self.newest_ns = self.due_ns = None
+        ring.append((t_ns, p))
+        self.newest_ns = t_ns if self.newest_ns is None else max(self.newest_ns, t_ns)
+        if self.due_ns is None:
+            self.due_ns = t_ns + self.period_ns
+        while ring and ring[0][0] < self.newest_ns - self.window_ns:
+            ring.popleft()
+
+    def estimate(self):
+        """A new :class:`~fullperc_fusion.calibration.time_offset.Alignment` when one is due and the window allows
+        one (enough motion seen by both), else None."""
+        if self.newest_ns is None or self.due_ns is None or self.newest_ns < self.due_ns:
+            return None
+        self.due_ns = self.newest_ns + self.period_ns
+        g, loc = self.rings[GLOBAL], self.rings[LOCAL]
+        if len(g) < 20 or len(loc) < 20:
+            return None
+        t0 = g[0][0]
+        try:
+            self.last = self._align(np.array([t - t0 for t, _ in g]) * 1e-9, np.array([p for _, p in g], float),
+                                     np.array([t - t0 for t, _ in loc]) * 1e-9, np.array([p for _, p in loc], float),
+                                     max_lag_s=0.2)
+        except (self._error, ValueError):
+            return None
+        return self.last
+
+
 class TargetHealth:
     """The alarm state of one target; ``sources`` names the two sources, e.g. {"global": "OMC body 'tool'"}."""
 
@@ -115,12 +180,16 @@ class TargetHealth:
         self._run_reason = {GLOBAL: "", LOCAL: ""}
         self._last_accept: dict[str, float | None] = {GLOBAL: None, LOCAL: None}
         self._held = {("hop_rate", GLOBAL): _Held(), ("bias", GLOBAL): _Held(),
-                      ("rejected", GLOBAL): _Held(), ("rejected", LOCAL): _Held()}
+                      ("rejected", GLOBAL): _Held(), ("rejected", LOCAL): _Held(), ("stamp_offset", LOCAL): _Held()}
+        self.offset = StampOffsetWatch(self.params.offset_window_s, self.params.offset_period_s)
 
     # ---- input --------------------------------------------------------------------------------------------
-    def accepted(self, source: str, now: float) -> None:
-        """A sample of ``source`` was taken by the pipeline at ``now``."""
+    def accepted(self, source: str, now: float, t_ns: int | None = None, p=None) -> None:
+        """A sample of ``source`` was taken by the pipeline at ``now``; with its stamp and position (the device's
+        frame) it also goes to the stamp-offset watch."""
         self._last_accept[source] = now
+        if t_ns is not None and p is not None:
+            self.offset.add(source, t_ns, p)
 
     def rejected(self, source: str, now: float, reason: str = "", n: int = 1) -> None:
         """``n`` samples of ``source`` were refused at ``now`` (``reason``: the pipeline's description)."""
@@ -156,6 +225,7 @@ class TargetHealth:
         self._check_bias_and_hops(now)
         for s in (GLOBAL, LOCAL):
             self._check_rejected(s, now)
+        self._check_offset(now)
         out = []
         for (rule, source), h in self._held.items():
             msg = h.active(now, self.params.hold_s)
@@ -168,6 +238,9 @@ class TargetHealth:
         self._prune(now)
         v = {"hops_in_window": len(self._hops), "hops_total": self.hops_total,
              "bias_norm_mm": round(1e3 * self.bias_norm_m, 3)}
+        if (a := self.offset.last) is not None:
+            v["stamp_offset_ms"] = round(1e3 * a.offset_s, 3)
+            v["stamp_offset_sigma_ms"] = round(1e3 * a.offset_sigma_s, 3)
         for s in (GLOBAL, LOCAL):
             first = self._run_first[s]
             v[f"{s}_rejected_run_s"] = 0.0 if first is None else round(now - first, 3)
@@ -193,6 +266,20 @@ class TargetHealth:
             self._held[("hop_rate", GLOBAL)].mark(now, (
                 f"target '{self.target}': the {self.names[GLOBAL]} hops too often: {len(self._hops)} hops "
                 f"within {p.hop_window_s:g} s (more than {p.hop_max}; single hops when cameras change are normal)"))
+
+    def _check_offset(self, now: float) -> None:
+        """The stamp-offset rule on a new estimate (none due: the alarm's hold decides)."""
+        a = self.offset.estimate()
+        if a is None or not math.isfinite(a.offset_s):
+            return
+        d, sd, warn = a.offset_s, a.offset_sigma_s, self.params.offset_warn_s
+        if abs(d) > warn and abs(d) > 3 * sd:
+            late = "late" if d > 0 else "early"
+            self._held[("stamp_offset", LOCAL)].mark(now, (
+                f"target '{self.target}': the {self.names[LOCAL]}'s stamps are {late} by {1e3 * abs(d):.1f} ms "
+                f"(+- {1e3 * sd:.1f}) against the {self.names[GLOBAL]}'s, more than {1e3 * warn:.1f} ms (half of "
+                "slop): pairs form with the wrong partner; measure and set device_latency_s with time_align "
+                "(docs/time_alignment.md)"))
 
     def _check_rejected(self, source: str, now: float) -> None:
         first, last = self._run_first[source], self._run_last[source]

@@ -100,7 +100,7 @@ def test_values_are_mapped(tmp_path):
     np.testing.assert_allclose(cfg.chain.T_base_ots[:3, 3], [1, 2, 3])
     assert cfg.filters == fc.PAPER_ORDER            # the evaluator's default: every method
     assert fc.load_fusion_config(p, filters=None).config.filters == ("ckf", "kf")   # as the node runs them
-    assert fc.health_params(values) == HealthParams(bias_max_m=0.05, hop_max=3)
+    assert fc.health_params(values) == HealthParams(bias_max_m=0.05, hop_max=3, offset_warn_s=0.001)   # slop / 2
     other = fc.load_fusion_config(p, target="probe").config
     assert other.name == "probe" and other.chain.omc_target == "probe"
 

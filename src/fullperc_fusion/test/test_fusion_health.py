@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -262,3 +263,73 @@ def test_input_load_reports_every_window_until_a_report_is_published():
     load.begin_report(previous_published=True)           # that report went out: the next starts afresh
     v = load.values()
     assert (v["queue_depth_max"], v["lag_max_ms"], v["input_callbacks"]) == (0, None, 0)
+
+
+# ------------------------------------------------------------------------------------------- stamp offset
+def _waving(t: np.ndarray) -> np.ndarray:
+    """An irregular hand-like motion [m] (no single period: the cross-correlation has one peak)."""
+    return 0.08 * np.stack([np.sin(2.1 * t) + 0.5 * np.sin(5.3 * t + 1), np.sin(1.3 * t + 2) * np.cos(3.7 * t),
+                            0.4 * np.sin(4.1 * t + 0.3)], axis=1)
+
+
+def _feed(h: TargetHealth, late_s: float, seconds: float = 12.0, seed: int = 0) -> None:
+    """OMC 120 Hz (0.2 mm noise) and Vega 60 Hz (0.1 mm, its own frame: rotated and shifted) of one motion, the
+    Vega's stamps ``late_s`` late; alarms asked for once a second as the node's diagnostics timer does."""
+    rng = np.random.default_rng(seed)
+    R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    tg, tl = np.arange(0, seconds, 1 / 120), np.arange(0.003, seconds, 1 / 60)
+    pg = _waving(tg) + rng.normal(0, 2e-4, (tg.size, 3))
+    pl = _waving(tl) @ R.T + [1.0, 2.0, 0.5] + rng.normal(0, 1e-4, (tl.size, 3))
+    ev = sorted([(t, GLOBAL, p) for t, p in zip(tg, pg, strict=True)]
+                + [(t + late_s, LOCAL, p) for t, p in zip(tl, pl, strict=True)], key=lambda e: e[0])
+    next_diag = 1.0
+    for t, s, p in ev:
+        h.accepted(s, t, int(round(t * 1e9)), p)
+        if t >= next_diag:
+            h.alarms(t)
+            next_diag += 1.0
+
+
+@pytest.mark.parametrize("late_ms", [10.0, -6.0])
+def test_vega_stamps_off_by_more_than_half_the_slop_are_a_warn_naming_the_offset(late_ms):
+    h = _h(offset_warn_s=0.002, offset_window_s=10.0, offset_period_s=10.0)
+    _feed(h, late_ms * 1e-3)
+    [a] = [a for a in h.alarms(12.0) if a.rule == "stamp_offset"]
+    assert a.level == WARN and a.source == LOCAL
+    word = "late" if late_ms > 0 else "early"
+    m = re.search(rf"stamps are {word} by ([0-9.]+) ms", a.message)
+    assert m and abs(float(m[1]) - abs(late_ms)) < 0.5 and "time_align" in a.message, a.message
+    v = h.values(12.0)
+    assert abs(v["stamp_offset_ms"] - late_ms) < 0.5 and v["stamp_offset_sigma_ms"] < 0.5, v
+
+
+def test_stamps_within_half_the_slop_raise_nothing_and_still_report_the_offset():
+    h = _h(offset_warn_s=0.002, offset_window_s=10.0, offset_period_s=10.0)
+    _feed(h, 0.001)
+    assert not [a for a in h.alarms(12.0) if a.rule == "stamp_offset"]
+    assert abs(h.values(12.0)["stamp_offset_ms"] - 1.0) < 0.5
+
+
+def test_a_still_target_gives_no_estimate_and_no_alarm():
+    h = _h(offset_warn_s=0.002)
+    for k in range(1500):
+        t = k / 120
+        h.accepted(GLOBAL, t, int(t * 1e9), np.zeros(3))
+        h.accepted(LOCAL, t + 0.01, int((t + 0.01) * 1e9), np.ones(3))
+        if k % 120 == 0:
+            h.alarms(t)
+    assert not [a for a in h.alarms(13.0) if a.rule == "stamp_offset"]
+    assert "stamp_offset_ms" not in h.values(13.0)
+
+
+def test_a_late_sample_is_skipped_and_a_restarted_timeline_starts_the_window_anew():
+    h = _h()
+    w = h.offset
+    for k in range(10):
+        w.add(GLOBAL, k * 10_000_000, np.full(3, k))
+    w.add(GLOBAL, 45_000_000, np.zeros(3))          # late (arrived after 90 ms): not put out of order
+    w.add(GLOBAL, 92_000_000, np.zeros(3))          # 2 ms after the newest: above 250 Hz, skipped
+    assert [t for t, _ in w.rings[GLOBAL]] == [k * 10_000_000 for k in range(10)]
+    w.add(LOCAL, 95_000_000, np.zeros(3))
+    w.add(GLOBAL, 100_000_000 - 20_000_000_000, np.zeros(3))   # 20 s back: a new timeline
+    assert [t for t, _ in w.rings[GLOBAL]] == [-19_900_000_000] and not w.rings[LOCAL]

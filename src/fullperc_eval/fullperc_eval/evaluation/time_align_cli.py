@@ -29,8 +29,15 @@ import numpy as np
 
 from fullperc_eval.bag.errors import BagError
 from fullperc_eval.bag.reader import POSE_TYPE, BagReader, decoded_messages
-
-from .time_align import SIGNALS, Alignment, AlignmentError, align_tracks, corrected_parameters, describe, params_yaml
+from fullperc_fusion.calibration.time_offset import (
+    SIGNALS,
+    Alignment,
+    AlignmentError,
+    align_tracks,
+    corrected_parameters,
+    describe,
+    params_yaml,
+)
 
 Track = tuple[np.ndarray, np.ndarray, np.ndarray]   # stamps [ns] int64, positions (n, 3) [m], quaternions (n, 4)
 

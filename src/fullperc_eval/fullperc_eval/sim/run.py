@@ -83,7 +83,7 @@ class OtsSeries:
     latency_s: float
     tools: dict[str, ToolSeries]
     # the Vega's stamps are late by this much relative to the truth (scene ``ots.stamp_offset_s``, default 0): a
-    # capture-to-stamp delay its driver does not subtract, for testing time alignment (evaluation.time_align).
+    # capture-to-stamp delay its driver does not subtract, for testing time alignment (calibration.time_offset).
     # ``t_ns`` stays the true capture time; only the stamps written (dataset.content_from_sim) carry it
     stamp_offset_s: float = 0.0
 

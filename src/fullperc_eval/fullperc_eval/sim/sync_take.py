@@ -1,6 +1,6 @@
 """A short twin take for time alignment: the arm waves the tool irregularly in view of both trackers.
 
-Why: the time-alignment tool (:mod:`fullperc_eval.evaluation.time_align`) needs a few seconds of motion that both
+Why: the time-alignment tool (:mod:`fullperc_fusion.calibration.time_offset`) needs a few seconds of motion that both
 the OMC and the Vega see, and a known stamp offset to be checked against. The evaluation tasks are ~30 s of one
 smooth single-joint arc (one speed bump, partly outside the Vega); this take is what a user records by hand instead:
 the tool waved in the Vega's volume for a few seconds, at varying speed (a periodic wave would correlate at
