@@ -20,6 +20,7 @@ import pytest
 import yaml
 
 from fullperc_common.testing import installed_exe
+from fullperc_eval.evaluation import time_align_cli as cli
 from fullperc_eval.evaluation.time_align_cli import main as cli_main
 from fullperc_eval.sim.dataset import EPOCH_NS, content_from_sim, write_bag
 from fullperc_eval.sim.sync_take import sync_take
@@ -71,19 +72,19 @@ def test_sign_convention_and_the_parameter_that_corrects_it():
     ta_, pa, tb, pb = _devices(0.005, seed=1)
     r = ta.align_tracks(ta_, pa, tb, pb)
     assert r.offset_s == pytest.approx(0.005, abs=0.3e-3)
-    assert ta.describe(r.offset_s).startswith("OTS stamps are late by 5.")
-    assert ta.describe(-0.005) == "OTS stamps are early by 5.000 ms relative to OMC"
-    p = ta.corrected_parameters(r.offset_s, device_latency_s=0.010)
+    assert cli.describe(r.offset_s).startswith("OTS stamps are late by 5.")
+    assert cli.describe(-0.005) == "OTS stamps are early by 5.000 ms relative to OMC"
+    p = cli.corrected_parameters(r.offset_s, device_latency_s=0.010)
     assert p == {"ndi_driver": {"device_latency_s": pytest.approx(0.015, abs=0.3e-3)}}
     # what the driver does with it: stamp = (what it stamped before) - (new - old latency) -> aligned
     corrected = tb - (p["ndi_driver"]["device_latency_s"] - 0.010)
     assert abs(ta.align_tracks(ta_, pa, corrected, pb).offset_s) < 0.3e-3
     # early by more than the current latency: the Vega's latency cannot go below 0, the OMC's stamps move instead
-    p = ta.corrected_parameters(-0.005, device_latency_s=0.002, transport_delay_s=0.001)
+    p = cli.corrected_parameters(-0.005, device_latency_s=0.002, transport_delay_s=0.001)
     assert p == {"ndi_driver": {"device_latency_s": 0.0}, "omc_driver": {"transport_delay_s": 0.004}}
     with pytest.raises(ta.AlignmentError, match="transport_delay_s"):
-        ta.corrected_parameters(-2.0)
-    text = ta.params_yaml(p, "a comment\nover two lines")
+        cli.corrected_parameters(-2.0)
+    text = cli.params_yaml(p, "a comment\nover two lines")
     assert text.startswith("# a comment\n# over two lines\n")
     assert yaml.safe_load(text) == {"/**/ndi_driver": {"ros__parameters": {"device_latency_s": 0.0}},
                                     "/**/omc_driver": {"ros__parameters": {"transport_delay_s": 0.004}}}

@@ -76,7 +76,7 @@ from fullperc_fusion.input_guard import InputGuard, Publisher
 from fullperc_fusion.pipeline.arrival import ArrivalPipeline, make_pipeline
 from fullperc_fusion.pipeline.frame_chain import links_needed, pose_to_T
 from fullperc_fusion.pipeline.ordered import FusedOutput, TargetPipeline
-from fullperc_fusion.pipeline.sources import Route, routes
+from fullperc_fusion.pipeline.sources import Route, default_namespace, routes
 
 HOLD_MAX = 10_000          # samples held in all while a publisher has no name (beyond: dropped, counted)
 DIAG_EVAL_PERIOD_S = 0.5   # [s] the diagnostics' evaluation timer (published every 1 s by diag.Diagnostics)
@@ -107,12 +107,6 @@ def check_live(vals: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]:
     except ValueError as e:
         raise ParameterError(str(e)) from None
     return new
-
-
-def default_namespace(topic: str) -> str:
-    """A topic name resolved as in the default namespace without remapping (offline use and the unit tests): a
-    relative name gets a leading ``/``."""
-    return topic if topic.startswith("/") else f"/{topic}"
 
 
 class CalibrationAnswer(NamedTuple):

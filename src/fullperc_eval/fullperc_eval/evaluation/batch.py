@@ -49,6 +49,7 @@ from fullperc_fusion.filters.paper_batch import BatchUnsupported, run_closed_for
 from fullperc_fusion.filters.paper_family import FILTER_KINDS
 from fullperc_fusion.filters.registry import capabilities
 from fullperc_fusion.pipeline.ordered import TargetConfig, TargetPipeline
+from fullperc_fusion.pipeline.sources import default_namespace
 from fullperc_fusion.pipeline.synchronizer import GLOBAL, LOCAL
 
 from .config import EvaluationError
@@ -89,7 +90,7 @@ def unsupported_reason(config: TargetConfig) -> str:
     if any(s.noise_std is not None for s in (src.glob, *src.locals)):
         return "a source with its own noise_std"
     # names as resolved in the default namespace (a bag records them absolute): omc and /omc are the same topics
-    if tuple("/" + s.topic_prefix.strip("/") for s in (src.glob, src.locals[0])) != ("/omc", "/ots"):
+    if tuple(default_namespace(s.topic_prefix).rstrip("/") for s in (src.glob, src.locals[0])) != ("/omc", "/ots"):
         return "sources on other topics"
     return ""
 

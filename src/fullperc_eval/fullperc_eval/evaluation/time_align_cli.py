@@ -5,8 +5,9 @@
 
 Record a few seconds (10-30 s is plenty) of a target both trackers see while you wave it irregularly in the Vega's
 volume (``record`` with the two pose topics), then run this on the bag. It estimates how late the Vega's stamps are
-relative to the OMC's (:mod:`.time_align`: speed cross-correlation, sub-sample least-squares refinement, window
-scatter for the uncertainty and the drift) and writes a ROS 2 parameters file for the drivers::
+relative to the OMC's (:mod:`fullperc_fusion.calibration.time_offset`: speed cross-correlation, sub-sample
+least-squares refinement, window scatter for the uncertainty and the drift) and writes a ROS 2 parameters file for
+the drivers::
 
     ros2 run fullperc_drivers ndi_driver --ros-args --params-file ndi_vega.yaml --params-file time_offset.yaml
 
@@ -29,15 +30,7 @@ import numpy as np
 
 from fullperc_eval.bag.errors import BagError
 from fullperc_eval.bag.reader import POSE_TYPE, BagReader, decoded_messages
-from fullperc_fusion.calibration.time_offset import (
-    SIGNALS,
-    Alignment,
-    AlignmentError,
-    align_tracks,
-    corrected_parameters,
-    describe,
-    params_yaml,
-)
+from fullperc_fusion.calibration.time_offset import SIGNALS, Alignment, AlignmentError, align_tracks
 
 Track = tuple[np.ndarray, np.ndarray, np.ndarray]   # stamps [ns] int64, positions (n, 3) [m], quaternions (n, 4)
 
@@ -62,12 +55,52 @@ def read_tracks(bag: str | Path, omc_topic: str, ots_topic: str) -> tuple[Track,
 
 def align_bag(bag: str | Path, omc_topic: str = "/omc/tool/pose", ots_topic: str = "/ots/tool/pose",
               **kw) -> Alignment:
-    """:func:`.time_align.align_tracks` on a bag's two pose topics (stamps relative to the first one, in s)."""
+    """:func:`~fullperc_fusion.calibration.time_offset.align_tracks` on a bag's two pose topics (stamps relative to
+    the first one, in s)."""
     (ta, pa, qa), (tb, pb, qb) = read_tracks(bag, omc_topic, ots_topic)
     if not len(ta) or not len(tb):
         raise AlignmentError(f"no messages on {omc_topic if not len(ta) else ots_topic}")
     t0 = int(min(ta[0], tb[0]))
     return align_tracks((ta - t0) * 1e-9, pa, (tb - t0) * 1e-9, pb, qa, qb, **kw)
+
+
+# ---------------------------------------------------------------------- output: the drivers' parameters, the words
+def corrected_parameters(offset_s: float, device_latency_s: float = 0.0,
+                         transport_delay_s: float = 0.0) -> dict[str, dict[str, float]]:
+    """The driver parameters that remove ``offset_s`` (OTS late by it), given the values used when recording.
+
+    Both parameters are subtracted from their driver's stamps and must be >= 0: ``ndi_driver.device_latency_s``
+    takes ``current + offset``; when that would be negative (the Vega's stamps early by more than its current
+    latency), it becomes 0 and the rest is subtracted from the OMC's stamps instead (``omc_driver.
+    transport_delay_s``), which aligns the two the same way. Only the nodes whose value changes are returned.
+    """
+    lat = device_latency_s + offset_s
+    out: dict[str, dict[str, float]] = {}
+    if lat >= 0:
+        out["ndi_driver"] = {"device_latency_s": round(lat, 6)}
+    else:
+        out["ndi_driver"] = {"device_latency_s": 0.0}
+        out["omc_driver"] = {"transport_delay_s": round(transport_delay_s - lat, 6)}
+    for node, vals in out.items():
+        for k, v in vals.items():
+            if not 0 <= v < 1:
+                raise AlignmentError(f"{node}.{k} would be {v} s (allowed 0 <= value < 1 s): is the offset right?")
+    return out
+
+
+def params_yaml(params: dict[str, dict[str, float]], comment: str) -> str:
+    """A ROS 2 parameters file (``--params-file``) setting ``params`` for the nodes in any namespace."""
+    lines = [f"# {line}" for line in comment.splitlines()]
+    for node, vals in params.items():
+        lines += [f"/**/{node}:", "  ros__parameters:"]
+        lines += [f"    {k}: {float(v)!r}" for k, v in vals.items()]
+    return "\n".join(lines) + "\n"
+
+
+def describe(offset_s: float) -> str:
+    """The offset in words, with its sign spelled out."""
+    ms = abs(offset_s) * 1e3
+    return f"OTS stamps are {'late' if offset_s >= 0 else 'early'} by {ms:.3f} ms relative to OMC"
 
 
 def warnings_of(r: Alignment) -> list[str]:

@@ -26,7 +26,8 @@ filter delays neither), per gap-free segment. Then
 Sign convention (pinned by ``test_time_align.py``): ``offset_s = d > 0`` means **the OTS (Vega) stamps are late
 by d seconds relative to the OMC's**: the Vega stamps an instant ``d`` later than the OMC stamps the same
 instant. It is corrected by subtracting ``d`` from the Vega's stamps: ``ndi_driver``'s ``device_latency_s``
-(which the driver subtracts from every stamp) becomes ``current + d`` (:func:`corrected_parameters`).
+(which the driver subtracts from every stamp) becomes ``current + d``: the ``time_align`` tool writes that
+(``fullperc_eval.evaluation.time_align_cli``); fusion_node watches the same estimate live (``fusion_health``).
 """
 
 from __future__ import annotations
@@ -389,44 +390,5 @@ def align_tracks(t_omc_s, p_omc, t_ots_s, p_ots, q_omc=None, q_ots=None, *, sign
     return estimate_offset(a, b, smooth_s=smooth_s, signal=signal, **kw)
 
 
-# ------------------------------------------------------------------------------------------------- output
-def corrected_parameters(offset_s: float, device_latency_s: float = 0.0,
-                         transport_delay_s: float = 0.0) -> dict[str, dict[str, float]]:
-    """The driver parameters that remove ``offset_s`` (OTS late by it), given the values used when recording.
-
-    Both parameters are subtracted from their driver's stamps and must be >= 0: ``ndi_driver.device_latency_s``
-    takes ``current + offset``; when that would be negative (the Vega's stamps early by more than its current
-    latency), it becomes 0 and the rest is subtracted from the OMC's stamps instead (``omc_driver.
-    transport_delay_s``), which aligns the two the same way. Only the nodes whose value changes are returned.
-    """
-    lat = device_latency_s + offset_s
-    out: dict[str, dict[str, float]] = {}
-    if lat >= 0:
-        out["ndi_driver"] = {"device_latency_s": round(lat, 6)}
-    else:
-        out["ndi_driver"] = {"device_latency_s": 0.0}
-        out["omc_driver"] = {"transport_delay_s": round(transport_delay_s - lat, 6)}
-    for node, vals in out.items():
-        for k, v in vals.items():
-            if not 0 <= v < 1:
-                raise AlignmentError(f"{node}.{k} would be {v} s (allowed 0 <= value < 1 s): is the offset right?")
-    return out
-
-
-def params_yaml(params: dict[str, dict[str, float]], comment: str) -> str:
-    """A ROS 2 parameters file (``--params-file``) setting ``params`` for the nodes in any namespace."""
-    lines = [f"# {line}" for line in comment.splitlines()]
-    for node, vals in params.items():
-        lines += [f"/**/{node}:", "  ros__parameters:"]
-        lines += [f"    {k}: {float(v)!r}" for k, v in vals.items()]
-    return "\n".join(lines) + "\n"
-
-
-def describe(offset_s: float) -> str:
-    """The offset in words, with its sign spelled out."""
-    ms = abs(offset_s) * 1e3
-    return f"OTS stamps are {'late' if offset_s >= 0 else 'early'} by {ms:.3f} ms relative to OMC"
-
-
-__all__ = ["Alignment", "AlignmentError", "Motion", "SIGNALS", "align_tracks", "corrected_parameters", "describe",
-           "estimate_offset", "motion_signal", "params_yaml", "segments_of"]
+__all__ = ["Alignment", "AlignmentError", "Motion", "SIGNALS", "align_tracks", "estimate_offset", "motion_signal",
+           "segments_of"]

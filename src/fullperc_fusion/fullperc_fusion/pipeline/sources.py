@@ -103,6 +103,12 @@ def device_param(target: str, source: str) -> Param:
                  f"'{source}'")
 
 
+def default_namespace(topic: str) -> str:
+    """A topic name resolved as in the default namespace without remapping (offline use, the evaluator reading a bag,
+    the unit tests): a relative name gets a leading ``/``."""
+    return topic if topic.startswith("/") else f"/{topic}"
+
+
 @dataclass(frozen=True, eq=False)
 class SourceSpec:
     """One source of a target. ``chain``: the frame chain of a *further* local source (None for the global and
