@@ -56,6 +56,23 @@ T_OMC_OTS = make_T([3.0, 1.0, 1.5], Rot.from_euler("zyx", [150, 20, 0], degrees=
 OMC_OFFSET = np.array([3e-3, -2e-3, 1e-3])
 
 
+def log_complete(path) -> bool:
+    """The ``--log`` file ends with its meta row: everything was published (the publisher may still be up a second
+    for reliable delivery)."""
+    try:
+        text = open(path).read()
+    except FileNotFoundError:
+        return False
+    return text.endswith("\n") and '"kind": "meta"' in text.rsplit("\n", 2)[-2]
+
+
+def read_log(path) -> tuple[list[dict], int]:
+    """The rows of a ``--log`` file (what was published) and its ``t0_ns`` (the meta row, written last)."""
+    rows = [json.loads(line) for line in open(path).read().splitlines()]
+    meta = next(r for r in rows if r["kind"] == "meta")
+    return [r for r in rows if r["kind"] != "meta"], meta["t0_ns"]
+
+
 def truth(t: float) -> np.ndarray:
     """T_base_tool at t seconds after start."""
     return make_T([0.5 + 0.05 * math.cos(0.5 * t), 0.05 * math.sin(0.5 * t), 0.3],

@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import json
 import re
 from pathlib import Path
 
@@ -149,8 +148,7 @@ def _fusion_node_calibration_file_service_and_a_bumped_vega(procs, rclpy_context
               for kv in st.values}
     assert "~/calibrate" in values["links_source"]
     # the flag comes after the bump, not before; the message names the link and gives the size (3 mm)
-    rows = [json.loads(x) for x in (tmp_path / "pub.jsonl").read_text().splitlines()]
-    start = next(r["t0_ns"] for r in rows if r["kind"] == "meta")
+    start = PUBMOD.read_log(tmp_path / "pub.jsonl")[1]
     first = min((s.header.stamp.sec * 10**9 + s.header.stamp.nanosec - start) / 1e9 for s in bumped)
     assert first > 4.0
     before = [s for s in lis.got["/fullperc/tool/status"]

@@ -4,7 +4,6 @@ module's scenarios run side by side, each in a ROS domain of its own (``scenario
 
 from __future__ import annotations
 
-import json
 import math
 import re
 import sys
@@ -79,12 +78,6 @@ class Listener:
         self.node.destroy_node()
 
 
-def _read_log(path):
-    rows = [json.loads(line) for line in Path(path).read_text().splitlines()]
-    meta = next(r for r in rows if r["kind"] == "meta")
-    return [r for r in rows if r["kind"] != "meta"], meta["t0_ns"]
-
-
 def _ns(stamp):
     return stamp.sec * 1_000_000_000 + stamp.nanosec
 
@@ -98,14 +91,11 @@ def _published(procs, pub, tmp: Path):
     """The publisher's rows and t0 once it has written its last line (the meta row; liveness bound only). It then
     keeps its publishers a second longer for reliable delivery, beside the test's own waits: the test checks its exit
     status at the end (:func:`_pub_exited`)."""
-    log = tmp / "pub.jsonl"
-
-    def done() -> bool:
-        text = log.read_text() if log.exists() else ""
-        return pub.poll() is not None or (text.endswith("\n") and '"kind": "meta"' in text.rsplit("\n", 2)[-2])
-    wait_for(done, 90, what="the publisher's data", detail=lambda: procs.log(pub)[-2000:])
+    log, mod = tmp / "pub.jsonl", _load_pub_module()
+    wait_for(lambda: pub.poll() is not None or mod.log_complete(log), 90, what="the publisher's data",
+             detail=lambda: procs.log(pub)[-2000:])
     assert pub.poll() in (None, 0), procs.log(pub)
-    return _read_log(log)
+    return mod.read_log(log)
 
 
 def _pub_exited(procs, pub) -> None:

@@ -36,6 +36,7 @@ from fullperc_common.testing import (
 
 HERE = Path(__file__).resolve().parent
 PUB = HERE / "synthetic_driver_pub.py"
+PUBMOD = load_by_path(PUB, "synthetic_driver_pub")   # its log format (read_log, log_complete) and its scene
 pytestmark = pytest.mark.system
 SHIFT = 0.2   # [m] /or2's target runs this far from /or1's along base x
 GLOBAL_TOPICS = {"/tf", "/tf_static", "/diagnostics", "/rosout", "/parameter_events"}
@@ -87,16 +88,14 @@ def _start_pub(procs, tmp: Path, name: str, *args: str):
 def _done(procs, pub, tmp: Path, name: str) -> None:
     """The publisher has written its last line (liveness bound only) and exits cleanly."""
     log = tmp / f"{name}.jsonl"
-    wait_for(lambda: pub.poll() is not None or ('"kind": "meta"' in (log.read_text() if log.exists() else "")), 90,
-             what=f"{name}'s data", detail=lambda: procs.log(pub)[-2000:])
+    wait_for(lambda: pub.poll() is not None or PUBMOD.log_complete(log), 90, what=f"{name}'s data",
+             detail=lambda: procs.log(pub)[-2000:])
     wait_for(lambda: pub.poll() is not None, 30, what=f"{name} to exit")
     assert pub.returncode == 0, procs.log(pub)
 
 
 def _t0(tmp: Path, name: str) -> int:
-    import json
-    rows = [json.loads(line) for line in (tmp / f"{name}.jsonl").read_text().splitlines()]
-    return next(r["t0_ns"] for r in rows if r["kind"] == "meta")
+    return PUBMOD.read_log(tmp / f"{name}.jsonl")[1]
 
 
 # ------------------------------------------------------------------------------------------------ namespaces
@@ -135,7 +134,6 @@ def _namespaces(tmp: Path) -> dict:
 def test_two_namespaces_fuse_only_their_own_inputs(scenarios, request):
     r = scenarios.result(request.node.name)
     assert all(r["alive"].values()), r["logs"]
-    mod = load_by_path(PUB, "synthetic_driver_pub")
     got = r["got"]
     # every topic of the graph is under /or1 or /or2, but the global ones
     assert not [t for t in r["graph"] if not t.startswith(("/or1/", "/or2/")) and t not in GLOBAL_TOPICS], r["graph"]
@@ -146,7 +144,7 @@ def test_two_namespaces_fuse_only_their_own_inputs(scenarios, request):
         for m in poses:
             t = (_ns(m.header.stamp) - r["t0"][ns]) / 1e9
             p = np.array([m.pose.position.x, m.pose.position.y, m.pose.position.z])
-            T = mod.truth(t)[:3, 3]
+            T = PUBMOD.truth(t)[:3, 3]
             own.append(np.linalg.norm(p - T - [shift, 0, 0]))
             others.append(np.linalg.norm(p - T - [other, 0, 0]))
         # its own target within the OMC's offset (4 mm) and noise, never near the other graph's (0.2 m away)
@@ -157,7 +155,7 @@ def test_two_namespaces_fuse_only_their_own_inputs(scenarios, request):
         err, z = [], []
         for m in vels:
             t = (_ns(m.header.stamp) - r["t0"][ns]) / 1e9
-            v_true = (mod.truth(t + 1e-3)[:3, 3] - mod.truth(t - 1e-3)[:3, 3]) / 2e-3
+            v_true = (PUBMOD.truth(t + 1e-3)[:3, 3] - PUBMOD.truth(t - 1e-3)[:3, 3]) / 2e-3
             v = m.twist.twist.linear
             err.append(np.array([v.x, v.y, v.z]) - v_true)
             C = np.array(m.twist.covariance).reshape(6, 6)
