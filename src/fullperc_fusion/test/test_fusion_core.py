@@ -542,32 +542,29 @@ def test_while_one_publisher_has_no_name_every_input_waits_and_then_goes_in_stam
     assert [n for n, _ in order][:2] == ["push_local", "push_omc"], "frame 0's OTS sample before frame 1's OMC one"
 
 
+def _tool_at(t: float) -> np.ndarray:
+    """T_base_tool of a tool waved irregularly (no single period: one cross-correlation peak)."""
+    T = T_BASE_TOOL.copy()
+    T[:3, 3] += 0.08 * np.array([np.sin(2.1 * t) + 0.5 * np.sin(5.3 * t + 1), np.sin(1.3 * t + 2),
+                                 0.4 * np.sin(4.1 * t + 0.3)])
+    return T
+
+
 def test_vega_stamps_late_by_more_than_half_the_slop_warn_on_the_targets_status():
     """The core feeds every accepted target sample (stamp, position in its device's frame) to the health's
     stamp-offset watch: a tool moving irregularly, the Vega's stamps 8 ms late (slop 4 ms) -> a WARN naming it."""
     c = make_core(slop=0.004)
     now, warned = 0.0, []
     for k in range(int(12 * HZ)):
-        t = k / HZ
-        moved = T_BASE_TOOL.copy()
-        moved[:3, 3] += 0.08 * np.array([np.sin(2.1 * t) + 0.5 * np.sin(5.3 * t + 1), np.sin(1.3 * t + 2),
-                                         0.4 * np.sin(4.1 * t + 0.3)])
-        now = t
+        now = t = k / HZ
         for dev, body in (("omc", "base"), ("omc", "tool"), ("ots", "base"), ("ots", "tool")):
             T_dev_base = T_OMC_BASE if dev == "omc" else inv_T(T_OMC_OTS) @ T_OMC_BASE
-            T = T_dev_base if body == "base" else T_dev_base @ moved
-            if dev == "ots" and body == "tool":
-                # the Vega saw this pose 8 ms before the stamp it gives it: its stamps are late
-                tt = t - 0.008
-                late = T_BASE_TOOL.copy()
-                late[:3, 3] += 0.08 * np.array([np.sin(2.1 * tt) + 0.5 * np.sin(5.3 * tt + 1), np.sin(1.3 * tt + 2),
-                                                0.4 * np.sin(4.1 * tt + 0.3)])
-                T = T_dev_base @ late
+            # the Vega saw its tool pose 8 ms before the stamp it gives it: its stamps are late
+            T = T_dev_base if body == "base" else T_dev_base @ _tool_at(t - 0.008 if dev == "ots" else t)
             push(c, dev, body, k, now, T=T)
         c.poll("tool", None)
         if k % int(HZ) == 0:
-            level, msg, values = status(c, now)
-            warned += [msg] if "stamps are late by" in msg else []
+            warned += [m for m in [status(c, now)[1]] if "stamps are late by" in m]
     level, msg, values = status(c, now)
     assert level == WARN and warned, msg
     assert abs(values["stamp_offset_ms"] - 8.0) < 0.5, values
