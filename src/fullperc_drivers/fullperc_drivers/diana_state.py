@@ -34,6 +34,7 @@ from fullperc_common.health import ERROR, WARN, Health
 from fullperc_common.node_main import run_node
 from fullperc_common.params import ParameterError, declare_fixed
 from fullperc_common.ros_conv import ns_to_stamp, pose_stamped
+from fullperc_common.subscribers import SubscriberLog
 from fullperc_common.tf import Broadcaster, transform_stamped
 from fullperc_common.transforms import T_to_pq
 
@@ -100,6 +101,9 @@ class DianaStateNode(Node):
         self.pub_js = self.create_publisher(JointState, "diana/joint_states", q)
         self.pub_flange = self.create_publisher(PoseStamped, "diana/flange_pose", q)
         self.pub_tool = self.create_publisher(PoseStamped, "diana/tool_pose", q) if self.publish_tool else None
+        # "subscribers on /diana/joint_states: 1": the ground truth is recorded from the task's first sample only if the
+        # recorder is matched before it starts (supervisor demo waits for this line)
+        self.subscribers = SubscriberLog(self, lambda: {"js": self.pub_js, "flange": self.pub_flange})
         self.tf = Broadcaster(self) if publish_tf else None
         self.diag = Diagnostics(self, hardware_id=f"diana7:{backend}", period_s=diag_period)
         self.health = Health(["arm"], health_cfg, item_kind="arm", output="joint state", frame="joint state",

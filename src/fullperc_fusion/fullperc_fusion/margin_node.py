@@ -56,6 +56,7 @@ from fullperc_common.drain import take_queued
 from fullperc_common.node_main import run_node
 from fullperc_common.params import ParameterError, declare, declare_fixed
 from fullperc_common.ros_conv import pose_to_T, stamp_to_ns
+from fullperc_common.subscribers import SubscriberLog
 from fullperc_common.transforms import is_finite_pose, make_T
 from fullperc_fusion.margin.hysteresis import HysteresisParams, RegionFilter
 from fullperc_fusion.margin.layout import Layout, LayoutError, default_layout_path, load_layout
@@ -178,7 +179,10 @@ class MarginNode(Node):
                                 "must be finite and >= 0 [s]",
                                 "a label is held at least this long after a change [s of pose stamps]; 0 = none"),
         ).validate()
-        self.qos_depth = declare_fixed(self, "qos_depth", 50, lambda v: v > 0, "must be > 0")
+        # fusion_node publishes up to its qos_depth (2000) poses in one burst when it catches up after a stall: a
+        # shallower queue here drops labels (with 50, a demo under the test suite's load recorded 1,098 tool labels for
+        # about 2,800 fused poses)
+        self.qos_depth = declare_fixed(self, "qos_depth", 2000, lambda v: v > 0, "must be > 0")
 
         self.layout = load_configured_layout(self.layout_file, self.threshold_override)
         self.T_omc_base: np.ndarray | None = None
@@ -210,6 +214,8 @@ class MarginNode(Node):
             self.diag.set(f"target {target}", WARN, "no pose received yet")
         if not self.base_from_param and self.base_pose_topic:
             self.create_subscription(PoseStamped, self.base_pose_topic, self.on_base, self.qos_depth)
+        # "subscribers on /fullperc/tool/region: 1": supervisor demo starts the task once the recorder has the labels
+        self.subscribers = SubscriberLog(self, lambda: self.region_pubs)
 
         self._pending: Layout | None = None
         self._map_dirty = True
