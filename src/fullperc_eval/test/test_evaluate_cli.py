@@ -1,13 +1,22 @@
 """The installed ``evaluate`` executable: good bags give tables, report and JSON; bad input gives a clear error.
 
 Every bad input must end with exit code 1, one ``error: ...`` line naming the problem, and no traceback.
+
+The executable (the console script around ``fullperc_eval.evaluation.cli.main``: its exit code is main's return value,
+its stderr main's) runs as a process for the good bag and for a missing bag; the other bad inputs call the same
+``main`` in this process (:func:`run_main`: each process start costs about a CPU second of imports). There, "no
+traceback" is "main returned": an exception escaping it fails the test, as it would print a traceback in the process.
+``evaluate_all`` likewise: a process for the bags, ``main`` in this process for the missing ones.
 """
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import shutil
 import subprocess
+from collections.abc import Callable
 
 import pytest
 import yaml
@@ -37,6 +46,22 @@ def good_run(good_bag, tmp_path_factory):
 def run(*args, env=None):
     return subprocess.run([installed_exe("fullperc_eval", "evaluate"), *map(str, args), "--quiet"],
                           capture_output=True, text=True, timeout=TIMEOUT, env=env)
+
+
+def run_main(main: Callable[[list[str]], int], *args) -> subprocess.CompletedProcess:
+    """``main(args + ['--quiet'])`` in this process, as the executable would run it: (exit code, stdout, stderr)."""
+    argv = [*map(str, args), "--quiet"]
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        rc = main(argv)
+    return subprocess.CompletedProcess(argv, rc, out.getvalue(), err.getvalue())
+
+
+def run_in_process(*args) -> subprocess.CompletedProcess:
+    """``evaluate ARGS --quiet`` through the executable's ``main`` (cli.main) in this process."""
+    from fullperc_eval.evaluation.cli import main
+
+    return run_main(main, *args)
 
 
 def copy_bag(src, dst):
@@ -73,20 +98,20 @@ def test_missing_bag(tmp_path):
 def test_missing_metadata(good_bag, tmp_path):
     bag = copy_bag(good_bag, tmp_path / "b")
     (bag / "metadata.yaml").unlink()
-    assert_clean_error(run(bag), "metadata.yaml", "reindex")
+    assert_clean_error(run_in_process(bag), "metadata.yaml", "reindex")
 
 
 def test_garbage_metadata(good_bag, tmp_path):
     bag = copy_bag(good_bag, tmp_path / "b")
     (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: [1, 2\n")
-    assert_clean_error(run(bag), "not a valid rosbag2 metadata file")
+    assert_clean_error(run_in_process(bag), "not a valid rosbag2 metadata file")
 
 
 def test_storage_file_that_is_not_mcap(good_bag, tmp_path):
     bag = copy_bag(good_bag, tmp_path / "b")
     (f,) = bag.glob("*.mcap")
     f.write_bytes(b"this is not a bag" * 100)
-    assert_clean_error(run(bag), "not an MCAP file")
+    assert_clean_error(run_in_process(bag), "not an MCAP file")
 
 
 def test_truncated_mcap(good_bag, tmp_path):
@@ -94,7 +119,7 @@ def test_truncated_mcap(good_bag, tmp_path):
     (f,) = bag.glob("*.mcap")
     data = f.read_bytes()
     f.write_bytes(data[: len(data) // 2])
-    assert_clean_error(run(bag), "incomplete")
+    assert_clean_error(run_in_process(bag), "incomplete")
 
 
 def test_corrupt_chunk_inside_a_complete_mcap(good_bag, tmp_path):
@@ -104,7 +129,7 @@ def test_corrupt_chunk_inside_a_complete_mcap(good_bag, tmp_path):
     mid = len(data) // 3
     data[mid:mid + 2000] = bytes(2000)          # zero a stretch of compressed chunk data; magic bytes intact
     f.write_bytes(bytes(data))
-    assert_clean_error(run(bag), "corrupt")
+    assert_clean_error(run_in_process(bag), "corrupt")
 
 
 def test_needed_topic_with_an_unknown_type(tmp_path):
@@ -115,7 +140,8 @@ def test_needed_topic_with_an_unknown_type(tmp_path):
         w.write("/omc/tool/pose", 1, b"\x00\x01\x00\x00" + bytes(8))
     (bag / "calibration.yaml").write_text(yaml.safe_dump({"T_base_diana_base": [0, 0, 0, 0, 0, 0, 1],
                                                           "T_flange_tool": [0, 0, 0, 0, 0, 0, 1]}))
-    assert_clean_error(run(bag), "/omc/tool/pose has type foo_msgs/msg/Pose, expected geometry_msgs/msg/PoseStamped")
+    assert_clean_error(run_in_process(bag),
+                       "/omc/tool/pose has type foo_msgs/msg/Pose, expected geometry_msgs/msg/PoseStamped")
 
 
 def test_unknown_types_on_other_topics_are_ignored(good_bag, good_run, tmp_path):
@@ -137,7 +163,7 @@ def test_unknown_types_on_other_topics_are_ignored(good_bag, good_run, tmp_path)
     info["files"].append({**side_info["files"][0], "path": "extra_1.mcap"})
     info["topics_with_message_count"] += side_info["topics_with_message_count"]
     (bag / "metadata.yaml").write_text(yaml.safe_dump(meta, sort_keys=False))
-    p = run(bag, "--json", tmp_path / "b.json")
+    p = run_in_process(bag, "--json", tmp_path / "b.json")
     assert p.returncode == 0, p.stdout + p.stderr
     assert json.loads((tmp_path / "b.json").read_text())["mae_mm"] == ref["mae_mm"]
 
@@ -148,25 +174,25 @@ def test_no_joint_states(tmp_path):
     content.diana.q = content.diana.q[:0]
     content.diana.dq = None
     bag = write_bag(tmp_path / "nojs", content)
-    assert_clean_error(run(bag), "/diana/joint_states", "ground truth")
+    assert_clean_error(run_in_process(bag), "/diana/joint_states", "ground truth")
 
 
 def test_missing_calibration(good_bag, tmp_path):
     bag = copy_bag(good_bag, tmp_path / "b")
     (bag / "calibration.yaml").unlink()
-    assert_clean_error(run(bag), "calibration", "--calibration")
+    assert_clean_error(run_in_process(bag), "calibration", "--calibration")
 
 
 def test_bad_fusion_config(good_bag, tmp_path):
     cfg = tmp_path / "f.yaml"
     cfg.write_text(yaml.safe_dump({"fusion_node": {"ros__parameters": {"local_chain": "sideways"}}}))
-    assert_clean_error(run(good_bag, "--fusion-config", cfg), "local_chain")
+    assert_clean_error(run_in_process(good_bag, "--fusion-config", cfg), "local_chain")
 
 
 def test_bad_layout(good_bag, tmp_path):
     lay = tmp_path / "l.yaml"
     lay.write_text("cameras: 3\n")
-    assert_clean_error(run(good_bag, "--layout", lay), "layout")
+    assert_clean_error(run_in_process(good_bag, "--layout", lay), "layout")
 
 
 # --------------------------------------------------------------------------------------------- evaluate_all
@@ -200,6 +226,8 @@ def test_evaluate_all_writes_the_eval_json_schema(tmp_path):
 
 
 def test_evaluate_all_without_bags_is_a_clean_error(tmp_path):
-    assert_clean_error(run_all("--bags", tmp_path / "none"), "does not exist")
+    from fullperc_eval.evaluation.evaluate_all import main
+
+    assert_clean_error(run_main(main, "--bags", tmp_path / "none"), "does not exist")
     (tmp_path / "empty").mkdir()
-    assert_clean_error(run_all("--bags", tmp_path / "empty"), "no bags")
+    assert_clean_error(run_main(main, "--bags", tmp_path / "empty"), "no bags")

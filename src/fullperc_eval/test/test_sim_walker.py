@@ -16,7 +16,6 @@ import pytest
 from fullperc_eval.evaluation.ground_truth import TruthTrack, load_truth_track, target_truth
 from fullperc_eval.sim import run_task
 from fullperc_eval.sim.dataset import TRUTH_PREFIX, write_truth_bag
-from fullperc_eval.sim.run import simulate
 from fullperc_eval.sim.scene import build_scene
 from fullperc_eval.sim.tasks import plan_task
 from fullperc_eval.sim.walker import HandHeldPath, add_hand_held, load_hand_held
@@ -26,6 +25,10 @@ TASK, SEED, NAME = "P-G-B", 1, "instrument"
 
 @pytest.fixture(scope="module")
 def runs():
+    """(run without, run with the second target) of run_task, once per module: the first two tests compare them, the
+    jitter test adds the instrument to copies of the first (``simulate`` is what run_task runs before add_hand_held,
+    so the run without is the jitter test's base run, not a second simulation of it) and compares with the second.
+    Only read: every test that adds to a run adds to a deep copy."""
     return run_task(TASK, seed=SEED, second_target=False), run_task(TASK, seed=SEED)
 
 
@@ -60,13 +63,13 @@ def test_the_instrument_crosses_every_region_and_is_measured_within_the_noise(ru
     np.testing.assert_allclose(tr.T_base_tool, np.linalg.inv(run.static["T_omc_base"]) @ tr.T_omc_tool, atol=1e-12)
 
 
-def test_seeded_jitter_and_the_carrier_occludes():
+def test_seeded_jitter_and_the_carrier_occludes(runs):
     scene = build_scene(SEED)
     plan = plan_task(TASK, scene)
     scene = scene.with_diana_base(plan.T_omc_diana_base)
-    base = simulate(scene, plan.arc, task=TASK)
-    a = add_hand_held(copy.deepcopy(base), scene)
-    b = add_hand_held(copy.deepcopy(base), scene)
+    base, a = runs        # simulate(scene, plan.arc, task=TASK) as run_task runs it, and run_task's add_hand_held of it
+    assert base.task == TASK and base.info["plan_attempts"] == plan.attempts and base.arc == plan.arc
+    b = add_hand_held(copy.deepcopy(base), scene)     # the same scene again, outside run_task: the same instrument
     np.testing.assert_array_equal(a.extra_truth[NAME].T_omc_tool, b.extra_truth[NAME].T_omc_tool)
     other = add_hand_held(copy.deepcopy(base), build_scene(SEED + 1).with_diana_base(plan.T_omc_diana_base))
     jitter = np.linalg.norm(other.extra_truth[NAME].T_omc_tool[:, :3, 3] - a.extra_truth[NAME].T_omc_tool[:, :3, 3],
