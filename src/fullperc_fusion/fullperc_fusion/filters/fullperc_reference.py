@@ -88,7 +88,6 @@ Output: :class:`~.api.Step` with ``q`` (x y z w) and ``pose_cov`` (6x6, [p, thet
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 from scipy.linalg import block_diag
@@ -104,61 +103,26 @@ from fullperc_fusion.filters.api import (
     split_update,
 )
 from fullperc_fusion.filters.fullperc_params import FullpercParams
+from fullperc_fusion.filters.fullperc_state import (
+    B_,
+    BE,
+    G_,
+    P_,
+    TH,
+    V_,
+    W_,
+    FullpercState,
+    N,
+    copy_state,
+    noise_scale_step,
+)
 from fullperc_fusion.filters.paper_family import FilterParams
 from fullperc_fusion.filters.rot_noise_scale import pair_estimate, scale_decay, scale_step, scaled_cov
 
 __all__ = ["N", "FullpercReference", "noise_scale_step"]
 
-N = 21
 _I3 = np.eye(3)
 _IN = np.eye(N)
-P_, V_, B_, TH, W_, BE, G_ = (slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15), slice(15, 18),
-                              slice(18, 21))
-
-
-def noise_scale_step(lam: float, t_prev_ns: int | None, t_ns: int, nis_g: float, pr: FullpercParams) -> float:
-    """lambda after a global sample at ``t_ns`` with position NIS ``nis_g``, the previous one fused at ``t_prev_ns``
-    (None: none since the start or the last re-initialisation; module docstring)."""
-    if pr.noise_adapt_time <= 0.0:
-        return 1.0
-    dt = 0.0 if t_prev_ns is None else max(0.0, (t_ns - t_prev_ns) * 1e-9)
-    a = 1.0 - math.exp(-dt / pr.noise_adapt_time)
-    return min(pr.noise_adapt_max, max(1.0, (1.0 - a) * lam + a * lam * nis_g / 3.0))
-
-
-# ---------------------------------------------------------------------------------------------- filter
-@dataclass
-class _State:
-    """Everything :meth:`FullpercReference.snapshot` copies."""
-
-    p: np.ndarray
-    v: np.ndarray
-    b: np.ndarray
-    R: np.ndarray
-    w: np.ndarray
-    beta: np.ndarray
-    P: np.ndarray
-    t_ns: int | None
-    pending_ns: int | None
-    has_R: bool
-    g: np.ndarray                  # Gauss-Markov part of the global position bias
-    sys_var: float                 # its stationary variance (newest global sample's model, else sys_std^2)
-    noise_scale: float = 1.0       # lambda, the global white position noise's scale (noise_adapt_time)
-    t_global_ns: int | None = None  # stamp of the newest global sample fused (for lambda's dt_g)
-    frame: np.ndarray | None = None  # the 4x4 the caller says the estimate is expressed in (express_in)
-    anchor: np.ndarray | None = None  # p when the newest local sample in that frame came (express_in)
-    t_local_ns: int | None = None  # stamp of the newest local sample fused (beta's spatial decay)
-    rot_anchor: np.ndarray | None = None  # a_r: p after that sample was fused
-    rot_dmax: float = 0.0          # d_max: the farthest p has been from a_r since
-    rot_scale: float = 1.0         # mu, the global rotation noise's scale (rot_noise_scale)
-    t_rot_scale_ns: int | None = None  # stamp of the global sample of the newest pair mu was learnt from
-
-
-def _copy(s: _State) -> _State:
-    """A copy of every array of the state (the scalars are immutable): ~10x cheaper than copy.deepcopy."""
-    return _State(s.p.copy(), s.v.copy(), s.b.copy(), s.R.copy(), s.w.copy(), s.beta.copy(), s.P.copy(), s.t_ns,
-                  s.pending_ns, s.has_R, s.g.copy(), s.sys_var, s.noise_scale, s.t_global_ns, s.frame,
-                  s.anchor, s.t_local_ns, s.rot_anchor, s.rot_dmax, s.rot_scale, s.t_rot_scale_ns)
 
 
 class FullpercReference(StepCompat):
@@ -174,7 +138,7 @@ class FullpercReference(StepCompat):
     # ---- state ----------------------------------------------------------------------------------
     def reset(self) -> None:
         pr = self.params
-        self.s = _State(np.zeros(3), np.zeros(3), np.zeros(3), np.eye(3), np.zeros(3), np.zeros(3),
+        self.s = FullpercState(np.zeros(3), np.zeros(3), np.zeros(3), np.eye(3), np.zeros(3), np.zeros(3),
                         self._prior(pr.init_bias_std**2 * _I3, pr.init_rot_bias_std**2 * _I3, pr.sys_std**2 * _I3),
                         None, None, False, np.zeros(3), pr.sys_std**2)
 
@@ -192,13 +156,13 @@ class FullpercReference(StepCompat):
 
     def snapshot(self) -> object:
         """A copy of the whole filter state, for :meth:`restore` (rewind and replay)."""
-        return _copy(self.s)
+        return copy_state(self.s)
 
     def restore(self, obj: object) -> None:
         """Put back a state taken by :meth:`snapshot` (the snapshot stays usable)."""
-        if not isinstance(obj, _State):
+        if not isinstance(obj, FullpercState):
             raise TypeError(f"not a fullperc snapshot: {type(obj).__name__}")
-        self.s = _copy(obj)
+        self.s = copy_state(obj)
 
     @property
     def time_ns(self) -> int | None:
