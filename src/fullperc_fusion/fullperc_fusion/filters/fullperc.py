@@ -262,7 +262,7 @@ class FullpercFilter(StepCompat):
         P = F @ self._P @ F.T + (Q if Q is not None else self._noise(dt, self._sys_var))
         ra, pr = self._ra, self.params
         if ra is not None and (t - self._tl) * 1e-9 > pr.local_lost_s:
-            d = math.dist(x[0:3], ra)   # beta's and mu's spatial decay (the reference's _rot_spatial_decay)
+            d = math.dist(x[0:3], ra)   # beta's, b's and mu's spatial decay (the reference's _spatial_decay)
             if d > self._dmax:
                 self._mu = scale_decay(self._mu, d - self._dmax, pr.rot_noise_length)
                 if pr.rot_bias_length > 0.0:
@@ -274,6 +274,15 @@ class FullpercFilter(StepCompat):
                     P[15, 15] += ex
                     P[16, 16] += ex
                     P[17, 17] += ex
+                if pr.bias_length > 0.0:   # b's (the reference's, after beta's)
+                    f = math.exp(-(d - self._dmax) / pr.bias_length)
+                    x[6], x[7], x[8] = f * x[6], f * x[7], f * x[8]
+                    P[6:9, :] *= f
+                    P[:, 6:9] *= f
+                    ex = pr.bias_field_std**2 * (1.0 - f * f)
+                    P[6, 6] += ex
+                    P[7, 7] += ex
+                    P[8, 8] += ex
                 self._dmax = d
         self._P = 0.5 * (P + P.T)
         self._t = t
@@ -417,7 +426,7 @@ class FullpercFilter(StepCompat):
             self._lam, self._tg = lam_next, mg.t_ns
         if mu is not None:
             self._mu, self._tmu = mu[1:]
-        if ml is not None:   # where the local source last saw the tool (beta's spatial decay)
+        if ml is not None:   # where the local source last saw the tool (beta's and b's spatial decay)
             self._tl, self._ra, self._dmax = ml.t_ns, xn[0:3], 0.0
         return self._step(t, mg, ml, innovation=np.array(y[0:3]), nis=nis, nis_global=nis_g, hop=hop)
 

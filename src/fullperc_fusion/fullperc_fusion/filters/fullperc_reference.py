@@ -31,6 +31,10 @@ a Gauss-Markov process forgets it at the rate the sensor's error does, and the m
   decay: d = |p - a_r| (a_r: p when that sample was fused), d_max the largest d since; a prediction taking d beyond
   d_max scales beta and its rows and columns of P by f = exp(-(d - d_max) / rot_bias_length) and adds
   rot_sys_std^2 (1 - f^2) to its variance: beta = exp(-d_max / L) beta(a_r), Gauss-Markov in that distance;
+  the same step, with f_b = exp(-(d - d_max) / bias_length) (``bias_length`` > 0), takes b to f_b b, its rows and
+  columns of P times f_b and bias_field_std^2 (1 - f_b^2) onto its variance: b(d') = exp(-(d' - d) / L_b) b(d) + w,
+  Var(w) = s_f^2 (1 - exp(-2 (d' - d) / L_b)), first-order Gauss-Markov in distance, so far from a_r b is back at
+  its prior (mean 0, std s_f) and the output at the raw OMC;
   F = I with F_pv = dt I, F_thth = Exp(w dt), F_thw = dt I, F_gg = phi I, F_bebe = phi_b I;
   Q = q_a [[dt^3/3, dt^2/2], [dt^2/2, dt]] on (p, v), q_b dt on b, q_alpha the same form on (theta, w),
   q_beta dt + s_b^2 (1 - phi_b^2) on beta (a random walk plus a Gauss-Markov part of stationary variance
@@ -75,7 +79,12 @@ a Gauss-Markov process forgets it at the rate the sensor's error does, and the m
   distance between samples, ``sensor_stats.structure_over_distance``: L = 56.5 mm on the ``paper`` bags); once the
   local source has lost the tool, the tool is usually on its way elsewhere and beta, the OMC's error where the Vega
   saw it, is not the error here (docs/fullperc_filter.md "The orientation bias after the Vega lost the tool"). While
-  the local source sees the tool, beta is observed: no decay by distance.
+  the local source sees the tool, beta is observed: no decay by distance. The position error is such a field too
+  (issue 41: the twin's OMC error is a smooth function of position): b, learnt against the Vega in its volume, was
+  applied metres away as it was, and the fused output was worse there than the raw OMC. Its length and std come
+  from the raw (OMC - local chain) differences' semivariogram over distance (``fullperc_eval`` ``bias_variogram``),
+  not from the truth. d is the distance from a_r, not the path length: the error is a function of where the tool
+  is, so coming back towards a_r forgets nothing more, and d_max keeps the decay monotone (no variance given back).
 * gaps longer than ``max_gap_s`` re-initialise p, v, R, w from the next sample; b and beta (and their variances)
   are kept (propagated over the gap: b's walk, beta's decay and walk, g's decay).
 
@@ -272,13 +281,13 @@ class FullpercReference(StepCompat):
             P[6 + k, 6 + k] += pr.bias_walk * dt
             P[15 + k, 15 + k] += qbe
             P[18 + k, 18 + k] += s.sys_var * (1.0 - phi * phi)
-        self._rot_spatial_decay(P, t)
+        self._spatial_decay(P, t)
         s.P = 0.5 * (P + P.T)
         s.t_ns = t
 
-    def _rot_spatial_decay(self, P: np.ndarray, t: int) -> None:
-        """beta's spatial decay after the prediction to ``t`` (module docstring), on s.beta and ``P`` in place; mu's
-        (:mod:`rot_noise_scale`) over the same distance."""
+    def _spatial_decay(self, P: np.ndarray, t: int) -> None:
+        """beta's and b's spatial decay after the prediction to ``t`` (module docstring), on s.beta, s.b and ``P`` in
+        place; mu's (:mod:`rot_noise_scale`) over the same distance."""
         s, pr = self.s, self.params
         if s.rot_anchor is None or (t - s.t_local_ns) * 1e-9 <= pr.local_lost_s:
             return
@@ -292,10 +301,16 @@ class FullpercReference(StepCompat):
             P[BE, :] *= f
             P[:, BE] *= f
             P[BE, BE] += pr.rot_sys_std**2 * (1.0 - f * f) * _I3
+        if pr.bias_length > 0.0:
+            f = math.exp(-(d - s.rot_dmax) / pr.bias_length)
+            s.b = f * s.b
+            P[B_, :] *= f
+            P[:, B_] *= f
+            P[B_, B_] += pr.bias_field_std**2 * (1.0 - f * f) * _I3
         s.rot_dmax = d
 
     def _local_fused(self, ml: Measurement | None) -> None:
-        """Record where the local source last saw the tool (beta's spatial decay starts from there)."""
+        """Record where the local source last saw the tool (beta's and b's spatial decay start from there)."""
         if ml is not None:
             s = self.s
             s.t_local_ns, s.rot_anchor, s.rot_dmax = ml.t_ns, s.p.copy(), 0.0

@@ -54,7 +54,7 @@ class FullpercState:
     t_global_ns: int | None = None  # stamp of the newest global sample fused (for lambda's dt_g)
     frame: np.ndarray | None = None  # the 4x4 the caller says the estimate is expressed in (express_in)
     anchor: np.ndarray | None = None  # p when the newest local sample in that frame came (express_in)
-    t_local_ns: int | None = None  # stamp of the newest local sample fused (beta's spatial decay)
+    t_local_ns: int | None = None  # stamp of the newest local sample fused (beta's and b's spatial decay)
     rot_anchor: np.ndarray | None = None  # a_r: p after that sample was fused
     rot_dmax: float = 0.0          # d_max: the farthest p has been from a_r since
     rot_scale: float = 1.0         # mu, the global rotation noise's scale (rot_noise_scale)
