@@ -71,10 +71,25 @@ def bag_rows(bag: Path, layout) -> tuple[np.ndarray, np.ndarray]:
     return _sample_rows(Path(bag), layout, samples, jt, jq, fit)
 
 
+def bag_samples(bag: Path) -> list[tuple[str, int, np.ndarray, np.ndarray]]:
+    """The target's raw samples of one bag in bag order: (device "omc" | "ots", stamp [ns], pose in the device
+    frame, pose in ``base`` by the node's frame chain) -- what :func:`bag_rows` compares with the truth, without the
+    truth (``bias_variogram`` compares the two devices with each other). Read in bulk where it can be."""
+    try:
+        return _bulk_samples(Path(bag))[0]
+    except _NotBulk:
+        return _samples_per_message(Path(bag))[0]
+
+
 def bag_rows_per_message(bag: Path, layout) -> tuple[np.ndarray, np.ndarray]:
     """:func:`bag_rows` the plain way: every message of the chain's bodies, their qualities and the joint states
     deserialised by rosbags and pushed through the node's own pipeline (``TargetPipeline``) in bag order; an OMC
     target sample counts once ``T_omc_base`` is known, an OTS one once the local chain maps it."""
+    return _sample_rows(Path(bag), layout, *_samples_per_message(Path(bag)))
+
+
+def _samples_per_message(bag: Path) -> tuple[list, list, list, dict[tuple[str, int], float]]:
+    """(samples, joint stamps, joint positions, fit errors) of :func:`bag_rows_per_message` (its docstring)."""
     cfg, _ = replay_config()
     cfg.filters = ("omc",)
     pipe = TargetPipeline(cfg)
@@ -110,7 +125,7 @@ def bag_rows_per_message(bag: Path, layout) -> tuple[np.ndarray, np.ndarray]:
                 pipe.poll()
     finally:
         reader.close()
-    return _sample_rows(Path(bag), layout, samples, jt, jq, fit)
+    return samples, jt, jq, fit
 
 
 def _wanted(cfg) -> tuple[dict[str, str], set[str]]:
