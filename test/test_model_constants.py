@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fullperc_eval.evaluation import sensor_stats
+from fullperc_eval.evaluation import bias_variogram, sensor_stats
 from fullperc_fusion.filters.fullperc_params import FullpercParams
 from fullperc_fusion.filters.measurement_models import LocalModelParams, OmcModelParams
 from fullperc_fusion.margin.layout import default_layout_path, load_layout
@@ -88,3 +88,11 @@ def test_systematic_error_parameters_are_the_structure_function_fits(stats):
 
 def test_vega_orientation_constant_is_the_raw_vega_statistic(stats):
     assert LocalModelParams().rot_std_ref == pytest.approx(stats["spec"]["ots_rot_rms"], rel=0.05)
+
+
+def test_position_bias_length_is_the_raw_differences_fit():
+    """``bias_length`` and ``bias_field_std``: the semivariogram over distance of the raw (OMC - local chain)
+    differences of the spec bags (bias_variogram; no truth involved), fitted as nugget + s_f^2 (1 - exp(-h / L))."""
+    _, _, (_, sf, L) = bias_variogram.profile(ROOT / "bags" / "spec")
+    pr = FullpercParams()
+    assert pr.bias_length == pytest.approx(L, rel=REL) and pr.bias_field_std == pytest.approx(sf, rel=REL)
