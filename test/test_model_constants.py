@@ -93,6 +93,7 @@ def test_vega_orientation_constant_is_the_raw_vega_statistic(stats):
 def test_position_bias_length_is_the_raw_differences_fit():
     """``bias_length`` and ``bias_field_std``: the semivariogram over distance of the raw (OMC - local chain)
     differences of the spec bags (bias_variogram; no truth involved), fitted as nugget + s_f^2 (1 - exp(-h / L))."""
-    _, _, (_, sf, L) = bias_variogram.profile(ROOT / "bags" / "spec")
+    h, g, n = bias_variogram.semivariogram(sensor_stats.profile_differences(ROOT / "bags" / "spec"))
+    _, sf, L = bias_variogram.fit_semivariogram(h, g, n)
     pr = FullpercParams()
     assert pr.bias_length == pytest.approx(L, rel=REL) and pr.bias_field_std == pytest.approx(sf, rel=REL)

@@ -198,7 +198,7 @@ PARAMS: tuple[Param, ...] = (
     Param("fullperc.noise_model_file", "", "str", None, "", "",
           "fullperc: noise model of this installation's OMC (written by fit_noise_model); '' = the built-in one. "
           "Its omc_bias values replace fullperc.sys_time, sys_std, rot_sys_time, rot_sys_std, rot_bias_walk, "
-          "rot_bias_length"),
+          "rot_bias_length, bias_length, bias_field_std"),
     Param("slop", _T.slop_ns * 1e-9, "float", *NONNEGATIVE, "s",
           "pair OMC and OTS samples closer than this"),
     Param("reorder_delay", _T.delay_ns * 1e-9, "float", *NONNEGATIVE, "s",

@@ -25,22 +25,17 @@ body is (distortion, camera coverage), and b is applied where the tool is, not w
 same bag count (a place revisited later says how well b learnt there holds); pairs of different bags do not (each bag
 has its own link calibration, whose error is part of e).
 
-Run::
+Pure functions on arrays; ``fit_noise_model`` (:mod:`.sensor_stats`, which reads the bags' raw samples) prints the
+fit per directory and writes it into a noise-model file::
 
-    python -m fullperc_eval.evaluation.bias_variogram bags/spec bags/paper
+    fit_noise_model bags/spec bags/paper
 """
 
 from __future__ import annotations
 
-import argparse
-import sys
-from pathlib import Path
-
 import numpy as np
 
-from fullperc_eval.evaluation.sensor_stats import bag_samples
-
-__all__ = ["MAX_BRACKET_S", "VARIOGRAM_BINS", "bag_differences", "fit_semivariogram", "main", "semivariogram"]
+__all__ = ["LENGTH_GRID", "MAX_BRACKET_S", "VARIOGRAM_BINS", "differences", "fit_semivariogram", "semivariogram"]
 
 # an OTS sample counts when OMC samples on either side of it are at most this far apart (two OMC frames at 120 Hz
 # plus jitter): a longer OMC gap (the OMC lost the target) is not interpolated across
@@ -48,11 +43,13 @@ MAX_BRACKET_S = 0.02
 # distance bins [m]: from the white level (millimetres) to beyond the Vega's volume along a task's path
 VARIOGRAM_BINS = (0.0, 0.0025, 0.005, 0.01, 0.02, 0.035, 0.05, 0.075, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.75, 1.0)
 MIN_PAIRS = 200   # a bin with fewer pairs is not fitted
+# the lengths the fit tries [m]; a fitted length at the upper end means no level-off within the data's distances
+LENGTH_GRID = (0.005, 5.0)
 
 
 def differences(samples: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(stamps [s], e (n x 3) [m], local chain position x (n x 3) [m]) of one bag's
-    :func:`~.sensor_stats.bag_samples`: e = OMC - local chain at each Vega sample bracketed by OMC samples
+    ``sensor_stats.bag_samples``: e = OMC - local chain at each Vega sample bracketed by OMC samples
     (module docstring)."""
     omc = [(t, T[:3, 3]) for dev, t, _, T in samples if dev == "omc"]
     ots = [(t, T[:3, 3]) for dev, t, _, T in samples if dev == "ots"]
@@ -71,11 +68,6 @@ def differences(samples: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     a = np.where(t1 > t0, (tl - t0) / np.maximum(t1 - t0, 1), 0.0)[:, None]
     p = (1.0 - a) * po[k - 1] + a * po[k]
     return tl[ok] * 1e-9, (p - xl)[ok], xl[ok]
-
-
-def bag_differences(bag: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`differences` of the bag directory ``bag``."""
-    return differences(bag_samples(Path(bag)))
 
 
 def semivariogram(parts: list[tuple[np.ndarray, np.ndarray]], bins=VARIOGRAM_BINS, stride: int = 1
@@ -101,7 +93,7 @@ def semivariogram(parts: list[tuple[np.ndarray, np.ndarray]], bins=VARIOGRAM_BIN
     return dist[has] / cnt[has], sq[has] / cnt[has], cnt[has]
 
 
-def fit_semivariogram(h: np.ndarray, gamma: np.ndarray, count: np.ndarray, grid: tuple[float, float] = (0.005, 5.0),
+def fit_semivariogram(h: np.ndarray, gamma: np.ndarray, count: np.ndarray, grid: tuple[float, float] = LENGTH_GRID,
                       min_pairs: int = MIN_PAIRS) -> tuple[float, float, float]:
     """(nugget std, s_f, L [m]) of gamma(h) = nugget^2 + s_f^2 (1 - exp(-h / L)) fitted to the bins with at least
     ``min_pairs`` pairs: a grid over L within ``grid`` (log-spaced), non-negative least squares for the two variances
@@ -121,34 +113,3 @@ def fit_semivariogram(h: np.ndarray, gamma: np.ndarray, count: np.ndarray, grid:
         if res < best[0]:
             best = (res, float(np.sqrt(coef[0])), float(np.sqrt(coef[1])), float(L))
     return best[1], best[2], best[3]
-
-
-def profile(directory: Path, stride: int = 1) -> tuple[list[tuple[str, int]], tuple, tuple]:
-    """([(bag, samples)], (h, gamma, count), (nugget std, s_f, L)) of every bag directory below ``directory``."""
-    bags = sorted(p for p in Path(directory).iterdir() if p.is_dir())
-    parts, names = [], []
-    for b in bags:
-        _, e, x = bag_differences(b)
-        parts.append((e, x))
-        names.append((b.name, len(e)))
-    sv = semivariogram(parts, stride=stride)
-    return names, sv, fit_semivariogram(*sv)
-
-
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="bias_variogram", description=__doc__.split("\n")[0])
-    ap.add_argument("dirs", nargs="+", help="directories of bag directories (e.g. bags/spec bags/paper)")
-    ap.add_argument("--stride", type=int, default=1, help="use every n-th (OMC, Vega) difference (default: all)")
-    args = ap.parse_args(argv)
-    for d in args.dirs:
-        names, (h, g, n), (c0, sf, L) = profile(Path(d), args.stride)
-        print(f"== {d}: " + ", ".join(f"{b} {k}" for b, k in names) + " (OMC - local chain differences)")
-        print("  h [mm]   gamma^0.5 [mm]   pairs")
-        for hh, gg, nn in zip(h, g, n, strict=True):
-            print(f"  {hh * 1e3:7.1f}  {np.sqrt(gg) * 1e3:8.4f}  {int(nn):10d}")
-        print(f"  fit: nugget {c0 * 1e3:.4f} mm, bias_field_std {sf * 1e3:.4f} mm, bias_length {L:.4f} m")
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -42,13 +42,15 @@ class FullpercParams(FilterParams):
                      b kept as learnt: CBKF's compensation); Gauss-Markov in the distance from where it last saw it.
     bias_field_std   s_f [m], b's stationary per-axis std in that model: what b's variance returns to far away.
                      0.296 m and 0.341 mm: the raw (OMC - local chain) position differences' semivariogram over
-                     distance on the ``spec`` bags (``python -m fullperc_eval.evaluation.bias_variogram bags/spec``;
-                     nugget 0.050 mm; no truth, no filter output). ``spec``, not ``paper``: on the ``paper`` bags the
-                     semivariogram still rises at the largest distance the Vega's volume gives (0.54 m, 1.8 mm) and
-                     the fit runs to its grid's end (L 5 m): only s_f^2 / L is determined there, not a length; and
-                     ``spec`` is the profile the rest of the position model (``sys_time``, ``sys_std``, the OMC
-                     model) is fitted on. Such a room (its error a field that holds over metres) wants a longer
-                     L_b: with this one ``fullperc``'s tool MAE on the ``paper`` bags rises (issue 41 report).
+                     distance on the ``spec`` bags (``fit_noise_model bags/spec``, ``fullperc_eval``'s
+                     ``bias_variogram``; nugget 0.050 mm; no truth, no filter output). ``spec``, not ``paper``: on
+                     the ``paper`` bags the semivariogram still rises at the largest distance the Vega's volume
+                     gives (0.54 m, 1.8 mm) and the fit runs to its grid's end (L 5 m): only s_f^2 / L is
+                     determined there, not a length; and ``spec`` is the profile the rest of the position model
+                     (``sys_time``, ``sys_std``, the OMC model) is fitted on. Such a room (its error a field that
+                     holds over metres) wants a longer L_b: with this one ``fullperc``'s tool MAE on the ``paper``
+                     bags rises (issue 41 report); a noise-model file sets both per room (``fit_noise_model``
+                     writes 0 where no length shows).
     local_lost_s     no local sample for this long [s]: it has lost the tool (0.1: the evaluation's split).
     hop_into         "b" (default) or "g": the bias part a position hop goes into (module docstring).
     noise_adapt_time tau of the global white-noise scale lambda [s] (module docstring; 0 = off). 0.4 s: the
