@@ -7,7 +7,7 @@ Inputs, as the evaluation writes them (nothing is simulated or evaluated here):
 
 * ``bags/accuracy.json`` -- ``make accuracy`` (:mod:`fullperc_eval.evaluation.accuracy`): Table 1 as mean ± sd
   over seeds, ordering shares, the CBKF/OMC distribution, Table 2, orientation, pooled NEES, the MAE split at the
-  first Vega sample and the goal checks of the ``fullperc`` filter, per twin profile;
+  first Vega sample, the goal checks of the ``fullperc`` filter and (when there) every tracked target's figures;
 * ``bags/<profile>/eval.json`` -- ``make eval`` (:mod:`fullperc_eval.evaluation.evaluate_all`) on the committed
   seed-0 sample bags: the same tables per task, the paper's own Tables 1 and 2 and the ordering comparison, and the
   hand-held instrument's rows when the JSON has them (``--targets all``).
@@ -244,7 +244,34 @@ def goals_block(goals: list[dict[str, Any]]) -> list[str]:
             *table(["goal", "asks", "value", "target", "", "from"], rows, left=2)]
 
 
-def profile_section(p: str, s: dict[str, Any], goals: list[dict[str, Any]], ev: dict[str, Any] | None) -> list[str]:
+def targets_block(s: dict[str, Any], checks: list[dict[str, Any]]) -> list[str]:
+    """Every tracked target's MAE by region (Table 1 and NEES too but the tool's, above), then their checks."""
+    out = []
+    for t, ts in (s.get("targets") or {}).items():
+        ms = methods_of(ts["table1_mae_mm"])
+        if t != "tool":
+            out += [f"`{t}` (truth `/sim/truth/{t}`): position MAE [mm], mean ± sd over seeds:", "",
+                    *table(["task"] + [label(m) for m in ms] + ["CBKF/OMC"], table1_rows(ts["table1_mae_mm"], ms)),
+                    *nees_block(ts)]
+        reg, n = ts["mae_by_region_mm"], ts["region_n"]
+        rows = [[f"{r} ({n[r]})"] + [f"{pm(reg[r].get(m))} ({num(ts['region_over_omc'][r].get(m))})" for m in ms]
+                for r in reg if n[r]]
+        out += [f"`{t}`: position MAE [mm] by region, mean ± sd over the task-seeds in it (their number) and, in "
+                "brackets, the method's mean over the OMC's:", "", *table(["region"] + [label(m) for m in ms], rows)]
+    if checks:
+        rows = [[f"`{c['target']}`", f"`{c['goal']}`", "every filter" if c["method"] == "all" else label(c["method"]),
+                 STATE[c.get("ok")], num(c.get("value"), 3), c["bound"],
+                 "–" if c.get("margin") is None else f"{c['margin']:+.3f}", str(c.get("detail", "")).replace("|", "/")]
+                for c in checks]
+        grid = table(["target", "check", "method", "", "value", "bound", "margin", "from"], rows, left=4)
+        grid[1] = grid[1].removesuffix("---:|") + "---|"   # the last column is text too
+        out += ["Acceptance checks per target (`fullperc_eval/evaluation/target_goals.py`; margin > 0: passed by that "
+                "much, < 0: missed by it):", "", *grid]
+    return out
+
+
+def profile_section(p: str, s: dict[str, Any], goals: list[dict[str, Any]], ev: dict[str, Any] | None,
+                    checks: list[dict[str, Any]] | None = None) -> list[str]:
     t1 = s["table1_mae_mm"]
     ms = methods_of(t1)
     seeds = s.get("seeds") or []
@@ -254,13 +281,8 @@ def profile_section(p: str, s: dict[str, Any], goals: list[dict[str, Any]], ev: 
            *table(["task"] + [label(m) for m in ms] + ["CBKF/OMC"], table1_rows(t1, ms))]
     if p == "paper":
         out += paper_reference(ev)
-    out += ordering_block(s)
-    out += table2_block(s, ev, with_paper=p == "paper")
-    out += orientation_block(s)
-    out += nees_block(s)
-    out += first_local_block(s)
-    out += goals_block(goals)
-    return out
+    return (out + ordering_block(s) + table2_block(s, ev, with_paper=p == "paper") + orientation_block(s)
+            + nees_block(s) + first_local_block(s) + goals_block(goals) + targets_block(s, checks or []))
 
 
 def accuracy_section(acc: dict[str, Any], evals: dict[str, dict[str, Any]]) -> list[str]:
@@ -273,7 +295,8 @@ def accuracy_section(acc: dict[str, Any], evals: dict[str, dict[str, Any]]) -> l
            "model. Each seed is a freshly simulated room (its own camera miscalibration and noise draws).", ""]
     for p in acc.get("profiles", []):
         if p in acc.get("summary", {}):
-            out += profile_section(p, acc["summary"][p], acc.get("goals", {}).get(p, []), evals.get(p))
+            out += profile_section(p, acc["summary"][p], acc.get("goals", {}).get(p, []), evals.get(p),
+                                   acc.get("target_goals", {}).get(p))
     return out
 
 
@@ -423,13 +446,8 @@ def render_readme_block(root: Path = ROOT) -> str:
     goals = {p: {g["goal"]: g for g in acc.get("goals", {}).get(p, [])} for p in profiles}
     order = {n: i for i, n in enumerate(GOAL_TEXT)}
     names = sorted(dict.fromkeys(n for p in profiles for n in goals[p]), key=lambda n: order.get(n, len(order)))
-    grow = []
-    for n in names:
-        cells = []
-        for p in profiles:
-            g = goals[p].get(n)
-            cells.append("–" if g is None else f"{num(g.get('value'), 3)} ({g.get('target')}): {STATE[g.get('ok')]}")
-        grow.append([GOAL_TEXT.get(n, f"`{n}`")] + cells)
+    cell = lambda g: "–" if g is None else f"{num(g.get('value'), 3)} ({g.get('target')}): {STATE[g.get('ok')]}"  # noqa: E731
+    grow = [[GOAL_TEXT.get(n, f"`{n}`")] + [cell(goals[p].get(n)) for p in profiles] for n in names]
     lines = [BEGIN,
              f"Position MAE [mm], mean of the six tasks over seeds {seeds_text(acc.get('seeds') or [])} "
              f"(`{accuracy_command(acc)}`; rendered by `python scripts/results_page.py`):", "",

@@ -20,6 +20,13 @@ line per seed on stderr. Then, per profile:
   (position, dof 3; full pose, dof 6, for methods that fuse the orientation);
 * the goal checks of issue 18 for :data:`GOAL_METHOD` (:func:`goal_checks`).
 
+These are the arm-held ``tool``'s (the paper's target), exactly as before. Every bag is evaluated for every target it
+holds (the tool and each target with simulator truth ``/sim/truth/<target>``, e.g. the hand-held ``instrument``;
+:mod:`.accuracy_targets`); each row of ``task_seeds`` names its ``target``. Then, per profile and target, the tool
+too: Table 1 (MAE per task and method, mean ± sd over seeds), the MAE by region per method against the OMC's, the
+NEES pooled per method (``summary[profile]["targets"][target]``), and issue 41's acceptance checks
+(:mod:`.target_goals`, ``target_goals[profile]``) with pass/fail and the margin.
+
 The noise model of ``fullperc`` (``fullperc.noise_model_file``, :mod:`fullperc_fusion.filters.noise_model_file`), per
 profile: ``builtin`` (default) keeps the built-in model (the ``spec`` bags' statistics: what fusion_node runs
 without ``fullperc.noise_model_file``); ``calibrated`` fits it with ``fit_noise_model`` (:mod:`.sensor_stats`:
@@ -30,8 +37,9 @@ uses that file for every profile. The paper's four filters do not read it.
 
 Stdout: one JSON line per figure (``{"name", "value", "unit", "profile", ...}``, like ``bench/benchlib.py``): the
 paper's five methods' lines first, exactly as before, then the further methods', the orientation, NEES and goal
-lines; then the human tables. ``--json`` writes every per-task-seed figure and the summary (the former keys
-unchanged; ``goals`` added).
+lines; after every profile's, the per-target lines (``<target>_...`` and ``goal41_...``, each with ``target``); then
+the human tables. ``--json`` writes every per-task-seed figure and the summary (the former keys unchanged; ``goals``,
+``targets``, ``target_goals`` and ``summary[profile]["targets"]`` added).
 """
 
 from __future__ import annotations
@@ -52,9 +60,25 @@ from fullperc_eval.sim.scene import PROFILES
 from fullperc_eval.sim.tasks import TASKS
 
 from .accuracy_goals import GOAL_METHOD, format_goals, goal_checks, goal_lines
-from .config import METHODS, PAPER_METHODS
+from .accuracy_targets import (
+    _methods,
+    _ms,
+    _ms_table,
+    format_nees,
+    format_target,
+    pooled_nees,
+    split_targets,
+    target_json_lines,
+    target_of,
+    target_summary,
+    task_row,
+    task_targets,
+)
+from .config import PAPER_METHODS
 from .evaluate_all import TASK_ORDER
+from .ground_truth import ARM_TARGET
 from .tables import _grid
+from .target_goals import target_goal_checks, target_goal_lines
 from .twin_report import parse_seeds, twin_hash
 
 ORDER_FULL = ("cbkf", "ckf", "bkf", "kf", "omc")   # CBKF <= CKF <= BKF <= KF <= OMC
@@ -145,7 +169,9 @@ def ensure_bags(d: Path, seed: int, profile: str) -> list[str]:
 
 
 def run_seed(profile: str, seed: int, cache: str, fusion_config: str | None, key: str) -> dict[str, Any]:
-    """Generate (or reuse) and evaluate the six bags of one seed; returns per-task figures."""
+    """Generate (or reuse) and evaluate the six bags of one seed, every target each bag holds
+    (:func:`.accuracy_targets.task_targets`: the tool and each one with simulator truth); returns per-task rows,
+    per task the tool's first, each with its ``target``."""
     from .metrics import evaluate_bag  # in the worker: keeps the parent light
     t0 = time.monotonic()
     d = Path(cache) / f"{profile}-{key}" / f"seed{seed}"
@@ -153,43 +179,11 @@ def run_seed(profile: str, seed: int, cache: str, fusion_config: str | None, key
     t1 = time.monotonic()
     rows = []
     for t in TASK_ORDER:
-        r = evaluate_bag(d / t, fusion_config=fusion_config, progress=False).result
-        rows.append({"task": t, "seed": seed, "profile": profile, "mae_mm": r["mae_mm"],
-                     "mae_by_region_mm": r["mae_by_region_mm"], "b_to_p": r["b_to_p"],
-                     "orientation_mae_deg": r.get("orientation_mae_deg"),
-                     "orientation_by_region_deg": r.get("orientation_by_region_deg"),
-                     "orientation_by_local_deg": r.get("orientation_by_local_deg"),
-                     "before_first_local": r.get("before_first_local"),
-                     "nees": {m: {k: {x: v[k][x] for x in ("n", "share_95", "mean")} for k in ("position", "pose")}
-                              for m, v in (r.get("nees") or {}).items()}})
+        for target in task_targets(d / t):
+            r = evaluate_bag(d / t, fusion_config=fusion_config, target=target, progress=False).result
+            rows.append(task_row(t, seed, profile, target, r))
     return {"profile": profile, "seed": seed, "rows": rows, "generated": len(missing),
             "sim_s": t1 - t0, "eval_s": time.monotonic() - t1}
-
-
-def _ms(v: list[float]) -> tuple[float, float]:
-    a = np.asarray([x for x in v if x is not None], float)
-    return (float(a.mean()), float(a.std(ddof=1)) if a.size > 1 else 0.0) if a.size else (float("nan"), float("nan"))
-
-
-def _methods(rows: list[dict[str, Any]], key: str = "mae_mm") -> list[str]:
-    """The methods the rows carry under ``key``, in METHODS order (rows of an older run may lack a new filter)."""
-    have = {m for r in rows for m in (r.get(key) or {})}
-    return [m for m in METHODS if m in have] + sorted(have - set(METHODS))
-
-
-def pooled_nees(rows: list[dict[str, Any]]) -> dict[str, dict[str, dict[str, float | int | None]]]:
-    """Per method and kind (position / pose): the share inside the 95 % bound and the mean NEES over every output
-    of every task-seed (each task-seed weighted by its number of outputs)."""
-    out: dict[str, dict[str, dict[str, float | int | None]]] = {}
-    for m in _methods(rows, "nees"):
-        out[m] = {}
-        for kind in ("position", "pose"):
-            parts = [(r["nees"][m][kind]) for r in rows if (r.get("nees") or {}).get(m)]
-            parts = [x for x in parts if x and x.get("n")]
-            n = sum(x["n"] for x in parts)
-            out[m][kind] = {"n": n, "share_95": sum(x["share_95"] * x["n"] for x in parts) / n if n else None,
-                            "mean": sum(x["mean"] * x["n"] for x in parts) / n if n else None}
-    return out
 
 
 def first_local_summary(rows: list[dict[str, Any]], methods: list[str]) -> dict[str, Any] | None:
@@ -302,28 +296,6 @@ def json_lines(profile: str, s: dict[str, Any], goals: list[dict[str, Any]] | No
     return out
 
 
-def _ms_table(title: str, table: dict[str, dict[str, tuple[float, float]]], digits: int = 2) -> list[str]:
-    """A mean ± sd table, every column padded to its widest cell (figures right-aligned)."""
-    cols = list(dict.fromkeys(m for per in table.values() for m in per))
-    body = [[t] + [("-" if not np.isfinite(per[m][0]) else f"{per[m][0]:.{digits}f} ± {per[m][1]:.{digits}f}")
-                   if m in per else "-" for m in cols] for t, per in table.items()]
-    return [title, *_grid(["task"] + [m.upper() for m in cols], body)]
-
-
-def format_nees(s: dict[str, Any]) -> list[str]:
-    nees = s.get("nees") or {}
-    body = []
-    for kind, dof in (("position", 3), ("pose", 6)):
-        have = [m for m in nees if nees[m][kind]["n"]]
-        if have:
-            body.append([f"{kind} (dof {dof})"] + [f"{100 * nees[m][kind]['share_95']:.1f}%/{nees[m][kind]['mean']:.3g}"
-                                                  if m in have else "-" for m in nees])
-    if not body:
-        return []
-    return ["NEES pooled over every output: share inside the chi2 95 % bound / mean (honest: 95 % / dof)",
-            *_grid([""] + [m.upper() for m in nees], body)]
-
-
 def format_summary(profile: str, s: dict[str, Any], goals: list[dict[str, Any]] | None = None) -> str:
     seeds = s["seeds"]
     ms = list(next(iter(s["table1_mae_mm"].values())))
@@ -407,23 +379,37 @@ def main(argv: list[str] | None = None) -> int:
         for f in as_completed(futs):
             r = f.result()
             results.append(r)
-            ratio = [x["mae_mm"]["cbkf"] / x["mae_mm"]["omc"] for x in r["rows"]]
-            extra = [x["mae_mm"][GOAL_METHOD] / x["mae_mm"]["cbkf"] for x in r["rows"]
+            tool = [x for x in r["rows"] if target_of(x) == ARM_TARGET]
+            ratio = [x["mae_mm"]["cbkf"] / x["mae_mm"]["omc"] for x in tool]
+            extra = [x["mae_mm"][GOAL_METHOD] / x["mae_mm"]["cbkf"] for x in tool
                      if x["mae_mm"].get(GOAL_METHOD) is not None]
+            others = sorted({target_of(x) for x in r["rows"]} - {ARM_TARGET})
             print(f"[{len(results)}/{len(jobs)}] profile {r['profile']} seed {r['seed']}: "
                   f"{'generated ' + str(r['generated']) + ' bags' if r['generated'] else 'cached bags'} "
                   f"{r['sim_s']:.0f} s, evaluated {r['eval_s']:.0f} s; CBKF/OMC mean {np.mean(ratio):.2f}, "
                   + (f"{GOAL_METHOD.upper()}/CBKF mean {np.mean(extra):.2f}, " if extra else "")
+                  + (f"also {', '.join(others)}, " if others else "")
                   + f"{time.monotonic() - t0:.0f} s so far", file=sys.stderr, flush=True)
-    summary, text, goals = {}, [], {}
-    rows_of = {p: [x for r in sorted(results, key=lambda r: r["seed"]) if r["profile"] == p for x in r["rows"]]
-               for p in profiles}   # in seed order, whatever order the workers finished in
+    summary, text, goals, checks = {}, [], {}, {}
+    every_of = {p: [x for r in sorted(results, key=lambda r: r["seed"]) if r["profile"] == p for x in r["rows"]]
+                for p in profiles}   # in seed order, whatever order the workers finished in
+    by_target = {p: split_targets(every_of[p]) for p in profiles}
+    rows_of = {p: by_target[p].get(ARM_TARGET, []) for p in profiles}   # the tool's: its tables as they always were
     for p in profiles:
         summary[p] = summarize(rows_of[p])
         goals[p] = goal_checks(p, summary[p])
         for rec in json_lines(p, summary[p], goals[p]):
             print(json.dumps(rec))
         text.append(format_summary(p, summary[p], goals[p]))
+    for p in profiles:   # every target's figures and checks (the tool's too), after all the tool's former lines
+        summary[p]["targets"] = {t: target_summary(rs) for t, rs in by_target[p].items()}
+        checks[p] = [c for t, rs in by_target[p].items()
+                     for c in target_goal_checks(p, t, rs, summary[p]["targets"][t]["nees"])]
+        for t, ts in summary[p]["targets"].items():
+            mine = [c for c in checks[p] if c["target"] == t]
+            for rec in target_json_lines(p, t, ts) + target_goal_lines(mine):
+                print(json.dumps({**rec, "profile": p, "seeds": len(ts["seeds"])}))
+            text.append(format_target(p, t, ts, mine))
     print()
     print("\n\n".join(text))
     if args.json:
@@ -434,7 +420,8 @@ def main(argv: list[str] | None = None) -> int:
                                        **({"calibration_seeds": cal_seeds} if args.noise_model == "calibrated" else {}),
                            **{p: noise[p]["noise_model"] for p in profiles}},
                        "twin_hash": keys, "summary": summary, "goals": goals,
-                       "task_seeds": [x for p in profiles for x in rows_of[p]]}, f, indent=1, default=float)
+                       "targets": {p: list(by_target[p]) for p in profiles}, "target_goals": checks,
+                       "task_seeds": [x for p in profiles for x in every_of[p]]}, f, indent=1, default=float)
             f.write("\n")
         print(f"wrote {args.json}")
     print(f"accuracy: {len(jobs)} profile-seeds in {time.monotonic() - t0:.0f} s")
