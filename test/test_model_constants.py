@@ -57,8 +57,8 @@ def stats(cached_bag_rows):
                              layout)
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(sensor_stats, "bag_rows", cached_bag_rows)
-        return {p: sensor_stats.fitted(*sensor_stats.profile_rows(ROOT / "bags" / p, layout))
-                for p in ("spec", "paper")}
+        return {p: sensor_stats.fitted(*sensor_stats.profile_rows(ROOT / "bags" / p, layout),
+                                       sensor_stats.profile_differences(ROOT / "bags" / p)) for p in ("spec", "paper")}
 
 
 def test_omc_model_constants_are_the_spec_bags_statistics(stats):
@@ -88,3 +88,16 @@ def test_systematic_error_parameters_are_the_structure_function_fits(stats):
 
 def test_vega_orientation_constant_is_the_raw_vega_statistic(stats):
     assert LocalModelParams().rot_std_ref == pytest.approx(stats["spec"]["ots_rot_rms"], rel=0.05)
+
+
+def test_position_bias_decay_is_written_where_the_raw_differences_show_a_length(stats):
+    """``bias_length`` / ``bias_field_std`` of a noise-model file: the semivariogram over distance of the raw
+    (OMC - local chain) differences (bias_variogram; no truth involved), fitted as nugget + s_f^2 (1 - exp(-h / L)).
+    The spec bags level off inside the Vega's reach (a length of decimetres is written); the paper bags' error field
+    holds beyond it, the fit runs to its grid's end and 0 (off, the built-in default) is written."""
+    spec = sensor_stats.noise_model_from_stats(stats["spec"])[1]
+    paper = sensor_stats.noise_model_from_stats(stats["paper"])[1]
+    assert 0.05 < spec["bias_length"] < 2.0 and 0.0 < spec["bias_field_std"] < 2e-3, spec
+    assert paper["bias_length"] == 0.0 and paper["bias_field_std"] == 0.0, paper
+    assert stats["paper"]["pos_gm_dist"][2] > 1.0    # the fit's length: at its grid's end, not a short one
+    assert FullpercParams().bias_length == 0.0 and FullpercParams().bias_field_std == 0.0

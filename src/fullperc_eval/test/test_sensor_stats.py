@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fullperc_eval.evaluation.bias_variogram import LENGTH_GRID
 from fullperc_eval.evaluation.sensor_stats import RANDOM_WALK_TAU_S, noise_model_from_stats, regress, write_noise_model
 from fullperc_fusion.filters.measurement_models import OmcModelParams
 from fullperc_fusion.filters.noise_model_file import load_noise_model
@@ -37,6 +38,17 @@ def test_a_slow_rotation_part_at_the_grids_end_is_a_random_walk():
     assert bias["rot_sys_time"] == 0.0 and bias["rot_sys_std"] == 0.0 and bias["rot_bias_length"] == 0.0
     # same short-lag increments: 2 s^2 (1 - exp(-L/tau)) ~ 2 s^2 L / tau = q L
     assert bias["rot_bias_walk"] == pytest.approx(2 * 8e-3**2 / (RANDOM_WALK_TAU_S * 2))
+
+
+def test_the_position_bias_length_and_std_come_from_the_raw_differences_fit():
+    """``bias_length`` / ``bias_field_std`` are the semivariogram fit's L and s_f; a length at the fit's grid end
+    (no level-off within the data's distances, the paper bags) writes 0 for both: b kept as learnt. Without the
+    differences (``fitted`` without ``diffs``) the file leaves them out (the built-in values stay)."""
+    _, bias = noise_model_from_stats(stats(pos_gm_dist=(0.05e-3, 0.34e-3, 0.3)))
+    assert bias["bias_length"] == 0.3 and bias["bias_field_std"] == 0.34e-3
+    _, bias = noise_model_from_stats(stats(pos_gm_dist=(0.0, 4.8e-3, LENGTH_GRID[1])))
+    assert bias["bias_length"] == 0.0 and bias["bias_field_std"] == 0.0
+    assert "bias_length" not in noise_model_from_stats(stats())[1]
 
 
 def test_negative_regression_terms_count_as_none():

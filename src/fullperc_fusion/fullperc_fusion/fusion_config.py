@@ -72,11 +72,7 @@ def _params_of_every_filter() -> type[FilterParams]:
 
 FILTER_PARAMS = _params_of_every_filter()
 _F = FILTER_PARAMS()
-_C = ChainConfig()
-_T = TargetConfig()
-_H = HealthParams()
-_S = CalibrationSettings()
-_M = MonitorParams()
+_C, _T, _H, _S, _M = ChainConfig(), TargetConfig(), HealthParams(), CalibrationSettings(), MonitorParams()
 
 
 def _filter_row(name: str, field: str, kind: str, check: Callable[[Any], bool] | None = None, why: str = "",
@@ -176,6 +172,10 @@ PARAMS: tuple[Param, ...] = (
     _filter_row("fullperc.rot_bias_length", "rot_bias_length", "float", *NONNEGATIVE, "m",
           "fullperc: distance over which the OMC orientation bias decays once the local source has lost the tool "
           "(0 = off)"),
+    _filter_row("fullperc.bias_length", "bias_length", "float", *NONNEGATIVE, "m",
+          "fullperc: distance over which the OMC position bias b decays once the local source lost the tool (0: off)"),
+    _filter_row("fullperc.bias_field_std", "bias_field_std", "float", *NONNEGATIVE, "m",
+          "fullperc: b's stationary per-axis std in that decay: its variance far from where it was learnt"),
     _filter_row("fullperc.local_lost_s", "local_lost_s", "float", *POSITIVE, "s",
           "fullperc: time without a local sample after which the local source counts as having lost the tool"),
     _filter_row("fullperc.hop_into", "hop_into", "str", *one_of(HOP_INTO), "",
@@ -198,7 +198,7 @@ PARAMS: tuple[Param, ...] = (
     Param("fullperc.noise_model_file", "", "str", None, "", "",
           "fullperc: noise model of this installation's OMC (written by fit_noise_model); '' = the built-in one. "
           "Its omc_bias values replace fullperc.sys_time, sys_std, rot_sys_time, rot_sys_std, rot_bias_walk, "
-          "rot_bias_length"),
+          "rot_bias_length, bias_length, bias_field_std"),
     Param("slop", _T.slop_ns * 1e-9, "float", *NONNEGATIVE, "s",
           "pair OMC and OTS samples closer than this"),
     Param("reorder_delay", _T.delay_ns * 1e-9, "float", *NONNEGATIVE, "s",

@@ -56,7 +56,8 @@ def _cov(rng, mode: str | None) -> np.ndarray | None:
 def _items(seed: int, n: int, cov_modes=(None, "diag", "full"), start_position_only: bool = True,
            outages: bool = False):
     """Random items (module docstring). Truth: a slow position path, orientation turning at a varying rate.
-    ``outages``: no local sample in items 150-299 of every 300 (the Vega loses the tool: beta's spatial decay)."""
+    ``outages``: no local sample in items 150-299 of every 300 (the Vega loses the tool: beta's and b's spatial
+    decay)."""
     rng = np.random.default_rng(seed)
     t, out = S, []
     R, w = so3_exp(rng.normal(size=3)), np.zeros(3)
@@ -211,10 +212,13 @@ def test_fast_form_equals_the_reference_for_other_settings(params, stream_23):
 
 
 def test_fast_form_equals_the_reference_when_the_vega_loses_the_tool():
-    """Streams with the local source gone for half of every 300 items, the path moving meanwhile: beta's spatial
-    decay (``rot_bias_length``) acts, and the two forms agree at every step; with a short length and a long one."""
-    items = _frozen(_items(24, 1500, outages=True))     # one stream for both settings
-    for params in (FullpercParams(), FullpercParams(rot_bias_length=0.005, local_lost_s=0.02)):
+    """Streams with the local source gone for half of every 300 items, the path moving meanwhile: beta's and b's
+    spatial decay (``rot_bias_length``, ``bias_length``) act, and the two forms agree at every step; with short
+    lengths and long ones, and b's alone."""
+    items = _frozen(_items(24, 1500, outages=True))     # one stream for every setting
+    for params in (FullpercParams(), FullpercParams(rot_bias_length=0.005, local_lost_s=0.02),
+                   FullpercParams(bias_length=0.01, bias_field_std=0.5e-3, local_lost_s=0.02),
+                   FullpercParams(bias_length=0.3, bias_field_std=0.3e-3, rot_bias_length=0.0)):
         fast, ref, _ = _run(items, params)
         assert ref.s.rot_dmax > 0.0 and fast.state.rot_dmax == pytest.approx(ref.s.rot_dmax, abs=TOL)
 

@@ -10,7 +10,9 @@ bag's calibration.yaml); no filter runs. Printed per profile (one directory of t
 * the OMC rotation error's regression on the same terms;
 * the rms per-axis increment of the OMC's position and rotation error over lags 8 ms .. 10 s (the structure
   function: white level, then the systematic part decorrelating);
-* the Vega tool's per-axis error by distance and its orientation error.
+* the Vega tool's per-axis error by distance and its orientation error;
+* the OMC position bias's length and std over distance (``bias_length``, ``bias_field_std``): the semivariogram of
+  the raw (OMC - local chain) differences, the two devices against each other, no truth (:mod:`.bias_variogram`).
 
 Run::
 
@@ -38,6 +40,7 @@ from fullperc_eval.bag.calibration import load_calibration
 from fullperc_eval.bag.errors import BagError
 from fullperc_eval.bag.fast_decode import DecodeError
 from fullperc_eval.bag.reader import BagReader
+from fullperc_eval.evaluation.bias_variogram import LENGTH_GRID, differences, fit_semivariogram, semivariogram
 from fullperc_eval.evaluation.config import replay_config
 from fullperc_eval.evaluation.ground_truth import GroundTruth
 from fullperc_eval.evaluation.replay_data import _stamp_ns
@@ -71,10 +74,25 @@ def bag_rows(bag: Path, layout) -> tuple[np.ndarray, np.ndarray]:
     return _sample_rows(Path(bag), layout, samples, jt, jq, fit)
 
 
+def bag_samples(bag: Path) -> list[tuple[str, int, np.ndarray, np.ndarray]]:
+    """The target's raw samples of one bag in bag order: (device "omc" | "ots", stamp [ns], pose in the device
+    frame, pose in ``base`` by the node's frame chain) -- what :func:`bag_rows` compares with the truth, without the
+    truth (``bias_variogram`` compares the two devices with each other). Read in bulk where it can be."""
+    try:
+        return _bulk_samples(Path(bag))[0]
+    except _NotBulk:
+        return _samples_per_message(Path(bag))[0]
+
+
 def bag_rows_per_message(bag: Path, layout) -> tuple[np.ndarray, np.ndarray]:
     """:func:`bag_rows` the plain way: every message of the chain's bodies, their qualities and the joint states
     deserialised by rosbags and pushed through the node's own pipeline (``TargetPipeline``) in bag order; an OMC
     target sample counts once ``T_omc_base`` is known, an OTS one once the local chain maps it."""
+    return _sample_rows(Path(bag), layout, *_samples_per_message(Path(bag)))
+
+
+def _samples_per_message(bag: Path) -> tuple[list, list, list, dict[tuple[str, int], float]]:
+    """(samples, joint stamps, joint positions, fit errors) of :func:`bag_rows_per_message` (its docstring)."""
     cfg, _ = replay_config()
     cfg.filters = ("omc",)
     pipe = TargetPipeline(cfg)
@@ -110,7 +128,7 @@ def bag_rows_per_message(bag: Path, layout) -> tuple[np.ndarray, np.ndarray]:
                 pipe.poll()
     finally:
         reader.close()
-    return _sample_rows(Path(bag), layout, samples, jt, jq, fit)
+    return samples, jt, jq, fit
 
 
 def _wanted(cfg) -> tuple[dict[str, str], set[str]]:
@@ -329,12 +347,17 @@ def fit_two_gauss_markov(lags_s: np.ndarray, rms: np.ndarray) -> tuple[float, fl
     return best[1:]
 
 
-def fitted(g: np.ndarray, o: np.ndarray) -> dict[str, Any]:
+def fitted(g: np.ndarray, o: np.ndarray, diffs: list[tuple[np.ndarray, np.ndarray]] | None = None) -> dict[str, Any]:
     """Every statistic of one profile's rows (:func:`bag_rows` of its bags, concatenated): regressions as
     (floor, fit gain, margin term) -- per-axis std [m or rad] -- structure functions, Gauss-Markov fits, the
-    median fit error, the Vega's per-axis rms by distance and its orientation rms. ``test/test_model_constants.py``
-    holds the constants of ``measurement_models`` and ``FullpercParams`` to these on the committed bags."""
+    median fit error, the Vega's per-axis rms by distance and its orientation rms; with ``diffs``
+    (:func:`profile_differences`) the raw differences' semivariogram and its fit (``pos_variogram``, ``pos_gm_dist``:
+    nugget, s_f, L). ``test/test_model_constants.py`` holds the constants of ``measurement_models`` and
+    ``FullpercParams`` to these on the committed bags."""
     out: dict[str, Any] = {}
+    if diffs is not None:
+        out["pos_variogram"] = semivariogram(diffs)
+        out["pos_gm_dist"] = fit_semivariogram(*out["pos_variogram"])
     fit = np.where(g[:, FIT] >= 0, g[:, FIT], np.nan)
     ok = np.isfinite(fit)
     g, fit = g[ok], fit[ok]
@@ -394,6 +417,13 @@ def report(name: str, f: dict[str, Any]) -> None:
     w, sy, L = f["rot_gm_dist"]
     print(f"OMC rotation over distance as white + Gauss-Markov: white {w * 1e3:.2f} mrad, systematic "
           f"{sy * 1e3:.2f} mrad, length {L * 1e3:.1f} mm")
+    if "pos_gm_dist" in f:
+        c0, sf, L = f["pos_gm_dist"]
+        h, gam, _ = f["pos_variogram"]
+        print("OMC - local chain position (raw) over distance, semivariogram (h mm: sqrt(gamma) mm): "
+              + ", ".join(f"{d * 1e3:.0f}: {np.sqrt(v) * 1e3:.3f}" for d, v in zip(h, gam, strict=True)))
+        print(f"  as nugget + Gauss-Markov: nugget {c0 * 1e3:.3f} mm, bias_field_std {sf * 1e3:.3f} mm, bias_length "
+              f"{L:.3f} m" + (" (the grid's end: no level-off within these distances)" if _at_grid_end(L) else ""))
     for lo, hi, rms, n in f["ots_by_distance"]:
         print(f"OTS tool at {lo}-{hi} m: per-axis rms {rms * 1e3:.3f} mm (n={n})")
     print(f"OTS tool orientation: per-axis rms {f['ots_rot_rms'] * 1e3:.2f} mrad")
@@ -407,6 +437,16 @@ def pool_rows(parts: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, n
 def profile_rows(directory: Path, layout) -> tuple[np.ndarray, np.ndarray]:
     """:func:`bag_rows` of every bag directory below ``directory``, concatenated."""
     return pool_rows([bag_rows(b, layout) for b in sorted(p for p in Path(directory).iterdir() if p.is_dir())])
+
+
+def profile_differences(directory: Path) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(e, x) of every bag directory below ``directory``: :func:`.bias_variogram.differences` of its
+    :func:`bag_samples` (raw OMC - local chain, and the local chain's position)."""
+    return [differences(bag_samples(b))[1:] for b in sorted(p for p in Path(directory).iterdir() if p.is_dir())]
+
+
+def _at_grid_end(length: float) -> bool:
+    return length >= 0.99 * LENGTH_GRID[1]
 
 
 # the two-Gauss-Markov fit's slow time constant at or beyond this is the grid's end: a random walk
@@ -427,7 +467,9 @@ def noise_model_from_stats(f: dict[str, Any]) -> tuple[dict[str, float], dict[st
       how far the tool moves, once the Vega has lost it, before that part is forgotten), or, when its time
       constant is at the grid's end (>= :data:`RANDOM_WALK_TAU_S`), a random walk with the same short-lag
       increments: ``rot_bias_walk = 2 s^2 / tau``, ``rot_sys_time = 0`` and ``rot_bias_length = 0`` (nothing to
-      forget: the slow error of such a room stays where it was learnt).
+      forget: the slow error of such a room stays where it was learnt); with ``pos_gm_dist``, ``bias_length`` and
+      ``bias_field_std`` from it, or both 0 when its length is at the grid's end (no length determined: b is kept as
+      learnt, CBKF's rule).
     """
     floor_w, k_w, m_w = np.maximum(f["pos_white"], 0.0)   # a negative term (signed std): the data show none
     floor_t, k_fit, m = np.maximum(f["pos_total"], 0.0)
@@ -444,6 +486,12 @@ def noise_model_from_stats(f: dict[str, Any]) -> tuple[dict[str, float], dict[st
         bias.update(rot_sys_time=0.0, rot_sys_std=0.0, rot_bias_walk=2.0 * s2**2 / t2, rot_bias_length=0.0)
     else:
         bias.update(rot_sys_time=t2, rot_sys_std=s2, rot_bias_length=f["rot_gm_dist"][2])
+    if "pos_gm_dist" in f:
+        _, sf, L = f["pos_gm_dist"]
+        if _at_grid_end(L):
+            bias.update(bias_length=0.0, bias_field_std=0.0)
+        else:
+            bias.update(bias_length=L, bias_field_std=sf)
     return {k: float(v) for k, v in omc.items()}, {k: float(v) for k, v in bias.items()}
 
 
@@ -465,13 +513,14 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     layout = load_layout(default_layout_path())
     rows = [profile_rows(Path(d), layout) for d in args.dirs]
-    stats = [fitted(g, o) for g, o in rows]
+    diffs = [profile_differences(Path(d)) for d in args.dirs]
+    stats = [fitted(g, o, df) for (g, o), df in zip(rows, diffs, strict=True)]
     for d, f in zip(args.dirs, stats, strict=True):
         report(d, f)
     if args.write:
         pooled = stats[0]
         if len(args.dirs) > 1:
-            pooled = fitted(*pool_rows(rows))
+            pooled = fitted(*pool_rows(rows), [d for df in diffs for d in df])
             report(" + ".join(args.dirs), pooled)
         write_noise_model(args.write, pooled, "raw-sensor statistics of " + ", ".join(args.dirs))
         print(f"wrote {args.write}")

@@ -59,7 +59,8 @@ from fullperc_fusion.filters.api import (
     predict_interval,
     split_update,
 )
-from fullperc_fusion.filters.fullperc_reference import FullpercReference, N, _State, noise_scale_step
+from fullperc_fusion.filters.fullperc_reference import FullpercReference
+from fullperc_fusion.filters.fullperc_state import FullpercState, N, noise_scale_step
 from fullperc_fusion.filters.paper_family import FilterParams
 from fullperc_fusion.filters.rot_noise_scale import pair_estimate, scale_decay, scale_step, scaled_cov
 from fullperc_fusion.filters.so3_float import R9_IDENT, R9_to_quat, exp9, log9, mul9, mul9_t, quat_to_R9
@@ -104,7 +105,7 @@ class FullpercFilter(StepCompat):
     """The ``fullperc`` filter (:class:`~.api.Filter`); the model is :mod:`.fullperc_reference`'s.
 
     State: ``_x`` 21 floats in the error-state layout of the reference (p v b | theta(=0) w beta | g), ``_R``
-    the orientation (9-tuple), ``_P`` the 21x21 covariance, stamps and flags as the reference's ``_State``.
+    the orientation (9-tuple), ``_P`` the 21x21 covariance, stamps and flags as the reference's ``FullpercState``.
     """
 
     kind = "fullperc"
@@ -128,8 +129,8 @@ class FullpercFilter(StepCompat):
         self._ref.reset()
         self._load(self._ref.s)
 
-    def _load(self, s: _State) -> None:
-        """Take the state of a reference ``_State`` (after a re-initialisation or a reset)."""
+    def _load(self, s: FullpercState) -> None:
+        """Take the state of a reference ``FullpercState`` (after a re-initialisation or a reset)."""
         self._x = s.p.tolist() + s.v.tolist() + s.b.tolist() + [0.0, 0.0, 0.0] + s.w.tolist() + s.beta.tolist() \
             + s.g.tolist()
         self._R = tuple(s.R.ravel().tolist())
@@ -142,10 +143,10 @@ class FullpercFilter(StepCompat):
         self._mu, self._tmu = s.rot_scale, s.t_rot_scale_ns
 
     @property
-    def state(self) -> _State:
+    def state(self) -> FullpercState:
         """A copy of the state in the reference's form (``FullpercReference.s``), for tests and diagnostics."""
         x = self._x
-        return _State(np.array(x[0:3]), np.array(x[3:6]), np.array(x[6:9]), np.array(self._R).reshape(3, 3),
+        return FullpercState(np.array(x[0:3]), np.array(x[3:6]), np.array(x[6:9]), np.array(self._R).reshape(3, 3),
                       np.array(x[12:15]), np.array(x[15:18]), self._P.copy(), self._t, self._pend, self._has_R,
                       np.array(x[18:21]), self._sys_var, self._lam, self._tg, self._frame,
                       None if self._anchor is None else np.array(self._anchor), self._tl,
@@ -261,7 +262,7 @@ class FullpercFilter(StepCompat):
         P = F @ self._P @ F.T + (Q if Q is not None else self._noise(dt, self._sys_var))
         ra, pr = self._ra, self.params
         if ra is not None and (t - self._tl) * 1e-9 > pr.local_lost_s:
-            d = math.dist(x[0:3], ra)   # beta's and mu's spatial decay (the reference's _rot_spatial_decay)
+            d = math.dist(x[0:3], ra)   # beta's, b's and mu's spatial decay (the reference's _spatial_decay)
             if d > self._dmax:
                 self._mu = scale_decay(self._mu, d - self._dmax, pr.rot_noise_length)
                 if pr.rot_bias_length > 0.0:
@@ -273,6 +274,15 @@ class FullpercFilter(StepCompat):
                     P[15, 15] += ex
                     P[16, 16] += ex
                     P[17, 17] += ex
+                if pr.bias_length > 0.0:   # b's (the reference's, after beta's)
+                    f = math.exp(-(d - self._dmax) / pr.bias_length)
+                    x[6], x[7], x[8] = f * x[6], f * x[7], f * x[8]
+                    P[6:9, :] *= f
+                    P[:, 6:9] *= f
+                    ex = pr.bias_field_std**2 * (1.0 - f * f)
+                    P[6, 6] += ex
+                    P[7, 7] += ex
+                    P[8, 8] += ex
                 self._dmax = d
         self._P = 0.5 * (P + P.T)
         self._t = t
@@ -416,7 +426,7 @@ class FullpercFilter(StepCompat):
             self._lam, self._tg = lam_next, mg.t_ns
         if mu is not None:
             self._mu, self._tmu = mu[1:]
-        if ml is not None:   # where the local source last saw the tool (beta's spatial decay)
+        if ml is not None:   # where the local source last saw the tool (beta's and b's spatial decay)
             self._tl, self._ra, self._dmax = ml.t_ns, xn[0:3], 0.0
         return self._step(t, mg, ml, innovation=np.array(y[0:3]), nis=nis, nis_global=nis_g, hop=hop)
 

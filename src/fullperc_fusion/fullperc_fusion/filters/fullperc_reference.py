@@ -31,6 +31,10 @@ a Gauss-Markov process forgets it at the rate the sensor's error does, and the m
   decay: d = |p - a_r| (a_r: p when that sample was fused), d_max the largest d since; a prediction taking d beyond
   d_max scales beta and its rows and columns of P by f = exp(-(d - d_max) / rot_bias_length) and adds
   rot_sys_std^2 (1 - f^2) to its variance: beta = exp(-d_max / L) beta(a_r), Gauss-Markov in that distance;
+  the same step, with f_b = exp(-(d - d_max) / bias_length) (``bias_length`` > 0), takes b to f_b b, its rows and
+  columns of P times f_b and bias_field_std^2 (1 - f_b^2) onto its variance: b(d') = exp(-(d' - d) / L_b) b(d) + w,
+  Var(w) = s_f^2 (1 - exp(-2 (d' - d) / L_b)), first-order Gauss-Markov in distance, so far from a_r b is back at
+  its prior (mean 0, std s_f) and the output at the raw OMC;
   F = I with F_pv = dt I, F_thth = Exp(w dt), F_thw = dt I, F_gg = phi I, F_bebe = phi_b I;
   Q = q_a [[dt^3/3, dt^2/2], [dt^2/2, dt]] on (p, v), q_b dt on b, q_alpha the same form on (theta, w),
   q_beta dt + s_b^2 (1 - phi_b^2) on beta (a random walk plus a Gauss-Markov part of stationary variance
@@ -75,7 +79,12 @@ a Gauss-Markov process forgets it at the rate the sensor's error does, and the m
   distance between samples, ``sensor_stats.structure_over_distance``: L = 56.5 mm on the ``paper`` bags); once the
   local source has lost the tool, the tool is usually on its way elsewhere and beta, the OMC's error where the Vega
   saw it, is not the error here (docs/fullperc_filter.md "The orientation bias after the Vega lost the tool"). While
-  the local source sees the tool, beta is observed: no decay by distance.
+  the local source sees the tool, beta is observed: no decay by distance. The position error is such a field too
+  (issue 41: the twin's OMC error is a smooth function of position): b, learnt against the Vega in its volume, was
+  applied metres away as it was, and the fused output was worse there than the raw OMC. Its length and std come
+  from the raw (OMC - local chain) differences' semivariogram over distance (``fullperc_eval`` ``bias_variogram``),
+  not from the truth. d is the distance from a_r, not the path length: the error is a function of where the tool
+  is, so coming back towards a_r forgets nothing more, and d_max keeps the decay monotone (no variance given back).
 * gaps longer than ``max_gap_s`` re-initialise p, v, R, w from the next sample; b and beta (and their variances)
   are kept (propagated over the gap: b's walk, beta's decay and walk, g's decay).
 
@@ -88,7 +97,6 @@ Output: :class:`~.api.Step` with ``q`` (x y z w) and ``pose_cov`` (6x6, [p, thet
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 from scipy.linalg import block_diag
@@ -104,61 +112,26 @@ from fullperc_fusion.filters.api import (
     split_update,
 )
 from fullperc_fusion.filters.fullperc_params import FullpercParams
+from fullperc_fusion.filters.fullperc_state import (
+    B_,
+    BE,
+    G_,
+    P_,
+    TH,
+    V_,
+    W_,
+    FullpercState,
+    N,
+    copy_state,
+    noise_scale_step,
+)
 from fullperc_fusion.filters.paper_family import FilterParams
 from fullperc_fusion.filters.rot_noise_scale import pair_estimate, scale_decay, scale_step, scaled_cov
 
 __all__ = ["N", "FullpercReference", "noise_scale_step"]
 
-N = 21
 _I3 = np.eye(3)
 _IN = np.eye(N)
-P_, V_, B_, TH, W_, BE, G_ = (slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15), slice(15, 18),
-                              slice(18, 21))
-
-
-def noise_scale_step(lam: float, t_prev_ns: int | None, t_ns: int, nis_g: float, pr: FullpercParams) -> float:
-    """lambda after a global sample at ``t_ns`` with position NIS ``nis_g``, the previous one fused at ``t_prev_ns``
-    (None: none since the start or the last re-initialisation; module docstring)."""
-    if pr.noise_adapt_time <= 0.0:
-        return 1.0
-    dt = 0.0 if t_prev_ns is None else max(0.0, (t_ns - t_prev_ns) * 1e-9)
-    a = 1.0 - math.exp(-dt / pr.noise_adapt_time)
-    return min(pr.noise_adapt_max, max(1.0, (1.0 - a) * lam + a * lam * nis_g / 3.0))
-
-
-# ---------------------------------------------------------------------------------------------- filter
-@dataclass
-class _State:
-    """Everything :meth:`FullpercReference.snapshot` copies."""
-
-    p: np.ndarray
-    v: np.ndarray
-    b: np.ndarray
-    R: np.ndarray
-    w: np.ndarray
-    beta: np.ndarray
-    P: np.ndarray
-    t_ns: int | None
-    pending_ns: int | None
-    has_R: bool
-    g: np.ndarray                  # Gauss-Markov part of the global position bias
-    sys_var: float                 # its stationary variance (newest global sample's model, else sys_std^2)
-    noise_scale: float = 1.0       # lambda, the global white position noise's scale (noise_adapt_time)
-    t_global_ns: int | None = None  # stamp of the newest global sample fused (for lambda's dt_g)
-    frame: np.ndarray | None = None  # the 4x4 the caller says the estimate is expressed in (express_in)
-    anchor: np.ndarray | None = None  # p when the newest local sample in that frame came (express_in)
-    t_local_ns: int | None = None  # stamp of the newest local sample fused (beta's spatial decay)
-    rot_anchor: np.ndarray | None = None  # a_r: p after that sample was fused
-    rot_dmax: float = 0.0          # d_max: the farthest p has been from a_r since
-    rot_scale: float = 1.0         # mu, the global rotation noise's scale (rot_noise_scale)
-    t_rot_scale_ns: int | None = None  # stamp of the global sample of the newest pair mu was learnt from
-
-
-def _copy(s: _State) -> _State:
-    """A copy of every array of the state (the scalars are immutable): ~10x cheaper than copy.deepcopy."""
-    return _State(s.p.copy(), s.v.copy(), s.b.copy(), s.R.copy(), s.w.copy(), s.beta.copy(), s.P.copy(), s.t_ns,
-                  s.pending_ns, s.has_R, s.g.copy(), s.sys_var, s.noise_scale, s.t_global_ns, s.frame,
-                  s.anchor, s.t_local_ns, s.rot_anchor, s.rot_dmax, s.rot_scale, s.t_rot_scale_ns)
 
 
 class FullpercReference(StepCompat):
@@ -174,7 +147,7 @@ class FullpercReference(StepCompat):
     # ---- state ----------------------------------------------------------------------------------
     def reset(self) -> None:
         pr = self.params
-        self.s = _State(np.zeros(3), np.zeros(3), np.zeros(3), np.eye(3), np.zeros(3), np.zeros(3),
+        self.s = FullpercState(np.zeros(3), np.zeros(3), np.zeros(3), np.eye(3), np.zeros(3), np.zeros(3),
                         self._prior(pr.init_bias_std**2 * _I3, pr.init_rot_bias_std**2 * _I3, pr.sys_std**2 * _I3),
                         None, None, False, np.zeros(3), pr.sys_std**2)
 
@@ -192,13 +165,13 @@ class FullpercReference(StepCompat):
 
     def snapshot(self) -> object:
         """A copy of the whole filter state, for :meth:`restore` (rewind and replay)."""
-        return _copy(self.s)
+        return copy_state(self.s)
 
     def restore(self, obj: object) -> None:
         """Put back a state taken by :meth:`snapshot` (the snapshot stays usable)."""
-        if not isinstance(obj, _State):
+        if not isinstance(obj, FullpercState):
             raise TypeError(f"not a fullperc snapshot: {type(obj).__name__}")
-        self.s = _copy(obj)
+        self.s = copy_state(obj)
 
     @property
     def time_ns(self) -> int | None:
@@ -308,13 +281,13 @@ class FullpercReference(StepCompat):
             P[6 + k, 6 + k] += pr.bias_walk * dt
             P[15 + k, 15 + k] += qbe
             P[18 + k, 18 + k] += s.sys_var * (1.0 - phi * phi)
-        self._rot_spatial_decay(P, t)
+        self._spatial_decay(P, t)
         s.P = 0.5 * (P + P.T)
         s.t_ns = t
 
-    def _rot_spatial_decay(self, P: np.ndarray, t: int) -> None:
-        """beta's spatial decay after the prediction to ``t`` (module docstring), on s.beta and ``P`` in place; mu's
-        (:mod:`rot_noise_scale`) over the same distance."""
+    def _spatial_decay(self, P: np.ndarray, t: int) -> None:
+        """beta's and b's spatial decay after the prediction to ``t`` (module docstring), on s.beta, s.b and ``P`` in
+        place; mu's (:mod:`rot_noise_scale`) over the same distance."""
         s, pr = self.s, self.params
         if s.rot_anchor is None or (t - s.t_local_ns) * 1e-9 <= pr.local_lost_s:
             return
@@ -328,10 +301,16 @@ class FullpercReference(StepCompat):
             P[BE, :] *= f
             P[:, BE] *= f
             P[BE, BE] += pr.rot_sys_std**2 * (1.0 - f * f) * _I3
+        if pr.bias_length > 0.0:
+            f = math.exp(-(d - s.rot_dmax) / pr.bias_length)
+            s.b = f * s.b
+            P[B_, :] *= f
+            P[:, B_] *= f
+            P[B_, B_] += pr.bias_field_std**2 * (1.0 - f * f) * _I3
         s.rot_dmax = d
 
     def _local_fused(self, ml: Measurement | None) -> None:
-        """Record where the local source last saw the tool (beta's spatial decay starts from there)."""
+        """Record where the local source last saw the tool (beta's and b's spatial decay start from there)."""
         if ml is not None:
             s = self.s
             s.t_local_ns, s.rot_anchor, s.rot_dmax = ml.t_ns, s.p.copy(), 0.0

@@ -15,13 +15,15 @@ Format (YAML, SI units; every key of ``omc`` and ``omc_bias`` optional: a key no
     omc:                             # measurement_models.OmcModelParams fields
       white_std: 1.97e-05            # [m]
       ...
-    omc_bias:                        # FullpercParams fields: the OMC's systematic error over time
+    omc_bias:                        # FullpercParams fields: the OMC's systematic error over time and space
       sys_time: 3.06                 # [s]
       sys_std: 2.1e-04               # [m]
       rot_sys_time: 3.38             # [s] (0: the orientation bias is a random walk alone)
       rot_sys_std: 8.94e-03          # [rad]
       rot_bias_walk: 1.0e-06         # [rad^2/s]
       rot_bias_length: 5.27e-02      # [m] (0: the orientation bias does not decay with distance)
+      bias_length: 0.296             # [m] (0: the position bias b does not decay with distance)
+      bias_field_std: 3.41e-04       # [m] b's std far from where it was learnt
 
 A file that cannot be read, has another version, an unknown key or a value that is not a finite number in its
 range raises :class:`NoiseModelError` naming the file and the key: a typo must not silently leave a default.
@@ -48,7 +50,8 @@ OMC_KEYS: dict[str, tuple[str, bool]] = {
     "rot_margin_std": ("rad", False), "default_fit": ("m", False)}
 BIAS_KEYS: dict[str, tuple[str, bool]] = {
     "sys_time": ("s", True), "sys_std": ("m", True), "rot_sys_time": ("s", False), "rot_sys_std": ("rad", False),
-    "rot_bias_walk": ("rad^2/s", False), "rot_bias_length": ("m", False)}
+    "rot_bias_walk": ("rad^2/s", False), "rot_bias_length": ("m", False), "bias_length": ("m", False),
+    "bias_field_std": ("m", False)}
 
 
 class NoiseModelError(ValueError):

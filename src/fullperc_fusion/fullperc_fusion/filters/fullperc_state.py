@@ -1,0 +1,68 @@
+"""The state layout of the ``fullperc`` filter and the rules both of its forms share without the filter.
+
+:mod:`.fullperc_reference` (the general form, whose module docstring states the model) and :mod:`.fullperc` (the
+fast form) read the same error-state layout, the same state record and the same parameter-only rules from here;
+kept apart so the reference holds the model's equations and stays within the fusion package's module size
+(test/test_code_rules.py).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from fullperc_fusion.filters.fullperc_params import FullpercParams
+
+__all__ = ["BE", "B_", "G_", "N", "P_", "TH", "V_", "W_", "FullpercState", "copy_state", "noise_scale_step"]
+
+# the error state dx = [dp dv db | dtheta dw dbeta | dg] (:mod:`.fullperc_reference`)
+N = 21
+P_, V_, B_, TH, W_, BE, G_ = (slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15), slice(15, 18),
+                              slice(18, 21))
+
+
+def noise_scale_step(lam: float, t_prev_ns: int | None, t_ns: int, nis_g: float, pr: FullpercParams) -> float:
+    """lambda after a global sample at ``t_ns`` with position NIS ``nis_g``, the previous one fused at ``t_prev_ns``
+    (None: none since the start or the last re-initialisation; :mod:`.fullperc_reference`'s module docstring)."""
+    if pr.noise_adapt_time <= 0.0:
+        return 1.0
+    dt = 0.0 if t_prev_ns is None else max(0.0, (t_ns - t_prev_ns) * 1e-9)
+    a = 1.0 - math.exp(-dt / pr.noise_adapt_time)
+    return min(pr.noise_adapt_max, max(1.0, (1.0 - a) * lam + a * lam * nis_g / 3.0))
+
+
+@dataclass
+class FullpercState:
+    """The reference's state (``FullpercReference.s``), everything its ``snapshot`` copies; the fast form gives its own
+    state in this form (``FullpercFilter.state``)."""
+
+    p: np.ndarray
+    v: np.ndarray
+    b: np.ndarray
+    R: np.ndarray
+    w: np.ndarray
+    beta: np.ndarray
+    P: np.ndarray
+    t_ns: int | None
+    pending_ns: int | None
+    has_R: bool
+    g: np.ndarray                  # Gauss-Markov part of the global position bias
+    sys_var: float                 # its stationary variance (newest global sample's model, else sys_std^2)
+    noise_scale: float = 1.0       # lambda, the global white position noise's scale (noise_adapt_time)
+    t_global_ns: int | None = None  # stamp of the newest global sample fused (for lambda's dt_g)
+    frame: np.ndarray | None = None  # the 4x4 the caller says the estimate is expressed in (express_in)
+    anchor: np.ndarray | None = None  # p when the newest local sample in that frame came (express_in)
+    t_local_ns: int | None = None  # stamp of the newest local sample fused (beta's and b's spatial decay)
+    rot_anchor: np.ndarray | None = None  # a_r: p after that sample was fused
+    rot_dmax: float = 0.0          # d_max: the farthest p has been from a_r since
+    rot_scale: float = 1.0         # mu, the global rotation noise's scale (rot_noise_scale)
+    t_rot_scale_ns: int | None = None  # stamp of the global sample of the newest pair mu was learnt from
+
+
+def copy_state(s: FullpercState) -> FullpercState:
+    """A copy of every array of the state (the scalars are immutable): ~10x cheaper than copy.deepcopy."""
+    return FullpercState(s.p.copy(), s.v.copy(), s.b.copy(), s.R.copy(), s.w.copy(), s.beta.copy(), s.P.copy(), s.t_ns,
+                  s.pending_ns, s.has_R, s.g.copy(), s.sys_var, s.noise_scale, s.t_global_ns, s.frame,
+                  s.anchor, s.t_local_ns, s.rot_anchor, s.rot_dmax, s.rot_scale, s.t_rot_scale_ns)
