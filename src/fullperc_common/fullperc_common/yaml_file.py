@@ -29,6 +29,17 @@ RosParamsLoader.add_implicit_resolver(
     re.compile(r"^[-+]?[0-9]+(?:\.[0-9]*)?[eE][-+]?[0-9]+$"),
     list("-+0123456789"))
 
+# libyaml's parser where PyYAML was built with it (the wheels are): the same safe constructor and resolvers, so the
+# same Python objects, ~9x faster -- the layout alone took ~15 ms of every offline evaluation with the pure-Python
+# one. The key is the loader a caller asks for, the value the one that reads the same way through libyaml.
+_FAST: dict[type, type] = {}
+if hasattr(yaml, "CSafeLoader"):
+    class _RosParamsCLoader(yaml.CSafeLoader):
+        """:class:`RosParamsLoader` through libyaml."""
+
+    _RosParamsCLoader.yaml_implicit_resolvers = RosParamsLoader.yaml_implicit_resolvers
+    _FAST = {yaml.SafeLoader: yaml.CSafeLoader, RosParamsLoader: _RosParamsCLoader}
+
 
 def load_yaml_file(path: str | os.PathLike, what: str, error: type[Exception],
                    loader: type[yaml.SafeLoader] = yaml.SafeLoader) -> Any:
@@ -40,6 +51,6 @@ def load_yaml_file(path: str | os.PathLike, what: str, error: type[Exception],
     except (OSError, UnicodeDecodeError) as e:   # not UTF-8 (a binary file given by mistake) is unreadable too
         raise error(f"{what} {p}: cannot read: {e}") from e
     try:
-        return yaml.load(text, Loader=loader)
+        return yaml.load(text, Loader=_FAST.get(loader, loader))
     except yaml.YAMLError as e:
         raise error(f"{what} {p}: not valid YAML: {e}") from e

@@ -80,6 +80,23 @@ def test_tool_offset_and_batch():
     assert np.allclose(kin7.fk_tool(Q[0]), tool[0], atol=1e-12)
 
 
+def test_batch_fk_is_the_single_fk_bit_for_bit_and_refuses_nan():
+    """fk_many validates the batch once (not per row, issue 38 item 5): the same poses as fk row by row, also for a
+    strided batch, and the same error for a NaN anywhere."""
+    kin = DianaKinematics()
+    rng = np.random.default_rng(2)
+    lo, hi = kin.joint_limits
+    Q = rng.uniform(lo, hi, size=(50, 7))
+    for batch in (Q, np.asfortranarray(Q), Q[::2]):
+        want = np.stack([kin.fk(q) for q in batch])
+        assert kin.fk_many(batch).tobytes() == want.tobytes()
+        assert kin.fk_many(batch, tool=True).tobytes() == np.stack([kin.fk_tool(q) for q in batch]).tobytes()
+    bad = Q.copy()
+    bad[30, 4] = np.nan
+    with pytest.raises(ValueError, match="NaN/inf"):
+        kin.fk_many(bad)
+
+
 def test_getdh_arrays_build_same_model_and_change_fk():
     a, alpha, d, theta = DIANA7_MDH[:, 1], DIANA7_MDH[:, 0], DIANA7_MDH[:, 2], DIANA7_MDH[:, 3]
     q = np.array([0.3, -0.4, 0.5, 1.0, -0.2, 0.7, 0.1])

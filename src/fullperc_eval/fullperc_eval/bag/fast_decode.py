@@ -20,7 +20,9 @@ strings every field sits at a fixed offset).
 :func:`read_raw` walks the MCAP file itself (chunks decompressed once, records cut with ``struct``) and returns
 the records of the wanted topics in exactly the order rosbags' reader yields them (log time, then chunk offset,
 then position in the chunk); anything it does not handle (several files, sqlite3, unchunked MCAP, an unknown
-compression) returns None and the caller reads through rosbags.
+compression) returns None and the caller reads through rosbags. A chunk followed by message index records (what
+rosbag2's writer produces) is read through them -- only after checking that the indexed messages and the chunk's
+other records tile the chunk exactly, i.e. that the walk would find the very same records; else it is walked.
 """
 
 from __future__ import annotations
@@ -39,7 +41,7 @@ from .errors import BagError
 CDR_LE = b"\x00\x01\x00\x00"
 POSE_FLOATS = 7
 MCAP_MAGIC = b"\x89MCAP0\r\n"
-OP_CHANNEL, OP_MESSAGE, OP_CHUNK, OP_DATA_END = 0x04, 0x05, 0x06, 0x0F
+OP_CHANNEL, OP_MESSAGE, OP_CHUNK, OP_MESSAGE_INDEX, OP_DATA_END = 0x04, 0x05, 0x06, 0x07, 0x0F
 
 
 @dataclass
@@ -348,6 +350,8 @@ def read_raw(path: Path, files: Sequence[str], topics: Sequence[str]) -> RawMess
     data: list[bytes] = []
     unpack_op = struct.Struct("<BQ").unpack_from
     unpack_msg = struct.Struct("<HIQ").unpack_from
+    unpack_head = struct.Struct("<BQHIQ").unpack_from   # opcode, length, then a message's channel, sequence, time
+    unpack_index = struct.Struct("<BQHI").unpack_from   # a message index: opcode, length, channel, entries' bytes
 
     def channel(body: bytes | memoryview, off: int) -> None:
         cid, _, tlen = struct.unpack_from("<HHI", body, off)
@@ -355,9 +359,91 @@ def read_raw(path: Path, files: Sequence[str], topics: Sequence[str]) -> RawMess
         if topic in want:
             chan[cid] = want[topic]
 
+    def indexed(body: memoryview, chunk_no: int, at: int, top_end: int) -> bool:
+        """Take the chunk's messages through the message index records that follow it at the top level (from
+        ``at``), or return False having taken nothing. Each indexed record is checked against the chunk's bytes
+        (opcode, channel, log time, a whole header) and the indexed messages with the chunk's other records must
+        tile the chunk exactly, those others being no messages and no chunks: then walking the chunk reads the
+        very same records in the same order, and this is that walk without a Python step per record (~4x faster;
+        the walk was most of a read). A channel defined inside the chunk counts from its record on, as in walk."""
+        cids, ents = [], []
+        while at + 15 <= top_end and buf[at] == OP_MESSAGE_INDEX:
+            _, size, cid, blen = unpack_index(buf, at)
+            if blen % 16 or 6 + blen > size:
+                return False
+            ents.append(np.frombuffer(buf, dtype="<u8", count=blen // 8, offset=at + 15).reshape(-1, 2))
+            cids.append(np.full(blen // 16, cid, np.int64))
+            at += 9 + size
+        n = len(body)
+        e = np.concatenate(ents) if ents else np.zeros((0, 2), np.uint64)
+        if not len(e) or n < 31 or not (e[:, 1] <= n - 31).all():
+            return False
+        o = np.argsort(e[:, 1], kind="stable")
+        off = e[o, 1].astype(np.int64)
+        cid = np.concatenate(cids)[o]
+        b = np.frombuffer(body, np.uint8)
+
+        def field(start: int, width: int, dt: str) -> np.ndarray:
+            return np.ascontiguousarray(b[off[:, None] + np.arange(start, start + width)]).view(dt)[:, 0]
+
+        size = field(1, 8, "<u8").astype(np.int64)   # a length past 2**63 turns negative: refused below
+        ends = off + 9 + size
+        if not ((b[off] == OP_MESSAGE).all() and (field(9, 2, "<u2") == cid).all()
+                and (field(15, 8, "<u8") == e[o, 0]).all() and (size >= 22).all() and (ends <= n).all()
+                and (ends[:-1] <= off[1:]).all()):
+            return False
+        defs: dict[int, tuple[int, int]] = {}   # channels this chunk defines: channel -> (topic index, offset)
+        for g, stop in zip([0, *ends.tolist()], [*off.tolist(), n], strict=True):
+            while g < stop:   # the records between two messages (and before the first / after the last)
+                if g + 9 > stop:
+                    return False
+                op, rsize = unpack_op(body, g)
+                if op in (OP_MESSAGE, OP_CHUNK) or g + 9 + rsize > stop:
+                    return False
+                if op == OP_CHANNEL:
+                    try:
+                        c, _, tlen = struct.unpack_from("<HHI", body, g + 9)
+                        topic = bytes(body[g + 17:g + 17 + tlen]).decode()
+                    except (struct.error, UnicodeDecodeError):
+                        return False          # walk raises on it
+                    if topic in want:
+                        if c in chan or c in defs:
+                            return False      # a channel redefined: walk's order decides, let it
+                        defs[c] = (want[topic], g)
+                g += 9 + rsize
+        k_of = np.full(len(off), -1, np.int64)
+        for c, k in chan.items():
+            k_of[cid == c] = k
+        for c, (k, g) in defs.items():
+            k_of[(cid == c) & (off > g)] = k
+        for c, (k, _) in defs.items():
+            chan[c] = k
+        sel = np.flatnonzero(k_of >= 0)
+        m = len(sel)
+        rec_chunk.extend([chunk_no] * m)
+        rec_pos.extend(range(len(rec_pos), len(rec_pos) + m))
+        rec_t.extend(field(15, 8, "<u8")[sel].tolist())
+        rec_topic.extend(k_of[sel].tolist())
+        data.extend([bytes(body[s0:s1]) for s0, s1 in zip((off[sel] + 31).tolist(), ends[sel].tolist(), strict=True)])
+        return True
+
     def walk(body: bytes | memoryview, chunk_no: int, top: bool) -> bool:
         off, end = (8, len(body) - 8) if top else (0, len(body))
+        get = chan.get
         while off + 9 <= end:
+            if not top and body[off] == OP_MESSAGE and off + 31 <= end:
+                # a message in a chunk (nearly every record): opcode, length and the message header in one unpack,
+                # the same fields and bytes as the general branch below (~40 % less time per record)
+                _, size, cid, _, log_time = unpack_head(body, off)
+                k = get(cid)
+                if k is not None:
+                    rec_chunk.append(chunk_no)
+                    rec_pos.append(len(rec_pos))
+                    rec_t.append(log_time)
+                    rec_topic.append(k)
+                    data.append(bytes(body[off + 31:off + 9 + size]))
+                off += 9 + size
+                continue
             op, size = unpack_op(body, off)
             off += 9
             if op == OP_CHANNEL:
@@ -389,7 +475,8 @@ def read_raw(path: Path, files: Sequence[str], topics: Sequence[str]) -> RawMess
                 if len(raw) != usize or (crc and crc32(raw) != crc):
                     raise BagError(f"bag {str(path)!r} is corrupt: chunk at byte {off - 9} fails its "
                                    "size or CRC check")
-                if not walk(memoryview(raw), off - 9, False):
+                chunk = memoryview(raw)
+                if not (indexed(chunk, off - 9, off + size, end) or walk(chunk, off - 9, False)):
                     return False
             elif op == OP_DATA_END and top:
                 break

@@ -97,6 +97,10 @@ def build_metadata(storage: str, topics: Iterable[TopicInfo], files: Sequence[Fi
 # recorder rewrites metadata.yaml at every flush (writer.py); with the pure-Python emitter that was 10 s of a demo
 # recording's 50 s (79 rewrites of a 28 kB file, profiled), on a machine where fusion_node needs the CPU
 _DUMPER = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
+# ... and its parser for reading it: the same safe constructor and resolver (the same Python objects), ~9x faster;
+# every evaluation opens the bag's metadata first (60 ms of a 12 kB file with the pure-Python parser, a tenth of an
+# offline evaluation of a 28 s bag)
+_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
 
 def dump_yaml(data, **kw) -> str:
@@ -124,7 +128,7 @@ def load_metadata(bagdir: Path) -> dict:
         raise BagError(f"bag {str(bagdir)!r} has no {METADATA_FILE} (recorder killed before its first flush, "
                        f"or not a rosbag2 bag); rebuild it with: {REINDEX_HINT} {bagdir}")
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml.load(path.read_text(), Loader=_LOADER)
         info = data["rosbag2_bagfile_information"]
         for key in ("version", "storage_identifier", "topics_with_message_count", "relative_file_paths"):
             info[key]  # noqa: B018 - presence check

@@ -47,6 +47,7 @@ from scipy.special import chdtri  # the chi^2 quantile: scipy.stats costs a node
 
 from fullperc_common.so3 import skew
 from fullperc_common.transforms import T_to_pq, make_T, mean_T
+from fullperc_fusion.calibration.so3_stack import mean_rotation, quats, rotvecs
 
 CALIBRATION_VERSION = 1
 LINK_NAMES = ("T_omc_base", "T_base_ots", "T_rig_ots")
@@ -150,7 +151,7 @@ def se3_residuals(T_ref: np.ndarray, Ts: np.ndarray) -> np.ndarray:
     """(N, 6) residuals [p_i - p_ref, Log(R_i R_ref^T)] of a stack of transforms (N, 4, 4)."""
     Ts = np.asarray(Ts, dtype=float).reshape(-1, 4, 4)
     dp = Ts[:, :3, 3] - T_ref[:3, 3]
-    dth = Rotation.from_matrix(Ts[:, :3, :3] @ T_ref[:3, :3].T).as_rotvec()
+    dth = rotvecs(Ts[:, :3, :3] @ T_ref[:3, :3].T)   # Rotation.from_matrix(...).as_rotvec(), bit for bit
     return np.hstack([dp, dth])
 
 
@@ -205,11 +206,27 @@ def as_pose_stack(poses, what: str = "poses") -> np.ndarray:
     return Ts
 
 
-def _rotation_medoid(Rs: np.ndarray) -> np.ndarray:
-    idx = np.unique(np.linspace(0, len(Rs) - 1, min(len(Rs), _MEDOID_MAX)).round().astype(int))
-    q = Rotation.from_matrix(Rs[idx]).as_quat()
+def _median0(x: np.ndarray) -> np.ndarray:
+    """``np.median(x, axis=0)`` of a 2-D array, the same values: the middle element of each sorted column, or the
+    mean (a + b) / 2 of the two middle ones, as np.median takes them from its partition (a tie of -0.0 and 0.0 may
+    come out as either sign in both); NaN columns through np.median itself. Why: np.median's wrapper cost ~15 us per
+    call, four calls per robust mean, whose columns hold a few dozen values."""
+    s = np.sort(x, axis=0)
+    n = len(s)
+    if not n or np.isnan(s[-1]).any():
+        return np.median(x, axis=0)
+    h = n // 2
+    return s[h] if n % 2 else (s[h - 1] + s[h]) / 2
+
+
+def _rotation_medoid(Rs: np.ndarray, q_all: np.ndarray | None = None) -> np.ndarray:
+    """The sample with the smallest median angle to the others (over at most 256 evenly spaced samples);
+    ``q_all``: the quaternions of ``Rs`` (:func:`.so3_stack.quats`) when the caller has them."""
+    n = len(Rs)   # up to _MEDOID_MAX samples the evenly spaced indices are every index (linspace's step is 1.0)
+    idx = np.arange(n) if n <= _MEDOID_MAX else np.unique(np.linspace(0, n - 1, _MEDOID_MAX).round().astype(int))
+    q = quats(Rs[idx]) if q_all is None else q_all[idx]
     ang = 2.0 * np.arccos(np.clip(np.abs(q @ q.T), 0.0, 1.0))
-    return Rs[idx[int(np.argmin(np.median(ang, axis=0)))]]
+    return Rs[idx[int(np.argmin(_median0(ang)))]]
 
 
 def _block_d2(r: np.ndarray, C: np.ndarray, floor: float) -> np.ndarray:
@@ -231,27 +248,41 @@ def robust_se3_mean(poses, *, alpha: float = 1e-3, max_iter: int = 50, source: s
         raise CalibrationError(f"{what}: {n} sample(s); a mean with covariance needs at least 2")
     q3 = chdtri(3, alpha)                    # chi^2_3 upper alpha quantile (= chi2.ppf(1 - alpha, 3))
     k1 = float(np.sqrt(chdtri(1, alpha)))
-    T0 = make_T(np.median(Ts[:, :3, 3], axis=0), R=_rotation_medoid(Ts[:, :3, :3]))
+    # every sample's quaternion once: the medoid and each round's mean take rows of it (so3_stack: the same bits
+    # as converting the subset; a mean of Ts[mask] is mean_T's, computed from these)
+    q_all = quats(Ts[:, :3, :3])
+    T0 = make_T(_median0(Ts[:, :3, 3]), R=_rotation_medoid(Ts[:, :3, :3], q_all))
     r = se3_residuals(T0, Ts)
-    med = np.median(r, axis=0)
+    med = _median0(r)
     floors = np.repeat(GATE_FLOOR, 3)
-    s = np.maximum(1.4826 * np.median(np.abs(r - med), axis=0), floors)
+    s = np.maximum(1.4826 * _median0(np.abs(r - med)), floors)
     mask = np.all(np.abs(r - med) <= k1 * s, axis=1)
+    Tm = r_m = None   # the mean of the samples of ``mask`` and the residuals about it, once known
     for _ in range(max_iter):
         if mask.sum() < 2:
             break
-        Tm = mean_T(list(Ts[mask]))
-        r = se3_residuals(Tm, Ts)
+        Tm = _mean_T_of(Ts, q_all, mask)
+        r_m = r = se3_residuals(Tm, Ts)
         C = np.cov(r[mask], rowvar=False, ddof=1)
         new = (_block_d2(r[:, :3], C[:3, :3], GATE_FLOOR[0]) <= q3) & \
             (_block_d2(r[:, 3:], C[3:, 3:], GATE_FLOOR[1]) <= q3)
         if np.array_equal(new, mask):
-            break
+            break   # converged: Tm and r_m are those of the final mask
         mask = new
+        Tm = r_m = None
     n_in = int(mask.sum())
     if n_in < 2:
         raise CalibrationError(f"{what}: only {n_in} of {n} samples are mutually consistent")
-    return _estimate(mean_T(list(Ts[mask])), Ts, mask, source)
+    if Tm is None:   # the rounds ran out with a new mask
+        Tm = _mean_T_of(Ts, q_all, mask)
+    return _estimate(Tm, Ts, mask, source, r_m)
+
+
+def _mean_T_of(Ts: np.ndarray, q_all: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``mean_T(list(Ts[mask]))`` bit for bit, from the quaternions ``q_all`` of every sample: the arithmetic mean
+    of the positions (the same contiguous (n, 3) array mean_T stacks) and scipy's chordal mean of the rotations."""
+    S = Ts[mask]
+    return make_T(np.mean(np.ascontiguousarray(S[:, :3, 3]), axis=0), R=mean_rotation(S[:, :3, :3], q_all, mask))
 
 
 def mean_estimate(poses, T_mean: np.ndarray | None = None, *, source: str = "", what: str = "poses") -> LinkEstimate:
@@ -270,11 +301,12 @@ def mean_estimate(poses, T_mean: np.ndarray | None = None, *, source: str = "", 
                      np.ones(len(Ts), dtype=bool), source)
 
 
-def _estimate(Tm: np.ndarray, Ts: np.ndarray, mask: np.ndarray, source: str) -> LinkEstimate:
+def _estimate(Tm: np.ndarray, Ts: np.ndarray, mask: np.ndarray, source: str,
+              r_all: np.ndarray | None = None) -> LinkEstimate:
     """LinkEstimate of the mean Tm of the samples Ts[mask]: covariance of the mean (module docstring, step 3) and
-    the residual statistics."""
+    the residual statistics; ``r_all``: ``se3_residuals(Tm, Ts)`` when the caller has them."""
     n_in = int(mask.sum())
-    r = se3_residuals(Tm, Ts)[mask]
+    r = (se3_residuals(Tm, Ts) if r_all is None else r_all)[mask]
     cov = np.cov(r, rowvar=False, ddof=1) / n_in + np.diag(np.repeat(np.square(COV_FLOOR), 3))
     cov = 0.5 * (cov + cov.T)
     et = np.linalg.norm(r[:, :3], axis=1) * 1e3

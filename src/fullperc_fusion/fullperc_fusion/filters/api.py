@@ -78,10 +78,12 @@ def check_covariance(cov) -> np.ndarray:
             C = C.reshape(6, 6)   # the row-major 36-vector of geometry_msgs/PoseWithCovariance
         else:
             raise BadMeasurement(f"covariance must be 6x6 (or 36 values), got shape {C.shape}")
-    if not np.all(np.isfinite(C)):
+    # ndarray methods: the same reductions as np.all / np.max without their Python dispatch (~1.5 us each; this
+    # runs for every model measurement of a per-sample replay)
+    if not np.isfinite(C).all():
         raise BadMeasurement("non-finite covariance")
-    scale = float(np.max(np.abs(C)))
-    if float(np.max(np.abs(C - C.T))) > SYMMETRY_RTOL * scale:
+    scale = float(np.abs(C).max())
+    if float(np.abs(C - C.T).max()) > SYMMETRY_RTOL * scale:
         raise BadMeasurement("covariance not symmetric")
     try:
         np.linalg.cholesky(0.5 * (C + C.T))
@@ -153,7 +155,7 @@ class Measurement:
             raise BadMeasurement("every sample needs its stamp")
         self.t_ns = int(self.t_ns)
         p = np.asarray(self.p, dtype=float).reshape(3)
-        if not np.all(np.isfinite(p)):
+        if not np.isfinite(p).all():
             raise BadMeasurement("non-finite measurement")
         self.p = p
         if self.q is not None:

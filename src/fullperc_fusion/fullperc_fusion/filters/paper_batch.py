@@ -17,6 +17,7 @@ sample older than ``max_gap_s``, a non-finite state).
 
 from __future__ import annotations
 
+from array import array
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,19 +46,35 @@ class BatchOutput:
 
 
 class _State:
-    """One filter's closed-form state (ClosedFormFilter's ``_X``, ``_C``, ``t_ns``, ``_pending_ns``)."""
+    """One filter's closed-form state (ClosedFormFilter's ``_X``, ``_C``, ``t_ns``, ``_pending_ns``) and its outputs
+    so far, appended per item to flat float / bool buffers (:meth:`output` makes the arrays once: writing a numpy
+    row per item cost ~1 us each, three per item and filter)."""
 
-    __slots__ = ("C", "X", "form", "has_bias", "kind", "out", "pending", "t")
+    __slots__ = ("C", "X", "bias", "form", "has_bias", "hop", "kind", "p", "pending", "pos_var", "reset", "t")
 
-    def __init__(self, kind: str, params: FilterParams, n_items: int) -> None:
+    def __init__(self, kind: str, params: FilterParams) -> None:
         self.kind = kind
         self.form: AxisForm = axis_form(kind, params)
         self.has_bias = self.form.has_bias
         self.X, self.C = initial_axes(self.form)
         self.t: int | None = None
         self.pending: int | None = None
-        self.out = BatchOutput(np.zeros((n_items, 3)), np.zeros((n_items, 3)), np.zeros((n_items, 3)),
-                               np.zeros(n_items, bool), np.zeros(n_items, np.int64), np.zeros(n_items, bool))
+        self.p = array("d")         # x y z per item
+        self.bias = array("d")      # per item, only with the bias state
+        self.pos_var = array("d")   # per item, the variance of each position axis
+        self.hop: list[bool] = []
+        self.reset: list[bool] = []
+
+    def output(self, sources: np.ndarray) -> BatchOutput:
+        """The filter's :class:`BatchOutput` over every item so far (``sources``: the items' source bits)."""
+        n = len(self.hop)
+
+        def rows(buf: array) -> np.ndarray:
+            return np.frombuffer(buf, dtype=float).reshape(n, 3).copy() if n else np.zeros((0, 3))
+
+        return BatchOutput(rows(self.p), rows(self.bias) if self.has_bias else np.zeros((n, 3)), rows(self.pos_var),
+                           np.array(self.hop, dtype=bool).reshape(n), sources.copy(),
+                           np.array(self.reset, dtype=bool).reshape(n))
 
 
 def run_closed_form(kinds: tuple[str, ...] | list[str], params: FilterParams, t_item: list[int],
@@ -73,16 +90,16 @@ def run_closed_form(kinds: tuple[str, ...] | list[str], params: FilterParams, t_
         if k not in FILTER_KINDS:
             raise BatchUnsupported(f"filter '{k}' has no batched form")
     n_items = len(t_item)
-    states = [_State(k, params, n_items) for k in kinds]
+    states = [_State(k, params) for k in kinds]
     max_gap = params.max_gap_s
+    sources = np.array([(SOURCE_GLOBAL if tg is not None else 0) | (SOURCE_LOCAL if tl is not None else 0)
+                        for tg, tl in zip(g_t, l_t, strict=True)], dtype=np.int64).reshape(n_items)
     for i in range(n_items):
         t_i = t_item[i]
         tg, tl = g_t[i], l_t[i]
         zg, zl = g_p[i], l_p[i]
-        src = (SOURCE_GLOBAL if tg is not None else 0) | (SOURCE_LOCAL if tl is not None else 0)
         for s in states:
-            form, out = s.form, s.out
-            out.sources[i] = src
+            form = s.form
             # predict(t_i) as ClosedFormFilter.predict; the filter's time is t_i after it, so update does not predict
             try:
                 t, dt = predict_interval(t_i, s.t, s.pending, max_gap)
@@ -97,20 +114,24 @@ def run_closed_form(kinds: tuple[str, ...] | list[str], params: FilterParams, t_
                 s.X, s.C = init_axes(form, s.X, s.C, (t - s.t) * 1e-9 if s.t is not None else None, zg, zl)
                 s.t, s.pending = t, None
                 X = s.X
-                out.p[i] = X[0:3]
+                s.p.extend(X[0:3])
                 if s.has_bias:
-                    out.bias[i] = X[6:9]
-                out.pos_var[i] = form.init_pos_var
-                out.reset[i] = True
+                    s.bias.extend(X[6:9])
+                v = form.init_pos_var
+                s.pos_var.extend((v, v, v))
+                s.hop.append(False)
+                s.reset.append(True)
                 continue
             try:
-                s.X, s.C, out.hop[i], _, _, _, _ = update_axes(form, s.X, s.C, t, tg, zg, form.global_var, tl, zl,
-                                                               form.local_var, False)
+                X, C, hop, _, _, _, _ = update_axes(form, s.X, s.C, t, tg, zg, form.global_var, tl, zl,
+                                                    form.local_var, False)
             except (ValueError, FloatingPointError) as e:
                 raise BatchUnsupported(f"filter {s.kind} at item {i}: {e}") from None
-            X, C = s.X, s.C
-            out.p[i] = X[0:3]
+            s.X, s.C = X, C
+            s.p.extend(X[0:3])
             if s.has_bias:
-                out.bias[i] = X[6:9]
-            out.pos_var[i] = (C[0][0], C[1][0], C[2][0])
-    return {s.kind: s.out for s in states}
+                s.bias.extend(X[6:9])
+            s.pos_var.extend((C[0][0], C[1][0], C[2][0]))
+            s.hop.append(hop)
+            s.reset.append(False)
+    return {s.kind: s.output(sources) for s in states}

@@ -150,39 +150,48 @@ def update_axes(form: AxisForm, X: list[float], C: list[list[float]], t: int, tg
         if ll > max_gap:
             raise ValueError(f"measurement {ll:.3f} s older than the filter time (max_gap_s {max_gap})")
     hb = 1.0 if has_bias else 0.0
-    # pass 1: innovations, U = P h^T, S per axis; the global NIS decides the hop before any gain
+    # pass 1: innovations, U = P h^T, S per axis; the global NIS decides the hop before any gain. One loop per
+    # combination of sources (the same arithmetic; no per-axis tests of which samples there are).
     ax = []
     nis_g = 0.0
-    ug0 = ug1 = ug2 = sgg = yg = ul0 = ul1 = ul2 = sll = yl = sgl = 0.0
-    for a in range(3):
-        pp, pv, pb, vv, vb, bb = C[a]
-        p, v = X[a], X[3 + a]
-        b = X[6 + a] if has_bias else 0.0
-        if has_g:
+    if has_g and has_l:
+        for a in range(3):
+            pp, pv, pb, vv, vb, bb = C[a]
+            p, v = X[a], X[3 + a]
+            b = X[6 + a] if has_bias else 0.0
             ug0, ug1, ug2 = pp - lg * pv + hb * pb, pv - lg * vv + hb * vb, pb - lg * vb + hb * bb
             sgg = ug0 - lg * ug1 + hb * ug2 + rg[a]
             yg = zg[a] - (p - lg * v + hb * b)
             nis_g += yg * yg / sgg
-        if has_l:
             ul0, ul1, ul2 = pp - ll * pv, pv - ll * vv, pb - ll * vb
-            sll = ul0 - ll * ul1 + rl[a]
-            yl = zl[a] - (p - ll * v)
-            if has_g:
-                sgl = ul0 - lg * ul1 + hb * ul2
-        ax.append((ug0, ug1, ug2, sgg, yg, ul0, ul1, ul2, sll, yl, sgl))
+            ax.append((ug0, ug1, ug2, sgg, yg, ul0, ul1, ul2, ul0 - ll * ul1 + rl[a], zl[a] - (p - ll * v),
+                       ul0 - lg * ul1 + hb * ul2))
+    elif has_g:
+        for a in range(3):
+            pp, pv, pb, vv, vb, bb = C[a]
+            b = X[6 + a] if has_bias else 0.0
+            ug0, ug1, ug2 = pp - lg * pv + hb * pb, pv - lg * vv + hb * vb, pb - lg * vb + hb * bb
+            sgg = ug0 - lg * ug1 + hb * ug2 + rg[a]
+            yg = zg[a] - (X[a] - lg * X[3 + a] + hb * b)
+            nis_g += yg * yg / sgg
+            ax.append((ug0, ug1, ug2, sgg, yg))
+    else:
+        for a in range(3):
+            pp, pv, pb, vv, vb, _ = C[a]
+            ul0, ul1, ul2 = pp - ll * pv, pv - ll * vv, pb - ll * vb
+            ax.append((ul0, ul1, ul2, ul0 - ll * ul1 + rl[a], zl[a] - (X[a] - ll * X[3 + a])))
     nis = 0.0
     innov = m = None
     if full:   # NIS of the stacked update, y^T S^-1 y per axis through S = L D L^T, L = [[1, 0], [lgl, 1]]
-        for _, _, _, sgg, yg, _, _, _, sll, yl, sgl in ax:
-            if has_g and has_l:
+        if has_g and has_l:
+            for _, _, _, sgg, yg, _, _, _, sll, yl, sgl in ax:
                 lgl = sgl / sgg
                 e = yl - lgl * yg
                 nis += yg * yg / sgg + e * e / (sll - lgl * sgl)
-            elif has_g:
-                nis += yg * yg / sgg
-            else:
-                nis += yl * yl / sll
-        innov = [r[4] for r in ax] if has_g else [r[9] for r in ax]
+        else:
+            for _, _, _, s, y in ax:
+                nis += y * y / s
+        innov = [r[4] for r in ax]
         m = [1.0] * len(X) if biased else None
     hop = has_g and nis_g > gate
     inflate = hop and inflate_hops
@@ -191,14 +200,14 @@ def update_axes(form: AxisForm, X: list[float], C: list[list[float]], t: int, tg
     Cn = []
     total = 0.0
     for a in range(3):
-        ug0, ug1, ug2, sgg, yg, ul0, ul1, ul2, sll, yl, sgl = ax[a]
         c0, c1, c2, c3, c4, c5 = C[a]
-        if inflate:
-            d = yg * yg
-            c5 = c5 + d
-            ug2 = ug2 + d
-            sgg += d
         if has_g and has_l:
+            ug0, ug1, ug2, sgg, yg, ul0, ul1, ul2, sll, yl, sgl = ax[a]
+            if inflate:
+                d = yg * yg
+                c5 = c5 + d
+                ug2 = ug2 + d
+                sgg += d
             # U S^-1 U^T and U S^-1 y through S = L D L^T: W = U L^-T = [ug, ul - lgl ug], D = diag(sgg, d2)
             lgl = sgl / sgg
             d2 = sll - lgl * sgl
@@ -211,10 +220,12 @@ def update_axes(form: AxisForm, X: list[float], C: list[list[float]], t: int, tg
             n2, n3 = c2 - (kg0 * ug2 + kl0 * w2), c3 - (kg1 * ug1 + kl1 * w1)
             n4, n5 = c4 - (kg1 * ug2 + kl1 * w2), c5 - (kg2 * ug2 + kl2 * w2)
         else:
-            if has_g:
-                u0, u1, u2, s, y = ug0, ug1, ug2, sgg, yg
-            else:
-                u0, u1, u2, s, y = ul0, ul1, ul2, sll, yl
+            u0, u1, u2, s, y = ax[a]
+            if inflate:
+                d = y * y
+                c5 = c5 + d
+                u2 = u2 + d
+                s += d
             k0, k1, k2 = u0 / s, u1 / s, u2 / s
             dx0, dx1, dx2 = k0 * y, k1 * y, k2 * y
             n0, n1, n2 = c0 - k0 * u0, c1 - k0 * u1, c2 - k0 * u2

@@ -121,7 +121,16 @@ class ApproxSync:
         now = self.watermark_ns if now_ns is None else int(now_ns)
         if now is None:
             return []
-        return self._drain(lambda t: now >= t + 2 * self.slop + self.delay)
+        final_by = now - 2 * self.slop - self.delay   # now >= t + 2 slop + delay, on integers
+        # _drain's first test (the earliest pending sample final, or its stream overflowing) done here: most polls
+        # (one per target sample) emit nothing, and building the drain was most of their cost
+        head = None
+        for s, ts in enumerate(self._t):
+            if ts and (head is None or (ts[0], s) < head):
+                head = (ts[0], s)
+        if head is None or (head[0] > final_by and len(self._t[head[1]]) <= self.max_pending):
+            return []
+        return self._drain(lambda t: t <= final_by)
 
     def flush(self) -> list[SyncItem]:
         """Emit everything pending (end of data, or a stream stop)."""
@@ -152,9 +161,12 @@ class ApproxSync:
         ts = self._t[stream]
         if not ts:
             return None
-        i = bisect.bisect_left(ts, t_ns)
-        cands = [j for j in (i - 1, i) if 0 <= j < len(ts)]
-        return min(cands, key=lambda j: (abs(ts[j] - t_ns), ts[j]))
+        i = bisect.bisect_left(ts, t_ns)   # ts[i - 1] < t_ns <= ts[i]
+        if i == 0:
+            return 0
+        if i == len(ts):
+            return i - 1
+        return i - 1 if t_ns - ts[i - 1] <= ts[i] - t_ns else i   # a tie: the earlier (smaller) stamp
 
     def _drain(self, final) -> list[SyncItem]:
         out: list[SyncItem] = []

@@ -1,0 +1,333 @@
+"""The fusion core's faster forms of a computation give the very numbers of the plain form (issue 38 item 5).
+
+Each speed-up of the offline evaluation's hot paths keeps the arithmetic of what it replaces; these tests pin each one
+to its plain form bit for bit (``tobytes`` / ``==`` on floats, not a tolerance), on random inputs and on the edge
+cases where the fast form hands over to the plain one:
+
+* :mod:`.calibration.so3_stack` against scipy's public ``Rotation`` calls (the robust SE(3) means);
+* the robust mean's pieces (``_median0``, ``_mean_T_of``, the medoid's indices) against numpy / ``mean_T``;
+* :func:`.calibration.poses.pose_to_T`'s 4x4 test on floats against the numpy expression, near its tolerance;
+* the synchronizer's nearest-sample rule and its poll shortcut against a brute-force rule and a plain drain;
+* the filter kernel's update with one loop per source combination on every kind, source mix and a hop.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from fullperc_common.transforms import make_T, mean_T
+from fullperc_fusion.calibration import so3_stack
+from fullperc_fusion.calibration.poses import BadSample, pose_to_T
+from fullperc_fusion.calibration.se3_stats import _MEDOID_MAX, _mean_T_of, _median0, robust_se3_mean
+from fullperc_fusion.filters.paper_family import FILTER_KINDS, FilterParams
+from fullperc_fusion.filters.paper_kernel import axis_form, update_axes
+from fullperc_fusion.pipeline.synchronizer import ApproxSync
+
+
+def _rotations(rng: np.random.Generator, n: int, spread: float = 0.01) -> np.ndarray:
+    """n rotation matrices near a random one (the robust mean's inputs: sightings of one still body)."""
+    R0 = Rotation.random(rng=rng).as_matrix()
+    return Rotation.from_rotvec(rng.normal(size=(n, 3)) * spread).as_matrix() @ R0
+
+
+def _same(a: np.ndarray, b: np.ndarray) -> bool:
+    a, b = np.asarray(a), np.asarray(b)
+    return a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+
+
+# ------------------------------------------------------------------------------------------- so3_stack
+def test_the_scipy_backend_is_used_here():
+    """The numbers below are only interesting where the fast path runs: the installed scipy has its backend (without
+    it so3_stack takes scipy's public calls: the same numbers, the robust means ~2x slower)."""
+    assert so3_stack.HAVE_BACKEND, "scipy's Cython Rotation backend is missing: so3_stack runs its slow fallback"
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_quats_and_rotvecs_equal_scipy(seed):
+    rng = np.random.default_rng(seed)
+    for n, spread in ((1, 0.01), (60, 0.003), (300, 0.05), (17, 3.0)):
+        R = _rotations(rng, n, spread)
+        # products like the residuals' R_i R_ref^T: orthogonal to rounding, not exactly
+        R = R @ Rotation.random(rng=rng).as_matrix().T
+        assert _same(so3_stack.quats(R), Rotation.from_matrix(R).as_quat())
+        assert _same(so3_stack.rotvecs(R), Rotation.from_matrix(R).as_rotvec())
+        assert _same(so3_stack.rotvecs(R[:, :, :]), Rotation.from_matrix(R).as_rotvec())   # a strided view too
+
+
+def test_quats_hand_other_matrices_to_scipy():
+    """Not (nearly) orthogonal, a reflection, NaN: scipy's own result or error, whatever it is."""
+    rng = np.random.default_rng(7)
+    R = _rotations(rng, 20)
+    off = R.copy()
+    off[3] *= 1.0 + 1e-9                        # past the 1e-13 the fast path vouches for: scipy's SVD path
+    off[5, 0, 1] += 2e-12
+    assert _same(so3_stack.quats(off), Rotation.from_matrix(off).as_quat())
+    near = R.copy()
+    near[4, 0, 0] += 5e-14                      # within it: scipy's own tests pass too
+    assert _same(so3_stack.quats(near), Rotation.from_matrix(near).as_quat())
+    bad = R.copy()
+    bad[2] = -bad[2]                            # det -1
+    with pytest.raises(ValueError):
+        Rotation.from_matrix(bad)
+    with pytest.raises(ValueError):
+        so3_stack.quats(bad)
+    nan = R.copy()
+    nan[1, 2, 2] = np.nan
+    with np.errstate(invalid="ignore"):
+        try:
+            want: object = Rotation.from_matrix(nan).as_quat()
+        except Exception as e:  # noqa: BLE001 - whatever scipy does, the fast path does the same
+            want = type(e)
+        try:
+            got: object = so3_stack.quats(nan)
+        except Exception as e:  # noqa: BLE001
+            got = type(e)
+    assert (got is want) if isinstance(want, type) else _same(got, want)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_mean_rotation_of_rows_equals_scipys_mean_of_the_subset(seed):
+    rng = np.random.default_rng(10 + seed)
+    R = _rotations(rng, 80, 0.02)
+    q = so3_stack.quats(R)
+    for rows in (np.ones(80, bool), rng.random(80) < 0.7, np.flatnonzero(rng.random(80) < 0.3)):
+        want = Rotation.from_matrix(R[rows]).mean().as_matrix()
+        assert _same(so3_stack.mean_rotation(R, q, rows), want)
+
+
+# ------------------------------------------------------------------------------- robust mean's pieces
+def test_median0_is_numpys_median():
+    rng = np.random.default_rng(3)
+    for shape in ((1, 3), (2, 6), (59, 6), (60, 6), (61, 3), (256, 256)):
+        x = rng.normal(size=shape)
+        assert _same(_median0(x), np.median(x, axis=0))
+    x = rng.normal(size=(9, 4))
+    x[4, 1] = np.nan                            # NaN columns: np.median's own answer
+    assert np.array_equal(_median0(x), np.median(x, axis=0), equal_nan=True)
+    x = np.round(rng.normal(size=(40, 3)), 1)   # ties
+    assert _same(_median0(x), np.median(x, axis=0))
+
+
+def test_mean_of_a_mask_is_mean_T_of_the_subset():
+    rng = np.random.default_rng(4)
+    Ts = np.zeros((70, 4, 4))
+    Ts[:, :3, :3] = _rotations(rng, 70, 0.01)
+    Ts[:, :3, 3] = rng.normal(size=(70, 3)) * 1e-3 + [0.3, -1.2, 2.0]
+    Ts[:, 3, 3] = 1.0
+    q = so3_stack.quats(Ts[:, :3, :3])
+    for mask in (np.ones(70, bool), rng.random(70) < 0.6):
+        assert _same(_mean_T_of(Ts, q, mask), mean_T(list(Ts[mask])))
+
+
+def test_medoid_indices_are_every_sample_up_to_the_cap():
+    for n in range(1, _MEDOID_MAX + 1):
+        spaced = np.unique(np.linspace(0, n - 1, min(n, _MEDOID_MAX)).round().astype(int))
+        assert np.array_equal(spaced, np.arange(n))
+
+
+def test_robust_mean_is_deterministic_across_subsets_and_views():
+    """The quaternions of the stack are converted once and reused: the estimate of a stack does not depend on
+    whether it arrives as a view, a copy or as (positions, quaternions)."""
+    rng = np.random.default_rng(5)
+    Ts = np.zeros((120, 4, 4))
+    Ts[:, :3, :3] = _rotations(rng, 120, 0.002)
+    Ts[:, :3, 3] = rng.normal(size=(120, 3)) * 2e-4
+    Ts[:, 3, 3] = 1.0
+    Ts[::17, :3, 3] += 0.01                     # outliers
+    a = robust_se3_mean(Ts)
+    b = robust_se3_mean(np.ascontiguousarray(Ts[::1]))
+    for k in ("position", "quat_xyzw", "cov", "inliers"):
+        assert _same(getattr(a, k), getattr(b, k))
+    assert a.n_inliers < 120
+
+
+# -------------------------------------------------------------------------------------------- pose_to_T
+def _numpy_rotation_test(T: np.ndarray, tol: float) -> bool:
+    R = T[:3, :3]
+    return not (np.max(np.abs(R.T @ R - np.eye(3))) > tol or np.linalg.det(R) < 0)
+
+
+def test_pose_to_T_4x4_decides_as_the_numpy_expression():
+    rng = np.random.default_rng(6)
+    for k in range(4000):
+        T = make_T(rng.normal(size=3), R=Rotation.random(rng=rng).as_matrix())
+        kind = k % 5
+        if kind == 1:
+            T[:3, :3] *= 1.0 + rng.choice([-1.0, 1.0]) * 0.005 * (1.0 + rng.normal() * 1e-12)   # |err| ~ tol
+        elif kind == 2:
+            T[:3, 0] *= math.sqrt(1.0 + 1e-2 * (1.0 + rng.normal() * 1e-10))               # err right at tol
+        elif kind == 3:
+            T[:3, :3] = -T[:3, :3]                                                         # det -1
+        elif kind == 4:
+            T[0, :3] += rng.normal(size=3) * 1e-2
+        for tol in (1e-2, 1e-3, 0.3):
+            ok = _numpy_rotation_test(T, tol)
+            try:
+                out = pose_to_T(T, tol)
+                assert ok and out is T
+            except BadSample as e:
+                assert not ok and "not a rotation" in str(e)
+
+
+def test_pose_to_T_4x4_rejections_in_order():
+    T = np.eye(4)
+    T[1, 2] = np.nan
+    with pytest.raises(BadSample, match="non-finite"):
+        pose_to_T(T)
+    T = np.eye(4)
+    T[3, 0] = 1e-17
+    with pytest.raises(BadSample, match="last row"):
+        pose_to_T(T)
+    T = np.eye(4)
+    T[3, 1] = -0.0                               # -0.0 == 0.0, as in the numpy comparison
+    assert pose_to_T(T) is T
+
+
+def test_pose_to_T_quaternion_norm_is_numpys():
+    rng = np.random.default_rng(8)
+    for _ in range(2000):
+        q = rng.normal(size=4)
+        q = (q / np.linalg.norm(q) * (1.0 + rng.uniform(-5e-3, 5e-3))).astype(np.float32).astype(float)
+        x, y, z, w = (q / float(np.linalg.norm(q))).tolist()
+        want = make_T([0.1, 0.2, 0.3], [x, y, z, w])   # quat_to_R_rows normalises again, as pose_to_T does
+        assert _same(pose_to_T(([0.1, 0.2, 0.3], q)), want)
+
+
+# ------------------------------------------------------------------------------------------ synchronizer
+def test_nearest_is_the_brute_force_rule():
+    rng = random.Random(2)
+    s = ApproxSync()
+    for _ in range(3000):
+        ts = sorted(set(rng.randint(0, 60) for _ in range(rng.randint(1, 8))))
+        s._t = (ts, [])
+        t = rng.randint(-5, 65)
+        want = min(range(len(ts)), key=lambda j: (abs(ts[j] - t), ts[j]))
+        assert s._nearest(0, t) == want
+
+
+def _items(items):
+    return [(i.t_ns, i.glob and (i.glob.t_ns, i.glob.payload), i.local and (i.local.t_ns, i.local.payload), i.source)
+            for i in items]
+
+
+def test_poll_equals_a_plain_drain():
+    """poll's shortcut (nothing final, no overflow: no drain) gives what draining with its rule gives."""
+    rng = random.Random(3)
+    for _ in range(500):
+        slop, delay, maxp = rng.choice([0, 2, 5]), rng.choice([0, 7, 30]), rng.choice([2, 4096])
+        a, b = ApproxSync(slop, delay, max_pending=maxp), ApproxSync(slop, delay, max_pending=maxp)
+        t = [0, 0]
+        for k in range(60):
+            st = rng.randint(0, 1)
+            t[st] = max(1, t[st] + rng.randint(-4, 15))
+            assert a.push(st, t[st], k) == b.push(st, t[st], k)
+            now = a.watermark_ns if rng.random() < 0.7 else rng.randint(0, 400)
+            got = a.poll(now)
+            lag = 2 * b.slop + b.delay
+            want = [] if now is None else b._drain(lambda x, n=now, lag=lag: n >= x + lag)
+            assert _items(got) == _items(want)
+        assert _items(a.flush()) == _items(b.flush()) and a.counts == b.counts
+
+
+# ---------------------------------------------------------------------------------------- filter kernel
+def _reference_update(form, X, C, t, tg, zg, rg, tl, zl, rl):
+    """The update as one loop over the axes with the per-axis tests of which samples there are (the kernel's form
+    before the loops were split by source combination): the same arithmetic, written the plain way."""
+    (has_bias, biased, prior, sp, sv, sb, *_, gate, inflate_hops, max_gap) = form
+    has_g, has_l = zg is not None, zl is not None
+    lg = (t - tg) * 1e-9 if has_g else 0.0
+    ll = (t - tl) * 1e-9 if has_l else 0.0
+    hb = 1.0 if has_bias else 0.0
+    ax, nis_g = [], 0.0
+    ug0 = ug1 = ug2 = sgg = yg = ul0 = ul1 = ul2 = sll = yl = sgl = 0.0
+    for a in range(3):
+        pp, pv, pb, vv, vb, bb = C[a]
+        p, v = X[a], X[3 + a]
+        b = X[6 + a] if has_bias else 0.0
+        if has_g:
+            ug0, ug1, ug2 = pp - lg * pv + hb * pb, pv - lg * vv + hb * vb, pb - lg * vb + hb * bb
+            sgg = ug0 - lg * ug1 + hb * ug2 + rg[a]
+            yg = zg[a] - (p - lg * v + hb * b)
+            nis_g += yg * yg / sgg
+        if has_l:
+            ul0, ul1, ul2 = pp - ll * pv, pv - ll * vv, pb - ll * vb
+            sll = ul0 - ll * ul1 + rl[a]
+            yl = zl[a] - (p - ll * v)
+            if has_g:
+                sgl = ul0 - lg * ul1 + hb * ul2
+        ax.append((ug0, ug1, ug2, sgg, yg, ul0, ul1, ul2, sll, yl, sgl))
+    hop = has_g and nis_g > gate
+    inflate = hop and inflate_hops
+    Xn, Cn = [0.0] * len(X), []
+    for a in range(3):
+        ug0, ug1, ug2, sgg, yg, ul0, ul1, ul2, sll, yl, sgl = ax[a]
+        c0, c1, c2, c3, c4, c5 = C[a]
+        if inflate:
+            d = yg * yg
+            c5, ug2, sgg = c5 + d, ug2 + d, sgg + d
+        if has_g and has_l:
+            lgl = sgl / sgg
+            d2 = sll - lgl * sgl
+            e = yl - lgl * yg
+            w0, w1, w2 = ul0 - lgl * ug0, ul1 - lgl * ug1, ul2 - lgl * ug2
+            kg0, kg1, kg2 = ug0 / sgg, ug1 / sgg, ug2 / sgg
+            kl0, kl1, kl2 = w0 / d2, w1 / d2, w2 / d2
+            dx0, dx1, dx2 = kg0 * yg + kl0 * e, kg1 * yg + kl1 * e, kg2 * yg + kl2 * e
+            n0, n1 = c0 - (kg0 * ug0 + kl0 * w0), c1 - (kg0 * ug1 + kl0 * w1)
+            n2, n3 = c2 - (kg0 * ug2 + kl0 * w2), c3 - (kg1 * ug1 + kl1 * w1)
+            n4, n5 = c4 - (kg1 * ug2 + kl1 * w2), c5 - (kg2 * ug2 + kl2 * w2)
+        else:
+            u0, u1, u2, s, y = (ug0, ug1, ug2, sgg, yg) if has_g else (ul0, ul1, ul2, sll, yl)
+            k0, k1, k2 = u0 / s, u1 / s, u2 / s
+            dx0, dx1, dx2 = k0 * y, k1 * y, k2 * y
+            n0, n1, n2 = c0 - k0 * u0, c1 - k0 * u1, c2 - k0 * u2
+            n3, n4, n5 = c3 - k1 * u1, c4 - k1 * u2, c5 - k2 * u2
+        xp, xv = X[a] + dx0, X[3 + a] + dx1
+        xb = X[6 + a] + dx2 if has_bias else 0.0
+        if biased:
+            def bf(x, var):
+                return 1.0 if var <= 0 else (x * x / (var + x * x) if var + x * x > 0 else 1.0)
+            mp, mv, mb = bf(xp, n0) if sp else 1.0, bf(xv, n3) if sv else 1.0, bf(xb, n5) if sb else 1.0
+            b0, b1, b2, b3, b4, b5 = (c0, c1, c2, c3, c4, c5) if prior else (n0, n1, n2, n3, n4, n5)
+            n0, n1, n2 = b0 * (mp * mp), b1 * (mp * mv), b2 * (mp * mb)
+            n3, n4, n5 = b3 * (mv * mv), b4 * (mv * mb), b5 * (mb * mb)
+            xp, xv, xb = mp * xp, mv * xv, mb * xb
+        if not has_bias:
+            n2 = n4 = n5 = 0.0
+        Xn[a], Xn[3 + a] = xp, xv
+        if has_bias:
+            Xn[6 + a] = xb
+        Cn.append([n0, n1, n2, n3, n4, n5])
+    return Xn, Cn, hop, nis_g
+
+
+@pytest.mark.parametrize("kind", FILTER_KINDS)
+@pytest.mark.parametrize("params", [FilterParams(hop_gate=3.0),
+                                    FilterParams(hop_gate=3.0, shrink_blocks=("p", "v", "b"), eq14_covariance="prior")])
+def test_kernel_update_equals_the_plain_loop(kind, params):
+    rng = np.random.default_rng(9)
+    form = axis_form(kind, params)
+    t = 10 * 10**9
+    hops = 0
+    for k in range(600):
+        X = (0.3 + 0.1 * rng.standard_normal(9 if form.has_bias else 6)).tolist()
+        C = []
+        for _ in range(3):
+            A = rng.standard_normal((3, 3)) * [[1e-3], [1e-2], [1e-3]]
+            P = A @ A.T + 1e-8 * np.eye(3)
+            if not form.has_bias:
+                P[2, :] = P[:, 2] = 0.0
+            C.append(P[np.triu_indices(3)].tolist())
+        zg = (np.array(X[0:3]) + 2e-3 * rng.standard_normal(3)).tolist() if k % 3 != 1 else None
+        zl = (np.array(X[0:3]) + 1e-4 * rng.standard_normal(3)).tolist() if k % 3 != 0 else None
+        tg, tl = t - int(rng.integers(0, 4_000_000)), t - int(rng.integers(0, 4_000_000))
+        got = update_axes(form, X, C, t, tg, zg, form.global_var, tl, zl, form.local_var)
+        want = _reference_update(form, X, C, t, tg, zg, form.global_var, tl, zl, form.local_var)
+        assert repr((got[0], got[1], got[2], got[4])) == repr(want)
+        hops += got[2]
+    assert hops > 0
