@@ -70,6 +70,7 @@ class LiveResult:
     node_cpu_s: list[float] = field(default_factory=list)   # CPU seconds of each node process while data flowed
     fused_total: int = 0                     # fused poses received over the whole run (warm-up included)
     load: list[float] = field(default_factory=list)   # load averages right after the data (1 min ~ the run)
+    consumed: dict[str, int] = field(default_factory=dict)   # messages received per further consumer topic
 
     def node_load(self) -> dict[str, dict[str, str]]:
         """Per /diagnostics target entry: the node's own load figures (queue depth, processing lag, rewinds), as
@@ -102,17 +103,21 @@ def target_params(targets: list[str]) -> list[str]:
 
 
 def run_live(nodes: list[list[str]], targets: list[str], domain: int | None, duration: float,
-             omc_hz: float = 240.0, ots_hz: float = 400.0, executor: str | None = None) -> LiveResult:
+             omc_hz: float = 240.0, ots_hz: float = 400.0, executor: str | None = None,
+             command: list[str] | None = None, consumers: tuple[str, ...] = ()) -> LiveResult:
     """Run ``len(nodes)`` fusion_node processes (each with the given extra ``--ros-args``) against the publisher.
 
     ``domain`` None: a domain id no test or other bench on this machine holds (fullperc_common.testing.claim_domain),
     held for the run. ``executor``: ``events`` | ``single`` sets ``FULLPERC_EXECUTOR`` for the nodes
-    (fullperc_common.executor_choice); None leaves the node's default."""
+    (fullperc_common.executor_choice); None leaves the node's default. ``command``: the node's command instead of
+    the installed fusion_node (e.g. bench/echo_floor.py). ``consumers``: further outputs subscribed here besides
+    every target's fused pose -- ``pose_cov``, ``status``, ``velocity`` (per target) and ``/tf`` -- received and
+    counted only (fusion_node publishes a topic only while it has a reader)."""
     if domain is None:
         from fullperc_common.testing import claim_domain
 
         with claim_domain() as lease:
-            return run_live(nodes, targets, lease.domain, duration, omc_hz, ots_hz, executor)
+            return run_live(nodes, targets, lease.domain, duration, omc_hz, ots_hz, executor, command, consumers)
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseStamped
@@ -124,7 +129,7 @@ def run_live(nodes: list[list[str]], targets: list[str], domain: int | None, dur
     if executor is not None:
         env["FULLPERC_EXECUTOR"] = executor
     os.environ.update(ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    procs = [subprocess.Popen([str(fusion_exe()), "--ros-args", "-p", "init_samples:=20",
+    procs = [subprocess.Popen([*(command or [str(fusion_exe())]), "--ros-args", "-p", "init_samples:=20",
                                "-p", "static_links:=average", *p], env=env,
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
              for p in nodes]
@@ -150,6 +155,7 @@ def run_live(nodes: list[list[str]], targets: list[str], domain: int | None, dur
                                  lambda m, s=fused[t]: s.append((time.time_ns(), stamp(m))), qos)
     node.create_subscription(PoseStamped, f"/omc/{targets[0]}/pose",
                              lambda m: raw.append((time.time_ns(), stamp(m))), qos)
+    consumed = _subscribe_consumers(node, targets, consumers, qos)
     ex = SingleThreadedExecutor(context=ctx)
     ex.add_node(node)
     stop = threading.Event()
@@ -211,4 +217,31 @@ def run_live(nodes: list[list[str]], targets: list[str], domain: int | None, dur
             if DROP_WORDS & set(k2.split("_")) and v.strip().lstrip("-").isdigit():
                 counters[k2] = counters.get(k2, 0) + int(v)
     return LiveResult(lat, (r[:, 0] - r[:, 1]) / 1e6, lost, n_sent, counters, summary, alive, diag, cpu,
-                      sum(len(v) for v in fused.values()), run_load)
+                      sum(len(v) for v in fused.values()), run_load, dict(consumed))
+
+
+def _subscribe_consumers(node, targets: list[str], consumers: tuple[str, ...], qos) -> dict[str, int]:
+    """Subscribe ``consumers`` (run_live) on ``node``; returns the per-topic message counts, filled as they come."""
+    from geometry_msgs.msg import PoseWithCovarianceStamped, TwistWithCovarianceStamped
+
+    from fullperc_msgs.msg import FusionStatus
+    from tf2_msgs.msg import TFMessage
+
+    types = {"pose_cov": PoseWithCovarianceStamped, "status": FusionStatus, "velocity": TwistWithCovarianceStamped}
+    counts: dict[str, int] = {}
+
+    def count(topic: str, _msg) -> None:
+        counts[topic] = counts.get(topic, 0) + 1
+
+    for what in consumers:
+        if what == "/tf":
+            from fullperc_common.tf import dynamic_qos
+
+            node.create_subscription(TFMessage, "/tf", lambda m: count("/tf", m), dynamic_qos())
+            continue
+        if what not in types:
+            raise ValueError(f"unknown consumer {what!r}: one of {sorted(types)} or /tf")
+        for t in targets:
+            topic = f"/fullperc/{t}/{what}"
+            node.create_subscription(types[what], topic, lambda m, k=topic: count(k, m), qos)
+    return counts

@@ -81,6 +81,10 @@ class Broadcaster:
         if transforms:
             self.pub.publish(TFMessage(transforms=list(transforms)))
 
+    def wanted(self) -> bool:
+        """Whether a reader is matched: /tf is volatile, so transforms built while none is reach nobody."""
+        return self.pub.get_subscription_count() > 0
+
 
 class StaticBroadcaster:
     """``/tf_static``: ``send(transforms)`` merges them (by child frame) into the static set and publishes the

@@ -113,7 +113,7 @@ class FusionNode(Node):
             ep.subscription(Region, output_topic(t, "region"), lambda m, t=t: self._region.__setitem__(t, int(m.label)))
         vel = {t: ep.publisher(TwistWithCovarianceStamped, output_topic(t, "velocity"))
                for t in core.targets if vals["publish_velocity"]}
-        self._out_sets = {k: OutputPublisher(*v, always_pose=k[1] == "", status_rate=vals["status_rate"],
+        self._out_sets = {k: OutputPublisher(*v, status_rate=vals["status_rate"],
                                              frame=core.frames.base, vel_pub=vel.get(k[0]) if k[1] == "" else None)
                           for k, v in pubs.items()}
         self._quality_subs = {key: ep.subscription(TrackingQuality, topic, partial(self._on_quality, key))
@@ -315,7 +315,7 @@ class FusionNode(Node):
         tfs = publish_outputs(
             self._out_sets, target, outs, core.primary, core.extra, self._region.get(target, 0),
             on_primary=partial(core.primary_output, target, now), on_error=partial(core.publish_error, target),
-            tf_of=None if self._tf is None else
+            tf_of=None if self._tf is None or not self._tf.wanted() else
             lambda o: transform_stamped(o.t_ns, core.frames.base, core.frames.of(target), p=o.p, q_xyzw=o.q))
         if tfs:
             self._tf.send(tfs)
@@ -324,7 +324,7 @@ class FusionNode(Node):
         """fullperc/<target>/final: the primary filter's estimates of the items that left the history."""
         outs = self.core.final_outputs(target)
         pub = self._final_pubs.get(target)
-        if pub is None:
+        if pub is None or not pub.get_subscription_count():   # volatile: unread, it would reach nobody
             return
         for o in outs:
             ps = PoseStamped()

@@ -9,10 +9,13 @@ a 36-element list checked element by element. Here:
   C form synchronously, so nothing keeps a reference to it after the call);
 * the pose is checked (finite, unit within 1e-3 -- :func:`fullperc_common.ros_conv.pose_msg`'s rule) and the
   quaternion normalised on Python floats, the covariance handed over as one float64 array;
-* a side-by-side filter's topics (``/fullperc/<target>/<filter>/...``) and every status topic are built only
-  when a subscription is matched (``get_subscription_count``): with volatile QoS a message no reader is matched
-  to reaches nobody, so skipping it cannot be observed. With every filter on, those were 6 of the 9 messages
-  of an item nobody recorded. The primary's pose and pose_cov, and /tf, are always published.
+* every topic -- pose, pose_cov, velocity, status, a side-by-side filter's ``/fullperc/<target>/<filter>/...`` --
+  is built and published only while a subscription is matched (``get_subscription_count``, ~1 us): with volatile
+  QoS a message no reader is matched to reaches nobody, so skipping it cannot be observed (a reader that matches
+  later gets the next message, as it would have anyway). rclpy's per-message path, not the maths, is most of the
+  node's cost (``bench/bench_node_cost.py``), so a message nobody reads is the cheapest saving: a
+  consumer of the fused pose only no longer pays for pose_cov, status and /tf (fusion_node checks /tf the same
+  way, ``tf.Broadcaster.wanted``).
 * status at a capped rate (``status_rate`` [Hz], issue 16 item 4: many targets per node): at most one FusionStatus
   per ``1 / status_rate`` of fused stamps per topic set -- by stamp, not by the host clock, so a replay gives the
   same messages -- except that an output flagged as a hop, or whose ``link_bumped`` differs from the last status
@@ -69,10 +72,9 @@ def _fill_vector3(v: Any, xyz: Any) -> None:
 class OutputPublisher:
     """The messages of one (target, key) topic set, built once and refilled per output (module docstring)."""
 
-    def __init__(self, pose_pub: Any, cov_pub: Any | None, status_pub: Any, always_pose: bool,
+    def __init__(self, pose_pub: Any, cov_pub: Any | None, status_pub: Any,
                  status_rate: float = 0.0, frame: str = "base", vel_pub: Any | None = None) -> None:
         self.pose_pub, self.cov_pub, self.status_pub, self.vel_pub = pose_pub, cov_pub, status_pub, vel_pub
-        self.always_pose = always_pose      # the primary's pose (and pose_cov) are never skipped
         self.status_rate = status_rate
         self._status_last: tuple[int, bool] | None = None   # (stamp, link_bumped) of the last status sent
         self.ps = PoseStamped()
@@ -104,8 +106,8 @@ class OutputPublisher:
         """Publish ``o`` on this set's topics (those wanted); a refused pose raises ValueError (:func:`fill_pose`)
         before anything is published."""
         fill_pose(self.ps.pose, o.p, o.q)   # checked even when nothing goes out: the refusal is counted as before
-        pose_on = self.always_pose or self._wanted(self.pose_pub)
-        cov_on = self.cov_pub is not None and (self.always_pose or self._wanted(self.cov_pub))
+        pose_on = self._wanted(self.pose_pub)
+        cov_on = self.cov_pub is not None and self._wanted(self.cov_pub)
         st_on = self._wanted(self.status_pub) and self._status_due(o)
         sec, nsec = divmod(int(o.t_ns), 1_000_000_000)
         if pose_on:
@@ -120,8 +122,8 @@ class OutputPublisher:
             dst.position, dst.orientation = src.position, src.orientation
             pc.pose.covariance = np.array(o.cov, dtype=np.float64).reshape(36)
             self.cov_pub.publish(pc)
-        if self.vel_pub is not None and (vel := o.velocity()) is not None and np.isfinite(vel[1]).all() \
-                and np.isfinite(vel[0]).all():
+        if self.vel_pub is not None and self._wanted(self.vel_pub) and (vel := o.velocity()) is not None \
+                and np.isfinite(vel[1]).all() and np.isfinite(vel[0]).all():
             tw = self.tw
             stamp = tw.header.stamp
             stamp.sec, stamp.nanosec = sec, nsec

@@ -37,7 +37,7 @@ def _out(filt="cbkf", t_ns=1_700_000_000_123_456_789, p=(0.1, -0.2, 0.3), q=(0.1
 def _sets(subs: int):
     pubs = {("tool", ""): (FakePub(subs), FakePub(subs), FakePub(subs)),
             ("tool", "kf"): (FakePub(subs), None, FakePub(subs))}
-    return pubs, {k: OutputPublisher(*v, always_pose=k[1] == "") for k, v in pubs.items()}
+    return pubs, {k: OutputPublisher(*v) for k, v in pubs.items()}
 
 
 def test_fill_pose_equals_pose_msg_and_keeps_its_refusals():
@@ -83,17 +83,23 @@ def test_reused_messages_carry_every_field_of_each_output():
         assert (st.nis, st.hop, st.time_since_local, st.link_bumped) == (o.nis, o.hop, 0.01, False)
 
 
-def test_unsubscribed_topics_skipped_but_never_the_primary_pose_cov_or_tf():
+def test_unsubscribed_topics_are_skipped_each_on_its_own():
+    """Nothing is built for a topic without a matched reader (volatile: it would reach nobody) -- the primary's pose
+    and pose_cov included; the primary hook still sees every output and /tf is the caller's (``tf_of``) to skip."""
     pubs, sets = _sets(subs=0)
     seen, errors = [], []
     tfs = publish_outputs(sets, "tool", [_out("cbkf"), _out("kf")], "cbkf", ["kf"], 0,
                           on_primary=seen.append, on_error=lambda o, why: errors.append(why),
                           tf_of=lambda o: ("tf", o.t_ns))
-    pose_pub, cov_pub, st_pub = pubs[("tool", "")]
-    assert len(pose_pub.sent) == 1 and len(cov_pub.sent) == 1   # primary pose and pose_cov: always
-    assert st_pub.sent == []                                       # status: nobody listens
-    assert all(p is None or p.sent == [] for p in pubs[("tool", "kf")])   # side-by-side: nobody listens
+    assert all(p is None or p.sent == [] for v in pubs.values() for p in v)   # nobody listens: nothing sent
     assert tfs == [("tf", _out().t_ns)] and [o.filter for o in seen] == ["cbkf"] and errors == []
+    pose_pub, cov_pub, st_pub = pubs[("tool", "")]
+    pose_pub.subs = 1   # a consumer of the fused pose only
+    publish_outputs(sets, "tool", [_out("cbkf", t_ns=4)], "cbkf", ["kf"], 0, seen.append, lambda o, w: None, None)
+    assert [m.header.stamp.nanosec for m in pose_pub.sent] == [4] and cov_pub.sent == [] and st_pub.sent == []
+    cov_pub.subs = 1
+    publish_outputs(sets, "tool", [_out("cbkf", t_ns=6)], "cbkf", ["kf"], 0, seen.append, lambda o, w: None, None)
+    assert [m.header.stamp.nanosec for m in cov_pub.sent] == [6] and len(pose_pub.sent) == 2 and st_pub.sent == []
     pubs[("tool", "kf")][0].subs = 1   # a subscriber appears on the side-by-side pose only
     publish_outputs(sets, "tool", [_out("kf", t_ns=5)], "cbkf", ["kf"], 0, seen.append, lambda o, w: None, None)
     assert [m.header.stamp.nanosec for m in pubs[("tool", "kf")][0].sent] == [5]
@@ -118,7 +124,7 @@ def test_status_rate_caps_status_by_stamp_but_never_drops_a_hop_or_a_bump_change
     from dataclasses import replace
 
     pose_pub, cov_pub, st_pub = FakePub(1), FakePub(1), FakePub(1)
-    pub = OutputPublisher(pose_pub, cov_pub, st_pub, always_pose=True, status_rate=50.0)
+    pub = OutputPublisher(pose_pub, cov_pub, st_pub, status_rate=50.0)
     t0, dt = 1_000_000_000, 2_500_000
     hops = {37, 38, 101}
     bumped_from = 150
@@ -137,7 +143,7 @@ def test_status_rate_caps_status_by_stamp_but_never_drops_a_hop_or_a_bump_change
     assert 45 <= len(sent) <= 60                         # 1 s of stamps at 50 Hz plus the events
     # uncapped (the default): every output
     st2 = FakePub(1)
-    pub2 = OutputPublisher(FakePub(1), FakePub(1), st2, always_pose=True)
+    pub2 = OutputPublisher(FakePub(1), FakePub(1), st2)
     for o in outs:
         pub2.publish("tool", o, region=1)
     assert len(st2.sent) == len(outs)

@@ -110,7 +110,7 @@ class FakePub:
 def test_twist_message_carries_the_velocity_in_the_outputs_frame():
     outs = [o for o in _run("arrival", duration=1.0) if o.filter in ("cbkf", "omc")]
     vel = FakePub()
-    pub = OutputPublisher(FakePub(), FakePub(), FakePub(), always_pose=True, frame="or1_base", vel_pub=vel)
+    pub = OutputPublisher(FakePub(), FakePub(), FakePub(), frame="or1_base", vel_pub=vel)
     for o in outs:
         pub.publish("tool", o, 0)
     cbkf = [o for o in outs if o.filter == "cbkf"]
@@ -123,3 +123,17 @@ def test_twist_message_carries_the_velocity_in_the_outputs_frame():
         C = np.array(m.twist.covariance).reshape(6, 6)
         assert np.array_equal(C[:3, :3], P) and np.array_equal(C[3:, 3:], np.eye(3) * ANGULAR_VAR_UNKNOWN)
         assert not C[:3, 3:].any() and not C[3:, :3].any()
+
+
+def test_no_twist_is_built_without_a_reader():
+    """velocity is lazy like every output topic (fusion_publish): no matched reader, nothing published."""
+    class Unread(FakePub):
+        def get_subscription_count(self) -> int:
+            return 0
+
+    outs = [o for o in _run("arrival", duration=0.3) if o.filter == "cbkf"]
+    vel, pose = Unread(), FakePub()
+    pub = OutputPublisher(pose, FakePub(), FakePub(), vel_pub=vel)
+    for o in outs:
+        pub.publish("tool", o, 0)
+    assert outs and vel.sent == [] and len(pose.sent) == len(outs)

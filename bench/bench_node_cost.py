@@ -1,0 +1,64 @@
+"""What one target costs fusion_node, against the echo floor in the same run (issue 38 items 1 and 6).
+
+One target at OMC 240 Hz + OTS 400 Hz with base bodies (``e2e_publisher.py``: 1,280 messages/s in), fusion_node at
+its defaults (``static_links: average``, the steady state of a calibrated OR; ``live_fusion.run_live``), and
+``echo_floor.py`` -- a bare rclpy node with the same inputs and QoS that publishes pose, pose_cov, status and /tf for
+every target sample and does no maths: the CPU floor of any Python node doing this I/O. Each is run with two
+consumers: the fused pose only, and every output (pose, pose_cov, status, /tf). fusion_node publishes a topic only
+while it has a reader; the echo publishes everything always, as a first node would.
+
+Figures (CPU seconds of the node process while data flowed, per second of data and per target = cores):
+  echo_floor_cpu[pose|every]       the echo floor with that consumer
+  node_cpu_per_target[pose|every]  fusion_node; baseline: the echo floor with the same consumer, ratio = node / floor
+                                   (goals: <= 0.8 with the pose only, <= 1.1 with every output)
+each the median over REPEATS runs of every configuration, the configurations rotating within a repeat (so none
+always runs on the busier moment); ``runs`` lists each run's share, samples lost and messages consumed.
+Run: python bench/bench_node_cost.py   (FULLPERC_BENCH_NODE_S: seconds of data per run, default 8;
+FULLPERC_BENCH_REPEATS: default 3)
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from benchlib import emit  # noqa: E402
+from live_fusion import run_live, target_params  # noqa: E402
+
+HERE = Path(__file__).resolve().parent
+DURATION = float(os.environ.get("FULLPERC_BENCH_NODE_S", "8"))
+REPEATS = int(os.environ.get("FULLPERC_BENCH_REPEATS", "3"))
+TARGETS = ["tool"]
+CONSUMERS = {"pose": (), "every": ("pose_cov", "status", "/tf")}
+NODES = {"fusion": None, "echo": [sys.executable, str(HERE / "echo_floor.py"), "--targets", ",".join(TARGETS)]}
+
+
+def run(node: str, consumer: str) -> dict:
+    res = run_live([target_params(TARGETS)], TARGETS, None, DURATION, command=NODES[node],
+                   consumers=CONSUMERS[consumer])
+    return {"share": sum(res.node_cpu_s) / DURATION / len(TARGETS), "lost": sum(res.lost.values()),
+            "sent": sum(res.sent.values()), "fused": res.fused_total, "consumed": res.consumed,
+            "alive": res.nodes_alive, "load": res.load}
+
+
+def main() -> None:
+    configs = [(n, c) for n in NODES for c in CONSUMERS]
+    runs: dict[tuple[str, str], list[dict]] = {k: [] for k in configs}
+    for r in range(REPEATS):
+        for k in configs[r % len(configs):] + configs[:r % len(configs)]:
+            runs[k].append(run(*k))
+    share = {k: float(np.median([x["share"] for x in v])) for k, v in runs.items()}
+    for c in CONSUMERS:
+        floor = share[("echo", c)]
+        emit(f"echo_floor_cpu[{c}]", floor, "cores", targets=len(TARGETS), seconds=DURATION,
+             runs=runs[("echo", c)])
+        emit(f"node_cpu_per_target[{c}]", share[("fusion", c)], "cores", baseline=floor, targets=len(TARGETS),
+             seconds=DURATION, goal_ratio={"pose": 0.8, "every": 1.1}[c], runs=runs[("fusion", c)])
+
+
+if __name__ == "__main__":
+    main()
