@@ -34,3 +34,69 @@ def test_target_params_name_each_target_body_and_tool() -> None:
     args = target_params(["t0", "t1"])
     assert args[:2] == ["-p", "targets:=[t0, t1]"]
     assert "t1.omc_body:=t1" in args and "t1.ots_tool:=t1" in args
+
+
+def test_the_echo_floor_publishes_four_messages_per_target_sample(rclpy_context, ros_env) -> None:
+    """bench/echo_floor.py, the baseline of bench_node_cost: every OMC or OTS sample of a target goes out as pose,
+    pose_cov, status and one /tf message, stamped as it came; base bodies are taken and nothing is published."""
+    import subprocess
+
+    import rclpy
+    from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    from fullperc_common.testing import wait_for
+    from fullperc_common.tf import dynamic_qos
+    from fullperc_msgs.msg import FusionStatus
+    from tf2_msgs.msg import TFMessage
+
+    bench = Path(__file__).resolve().parents[1] / "bench"
+    proc = subprocess.Popen([sys.executable, str(bench / "echo_floor.py"), "--targets", "tool"], env=ros_env,
+                            start_new_session=True)
+    try:
+        node = rclpy.create_node("echo_floor_check", context=rclpy_context)
+        qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+        got: dict[str, list[int]] = {"pose": [], "pose_cov": [], "status": [], "/tf": []}
+
+        def keep(key):
+            return lambda m: got[key].append(
+                (m.transforms[0].header if key == "/tf" else m.header).stamp.nanosec)
+
+        for key, typ in (("pose", PoseStamped), ("pose_cov", PoseWithCovarianceStamped), ("status", FusionStatus)):
+            node.create_subscription(typ, f"/fullperc/tool/{key}", keep(key), qos)
+        node.create_subscription(TFMessage, "/tf", keep("/tf"), dynamic_qos())
+        pubs = {t: node.create_publisher(PoseStamped, t, qos)
+                for t in ("/omc/tool/pose", "/ots/tool/pose", "/omc/base/pose")}
+        ex = SingleThreadedExecutor(context=rclpy_context)
+        ex.add_node(node)
+
+        def spin_until(pred, what):
+            wait_for(lambda: (ex.spin_once(timeout_sec=0.05), pred())[1], timeout=60, what=what)
+
+        spin_until(lambda: all(p.get_subscription_count() for p in pubs.values()), "the echo floor's inputs")
+
+        def publish(stamp: int, topics=tuple(pubs)) -> None:
+            for topic in topics:
+                m = PoseStamped()
+                m.header.stamp.nanosec = stamp + (topic == "/ots/tool/pose")
+                m.pose.orientation.w = 1.0
+                pubs[topic].publish(m)
+
+        # warm-up: the echo's writers match these readers in their own time (volatile: what goes out before is lost)
+        spin_until(lambda: publish(2, ["/omc/tool/pose"]) or all(got.values()), "every output matched")
+        for k in range(1, 11):
+            publish(k * 100)
+        want = sorted(k * 100 + d for k in range(1, 11) for d in (0, 1))
+        counted = {k: lambda k=k: sorted(s for s in got[k] if s >= 100) for k in got}
+        spin_until(lambda: all(len(c()) >= len(want) for c in counted.values()), "20 echoes on each output")
+        for _ in range(10):   # nothing more comes: the base body's samples are not echoed
+            ex.spin_once(timeout_sec=0.05)
+        assert {k: c() for k, c in counted.items()} == {k: want for k in got}
+    finally:
+        proc.send_signal(2)
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    assert proc.returncode == 0
