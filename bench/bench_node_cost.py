@@ -11,8 +11,11 @@ Figures (CPU seconds of the node process while data flowed, per second of data a
   echo_floor_cpu[pose|every]       the echo floor with that consumer
   node_cpu_per_target[pose|every]  fusion_node; baseline: the echo floor with the same consumer, ratio = node / floor
                                    (goals: <= 0.8 with the pose only, <= 1.1 with every output)
-each the median over REPEATS runs of every configuration, the configurations rotating within a repeat (so none
-always runs on the busier moment); ``runs`` lists each run's share, samples lost and messages consumed.
+  gc_full_collection_ms            one full garbage collection with fusion_node's modules loaded, after
+                                   ``node_main.settle_heap`` (what every node does once built); baseline: the same
+                                   collection without it (a callback stalls that long when the collector runs one)
+the node figures each the median over REPEATS runs of every configuration, the configurations rotating within a
+repeat (so none always runs on the busier moment); ``runs`` lists each run's share, samples lost and messages consumed.
 Run: python bench/bench_node_cost.py   (FULLPERC_BENCH_NODE_S: seconds of data per run, default 8;
 FULLPERC_BENCH_REPEATS: default 3)
 """
@@ -45,7 +48,32 @@ def run(node: str, consumer: str) -> dict:
             "alive": res.nodes_alive, "load": res.load}
 
 
+def gc_pause() -> None:
+    import gc
+    import statistics
+    import time
+
+    import fullperc_fusion.fusion_node  # noqa: F401 - the modules a built fusion_node holds
+    from fullperc_common.node_main import settle_heap
+
+    def full_ms() -> float:
+        times = []
+        for _ in range(7):
+            t = time.perf_counter()
+            gc.collect()
+            times.append((time.perf_counter() - t) * 1e3)
+        return statistics.median(times)
+
+    gc.unfreeze()
+    before, tracked = full_ms(), len(gc.get_objects())
+    settle_heap()
+    after = full_ms()
+    gc.unfreeze()
+    emit("gc_full_collection_ms", after, "ms", baseline=before, tracked_objects=tracked)
+
+
 def main() -> None:
+    gc_pause()
     configs = [(n, c) for n in NODES for c in CONSUMERS]
     runs: dict[tuple[str, str], list[dict]] = {k: [] for k in configs}
     for r in range(REPEATS):

@@ -174,3 +174,50 @@ def test_release_waits_for_acknowledgements_after_close_and_before_destroy(capsy
         "close", ("wait", "/diana/joint_states"), ("wait", "/diagnostics"), "destroy"]
     err = capsys.readouterr().err
     assert "[unit_node] samples on /diagnostics still unacknowledged" in err and "/diana" not in err
+
+
+def test_the_heap_is_settled_before_the_first_callback(ros_env):
+    """run_node freezes what start-up left (settle_heap) before it spins: the node's first callback sees the
+    permanent generation filled, so a later full collection does not walk the modules and the node again."""
+    import gc
+
+    seen: list[int] = []
+
+    def factory():
+        import rclpy
+
+        node = rclpy.create_node("heap_node")
+
+        def tick():
+            seen.append(gc.get_freeze_count())
+            signal.raise_signal(signal.SIGINT)   # run_node's handler: stop after this callback
+
+        node.create_timer(0.01, tick)
+        return node
+
+    gc.unfreeze()
+    try:
+        assert run_node(factory, "heap_node", (), ["prog"]) == 0
+        assert seen and seen[0] > 1000, seen
+    finally:
+        gc.unfreeze()
+
+
+def test_settle_heap_collects_garbage_before_freezing():
+    """Garbage of start-up (a reference cycle nobody holds) is collected, not frozen for the process's life."""
+    import gc
+    import weakref
+
+    class Node:
+        pass
+
+    a, b = Node(), Node()
+    a.other, b.other = b, a
+    gone = weakref.ref(a)
+    del a, b
+    gc.unfreeze()
+    try:
+        node_main.settle_heap()
+        assert gone() is None and gc.get_freeze_count() > 0
+    finally:
+        gc.unfreeze()
