@@ -256,7 +256,6 @@ def batch_replay(prep: Prepared, config: TargetConfig, idle_flush_s: float, t_st
         else:
             kind_of.append(3 if role[t][0] == "omc" else 4)
     stamps = {k: poses[t].t_ns.tolist() for k, t in enumerate(topic_names) if t != JOINT_TOPIC}
-    kinds = [kind_of[k] for k in raw.topic.tolist()]
     idle_ns = int(idle_flush_s * 1e9)
     last_recv: int | None = None
     # emitted items: (global index or -1, local index or -1, T_omc_base in use, T_base_ots in use)
@@ -286,22 +285,21 @@ def batch_replay(prep: Prepared, config: TargetConfig, idle_flush_s: float, t_st
             tpos[k] = np.zeros((len(poses[t].p), 3, 4))
             tpos[k][:, :, 3] = poses[t].p
     mats = {k: list(_matrices(poses[t].p, poses[t].q)) for k, t in enumerate(topic_names) if kind_of[k] >= 3}
-    ts_list = raw.timestamp.tolist()
-    topic_list = raw.topic.tolist()
-    within_list = within.tolist()
-    for pos, kind in enumerate(kinds):
-        if kind == 0:
-            continue
-        k = topic_list[pos]
-        j = within_list[pos]
+    # the messages other than joint states, in bag order (the joint states only feed the ground truth)
+    kind_arr = np.asarray(kind_of, dtype=np.int64)[raw.topic] if len(kind_of) else np.zeros(0, np.int64)
+    sel = np.flatnonzero(kind_arr != 0)
+    admit, poll_items = pipe.admit, pipe.poll_items
+    for kind, k, j, recv in zip(kind_arr[sel].tolist(), raw.topic[sel].tolist(), within[sel].tolist(),
+                                raw.timestamp[sel].tolist(), strict=True):
         if kind <= 2:
-            recv = ts_list[pos]
-            if last_recv is not None and pipe.sync.pending and recv - last_recv > idle_ns:
+            if last_recv is not None and recv - last_recv > idle_ns and pipe.sync.pending:
                 take(pipe.flush_items())
             last_recv = recv
-            if not pipe.admit(GLOBAL if kind == 1 else LOCAL, stamps[k][j], tpos[k][j], None, what[kind], j):
+            if not admit(GLOBAL if kind == 1 else LOCAL, stamps[k][j], tpos[k][j], None, what[kind], j):
                 raise BatchUnsupported(f"a sample the pipeline did not take: {dict(pipe.counts)}")
-            take(pipe.poll_items())
+            items = poll_items()
+            if items:
+                take(items)
             continue
         if kind == 3 and not links.collecting:
             continue   # final links: an OMC base / rig sample changes nothing any more

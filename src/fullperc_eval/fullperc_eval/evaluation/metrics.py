@@ -46,7 +46,7 @@ from .config import METHODS, EvaluationError, replay_config
 from .consistency import FUSED_ORIENTATION, nees, summary
 from .ground_truth import GroundTruth, TruthTrack, target_truth
 from .headline import hop_events
-from .orientation import orientation_error_deg, pose_error
+from .orientation import orientation_and_pose_error, orientation_error_deg
 from .replay import Replay, live_replay, replay
 
 LETTER = {1: "B", 2: "G", 3: "P"}
@@ -160,8 +160,7 @@ def _pose_figures(outputs: dict[str, dict[str, np.ndarray]], idx: dict[str, np.n
                 d[:, :3] = Tt[:, :3, 3] - o["p"][k]   # pose_error's position part; its rotation part as computed
                 d[:, 3:] = d_rot
             else:
-                ang = orientation_error_deg(Tt[:, :3, :3], qk)
-                d = pose_error(Tt[:, :3, 3], Tt[:, :3, :3], o["p"][k], qk)
+                ang, d = orientation_and_pose_error(Tt[:, :3, 3], Tt[:, :3, :3], o["p"][k], qk)
                 rot_done[key] = (ang, d[:, 3:].copy())
             oe[k] = ang
             C = o["cov"][k]

@@ -65,3 +65,26 @@ def pose_error(p_true: np.ndarray, R_true: np.ndarray, p_est: np.ndarray, q_est:
     if ok.any():
         out[ok, 3:] = (Rotation.from_matrix(R_true[ok]) * Rotation.from_quat(q_est[ok]).inv()).as_rotvec()
     return out
+
+
+def orientation_and_pose_error(p_true: np.ndarray, R_true: np.ndarray, p_est: np.ndarray,
+                               q_est: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(orientation_error_deg(R_true, q_est), pose_error(p_true, R_true, p_est, q_est))``, the same numbers, with
+    the truth's and the estimate's scipy Rotations built once for both (the evaluator needs both of every method;
+    ``Rotation.from_matrix`` of a few thousand matrices was the larger part of each). test_orientation_pair.py pins it
+    to the two functions bit for bit."""
+    R_true = np.asarray(R_true, dtype=float).reshape(-1, 3, 3)
+    q_est = np.asarray(q_est, dtype=float).reshape(-1, 4)
+    p_true = np.asarray(p_true, dtype=float).reshape(-1, 3)
+    p_est = np.asarray(p_est, dtype=float).reshape(-1, 3)
+    if not (len(R_true) == len(q_est) == len(p_true) == len(p_est)):
+        return orientation_error_deg(R_true, q_est), pose_error(p_true, R_true, p_est, q_est)   # their errors
+    ang = np.full(len(q_est), np.nan)
+    d = np.full((len(p_est), 6), np.nan)
+    d[:, :3] = p_true - p_est
+    ok = _valid_quats(q_est) & _valid_rots(R_true)
+    if ok.any():
+        Rt, Re = Rotation.from_matrix(R_true[ok]), Rotation.from_quat(q_est[ok])
+        ang[ok] = np.degrees((Rt.inv() * Re).magnitude())
+        d[ok, 3:] = (Rt * Re.inv()).as_rotvec()
+    return ang, d

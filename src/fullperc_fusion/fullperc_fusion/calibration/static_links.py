@@ -211,11 +211,21 @@ class StaticLinks:
             if t_ns is None:
                 raise ValueError("calibrate mode needs the stamp of every observation")
             c = self.cfg
-            dev, body = {"omc_base": ("omc", c.omc_base), "omc_rig": ("omc", c.omc_rig),
-                         "ots_base": ("ots", c.ots_base)}[which]
-            for col in self._cal.values():
+            if which == "omc_base":   # (not a dict built per sighting)
+                dev, body = "omc", c.omc_base
+            elif which == "omc_rig":
+                dev, body = "omc", c.omc_rig
+            elif which == "ots_base":
+                dev, body = "ots", c.ots_base
+            else:
+                raise KeyError(which)
+            cols = self._cal.values()
+            for col in cols:
                 col.add(dev, body, t_ns, T)
-            changed = self._try_finish_calibrate() or changed
+            for col in cols:   # nothing to finish until a collection is complete: most sightings
+                if col.complete:
+                    changed = self._try_finish_calibrate() or changed
+                    break
         return changed
 
     def apply(self, cal: Calibration, source: str) -> None:

@@ -212,6 +212,10 @@ class Box:
         inv = 1.0 / (d + 1e-300)  # d == 0 -> a huge finite slope instead of inf/NaN; no effect otherwise
         t1 = (self.lo - c) * inv
         t2 = (self.hi - c) * inv
-        tmin = np.max(np.minimum(t1, t2), axis=-1)
-        tmax = np.min(np.maximum(t1, t2), axis=-1)
+        a = np.minimum(t1, t2)
+        b = np.maximum(t1, t2)
+        # the max / min over the three axes, pairwise: a reduction along a last axis of 3 was half the evaluator's
+        # margin time; the same values (a zero's sign aside, which no comparison below sees; NaN propagates alike)
+        tmin = np.maximum(np.maximum(a[..., 0], a[..., 1]), a[..., 2])
+        tmax = np.minimum(np.minimum(b[..., 0], b[..., 1]), b[..., 2])
         return np.maximum(tmin, 0.0) <= np.minimum(tmax, SEGMENT_END)

@@ -86,6 +86,7 @@ class ApproxSync:
         self._p: tuple[list[Any], ...] = tuple([] for _ in names)      # payloads, parallel to _t
         self.rules = StampRules(self.names)   # duplicate / late (stamp_rules.py): pending, last emitted, horizon
         self.counts: Counter[str] = Counter()
+        self._in_keys = tuple(f"{n}_in" for n in self.names)   # push's counter per stream (not built per sample)
 
     @property
     def pending(self) -> int:
@@ -113,22 +114,29 @@ class ApproxSync:
         ts.insert(i, t_ns)
         self._p[stream].insert(i, payload)
         self.rules.admit(stream, t_ns)
-        self.counts[f"{self.names[stream]}_in"] += 1
+        self.counts[self._in_keys[stream]] += 1
         return OK
 
     def poll(self, now_ns: int | None = None) -> list[SyncItem]:
         """Emit every item that is final at ``now_ns`` (default: the watermark)."""
-        now = self.watermark_ns if now_ns is None else int(now_ns)
+        now = self.rules.newest_ns if now_ns is None else int(now_ns)   # the watermark
         if now is None:
             return []
         final_by = now - 2 * self.slop - self.delay   # now >= t + 2 slop + delay, on integers
         # _drain's first test (the earliest pending sample final, or its stream overflowing) done here: most polls
         # (one per target sample) emit nothing, and building the drain was most of their cost
+        streams = self._t
+        if len(streams) == 2:   # the same test on the two heads (on equal stamps the global one's)
+            tg, tl = streams
+            first = tg if tg and (not tl or tg[0] <= tl[0]) else tl
+            if not first or (first[0] > final_by and len(first) <= self.max_pending):
+                return []
+            return self._drain_two(lambda t: t <= final_by)
         head = None
-        for s, ts in enumerate(self._t):
+        for s, ts in enumerate(streams):
             if ts and (head is None or (ts[0], s) < head):
                 head = (ts[0], s)
-        if head is None or (head[0] > final_by and len(self._t[head[1]]) <= self.max_pending):
+        if head is None or (head[0] > final_by and len(streams[head[1]]) <= self.max_pending):
             return []
         return self._drain(lambda t: t <= final_by)
 
@@ -169,6 +177,13 @@ class ApproxSync:
         return i - 1 if t_ns - ts[i - 1] <= ts[i] - t_ns else i   # a tie: the earlier (smaller) stamp
 
     def _drain(self, final) -> list[SyncItem]:
+        """Emit items while the earliest pending sample is final (``final(t)``) or its stream overflows."""
+        if len(self._t) == 2:
+            return self._drain_two(final)
+        return self._drain_any(final)
+
+    def _drain_any(self, final) -> list[SyncItem]:
+        """:meth:`_drain` for any number of streams (the reference of :meth:`_drain_two`)."""
         out: list[SyncItem] = []
         while True:
             heads = [(ts[0], s) for s, ts in enumerate(self._t) if ts]
@@ -201,6 +216,59 @@ class ApproxSync:
             self.counts["pairs" if partner is not None else f"{_NAMES[s_e]}_alone"] += 1
             out.append(item)
         return out
+
+    def _drain_two(self, final) -> list[SyncItem]:
+        """:meth:`_drain_any` with the global and the first local stream only: the same rules, decisions, counts.
+
+        Why: every target sample polls, and the general drain (a list of heads, a min over tuples, two nearest
+        searches) cost as much as the rest of the synchronizer. With two streams the earliest head ``e`` is the
+        minimum of all pending stamps, so the other stream's nearest candidate is its head (``_nearest`` of a
+        stamp at or before every one of them); only the closer-competitor search is left. test_eval_hot_paths.py
+        pins it to the general drain on random streams."""
+        out: list[SyncItem] = []
+        t_s, p_s = self._t, self._p
+        counts, release, max_pending, slop = self.counts, self.rules.release, self.max_pending, self.slop
+        while True:
+            tg, tl = t_s
+            if tg and (not tl or tg[0] <= tl[0]):   # min of (stamp, stream): on equal stamps the global one
+                s_e = GLOBAL
+            elif tl:
+                s_e = LOCAL
+            else:
+                break
+            own = t_s[s_e]
+            t_e = own[0]
+            overflow = len(own) > max_pending
+            is_final = final(t_e)
+            if not (is_final or overflow):
+                break
+            if overflow and not is_final:
+                counts["forced_by_overflow"] += 1
+            other = 1 - s_e
+            own.pop(0)
+            e = Sample(t_e, p_s[s_e].pop(0))
+            oth = t_s[other]
+            partner = None
+            if oth and oth[0] - t_e < slop:   # oth[0] >= t_e: the nearest, at |oth[0] - t_e|
+                t_b = oth[0]
+                k = self._nearest(s_e, t_b)   # a closer competitor of e's own stream?
+                if k is None or abs(own[k] - t_b) >= t_b - t_e:
+                    oth.pop(0)
+                    partner = Sample(t_b, p_s[other].pop(0))
+            if partner is None:
+                item = SyncItem(t_e, e, None) if s_e == GLOBAL else SyncItem(t_e, None, e)
+                key = _ALONE[s_e]
+            else:
+                t_i = max(t_e, t_b)
+                item = SyncItem(t_i, e, partner) if s_e == GLOBAL else SyncItem(t_i, partner, e)
+                key = "pairs"
+            release(item)
+            counts[key] += 1
+            out.append(item)
+        return out
+
+
+_ALONE = tuple(f"{n}_alone" for n in _NAMES[:2])   # _drain's counter of an unpaired global / local sample
 
 
 def _pair_two(glob: list[Sample], local: list[Sample], slop: int) -> list[SyncItem]:
