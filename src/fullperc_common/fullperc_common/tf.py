@@ -72,14 +72,24 @@ def transform_to_T(msg: TransformStamped) -> np.ndarray:
 
 
 class Broadcaster:
-    """``/tf``: ``send(transforms)`` publishes one TFMessage."""
+    """``/tf``: ``send(transforms)`` publishes one TFMessage; ``add`` collects transforms and ``flush`` publishes
+    everything collected as one TFMessage -- a node with many targets sends one message per wake-up instead of one
+    per target (every message costs rclpy's per-message path; a tf2 listener takes the transforms alike)."""
 
     def __init__(self, node: Node, topic: str = TF_TOPIC) -> None:
         self.pub = node.create_publisher(TFMessage, topic, dynamic_qos())
+        self._pending: list[TransformStamped] = []
 
     def send(self, transforms: list[TransformStamped]) -> None:
         if transforms:
             self.pub.publish(TFMessage(transforms=list(transforms)))
+
+    def add(self, transforms: list[TransformStamped]) -> None:
+        self._pending.extend(transforms)
+
+    def flush(self) -> None:
+        pending, self._pending = self._pending, []
+        self.send(pending)
 
     def wanted(self) -> bool:
         """Whether a reader is matched: /tf is volatile, so transforms built while none is reach nobody."""

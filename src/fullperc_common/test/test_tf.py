@@ -95,3 +95,28 @@ def test_static_union_reaches_a_late_subscriber_and_type_hash_matches_rosbags_ja
     expected = get_typestore(Stores.ROS2_JAZZY).hash_rihs01("tf2_msgs/msg/TFMessage")
     assert hashes == {expected}
     assert expected == "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087"
+
+
+def test_broadcaster_collects_and_sends_one_message_per_flush():
+    """fusion_node adds each target's transforms and flushes once per wake-up: one TFMessage with all of them, in the
+    order added; a flush with nothing collected sends nothing."""
+    class Pub:
+        def __init__(self) -> None:
+            self.sent: list = []
+
+        def publish(self, msg) -> None:
+            self.sent.append([t.child_frame_id for t in msg.transforms])
+
+    pub = Pub()
+    node = type("N", (), {"create_publisher": lambda self, *a: pub})()
+    br = Broadcaster(node)
+    a, b, c = (transform_stamped(1, "base", child, T=np.eye(4)) for child in ("tool", "instrument", "reference"))
+    br.add([a])
+    br.add([b, c])
+    assert pub.sent == []
+    br.flush()
+    br.flush()
+    assert pub.sent == [["tool", "instrument", "reference"]]
+    br.add([c])
+    br.flush()
+    assert pub.sent[-1] == ["reference"] and len(pub.sent) == 2

@@ -21,7 +21,7 @@ Publishes:
   fullperc/<target>/final     PoseStamped (``processing: arrival``, ``publish_final``): the primary filter's estimate
                                of each item once it left the history -- final, equal to the offline evaluator's
   /tf                          tf2_msgs/TFMessage ``base`` -> ``<target>`` per fused output of the primary filter
-                               (stamp = fused stamp); with ``tf.enabled`` (default true)
+                               (stamp = fused stamp), every target's in one message per wake-up; ``tf.enabled``
   /tf_static                   (transient local) ``omc`` -> ``base`` (T_omc_base) and ``base`` -> ``ots``
                                (T_base_ots; not with ``local_chain: tracked``, where the OTS moves) once known, sent
                                again when they change (~/initialize, ~/calibrate, re-calibration); ``base`` ->
@@ -73,13 +73,13 @@ from fullperc_common import diagnostics as diag
 from fullperc_common.drain import take_queued
 from fullperc_common.node_main import run_node
 from fullperc_common.params import ParameterError
-from fullperc_common.ros_conv import ns_to_stamp, pose_msg, pose_to_pq, stamp_to_ns
+from fullperc_common.ros_conv import pose_to_pq, stamp_to_ns
 from fullperc_common.tf import Broadcaster, StaticBroadcaster, transform_stamped
 from fullperc_fusion.fusion_config import read_values
 from fullperc_fusion.fusion_core import DIAG_EVAL_PERIOD_S, FusionCore, Log
 from fullperc_fusion.fusion_endpoints import Endpoints, declare_row, live_parameters
 from fullperc_fusion.fusion_interface import output_topic
-from fullperc_fusion.fusion_publish import OutputPublisher, publish_outputs
+from fullperc_fusion.fusion_publish import OutputPublisher, publish_final, publish_outputs
 from fullperc_fusion.input_guard import CHECK_PERIOD_S, gid_hex, node_fqn, service_callers_line
 from fullperc_fusion.pipeline.arrival import ArrivalPipeline
 from fullperc_fusion.pipeline.ordered import FusedOutput
@@ -177,6 +177,7 @@ class FusionNode(Node):
             self._publish(t, self.core.poll(t, self._host_ns()))
             self._publish_final(t)
             self._log(self.core.watch_links(t, time.monotonic()))
+        self._flush_tf()
         received = info.get("received_timestamp") if isinstance(info, dict) else None
         clock = self.get_clock().now().nanoseconds   # 0: sim time not started, no lag known
         if self.core.input_done(batch, None if not received else wall - int(received), clock, time.monotonic()):
@@ -232,6 +233,7 @@ class FusionNode(Node):
         for t, outs in self.core.flush_all():
             self._publish(t, outs)
             self._publish_final(t)
+        self._flush_tf()
         for key, sub in self._quality_subs.items():
             while m := take_queued(sub, 1):
                 self._on_quality(key, m[0])
@@ -247,6 +249,7 @@ class FusionNode(Node):
         for t, outs in self.core.due_outputs(now, self._host_ns()):
             self._publish(t, outs)
             self._publish_final(t)
+        self._flush_tf()
 
     # ---- services ---------------------------------------------------------------------------
     def _callers(self, service: str) -> str:
@@ -318,23 +321,16 @@ class FusionNode(Node):
             tf_of=None if self._tf is None or not self._tf.wanted() else
             lambda o: transform_stamped(o.t_ns, core.frames.base, core.frames.of(target), p=o.p, q_xyzw=o.q))
         if tfs:
-            self._tf.send(tfs)
+            self._tf.add(tfs)   # sent at the end of the wake-up (_flush_tf)
 
     def _publish_final(self, target: str) -> None:
         """fullperc/<target>/final: the primary filter's estimates of the items that left the history."""
-        outs = self.core.final_outputs(target)
-        pub = self._final_pubs.get(target)
-        if pub is None or not pub.get_subscription_count():   # volatile: unread, it would reach nobody
-            return
-        for o in outs:
-            ps = PoseStamped()
-            ps.header.stamp = ns_to_stamp(o.t_ns)
-            ps.header.frame_id = self.core.frames.base
-            try:
-                ps.pose = pose_msg(o.p, o.q)
-            except ValueError:
-                continue
-            pub.publish(ps)
+        publish_final(self._final_pubs.get(target), self.core.final_outputs(target), self.core.frames.base)
+
+    def _flush_tf(self) -> None:
+        """/tf: what this wake-up's outputs of every target added, as one TFMessage."""
+        if self._tf is not None:
+            self._tf.flush()
 
     def _update_diagnostics(self) -> None:
         for name, level, message, values in self.core.diagnostics(time.monotonic(), self._diag.published):

@@ -40,10 +40,11 @@ from typing import Any
 import numpy as np
 from geometry_msgs.msg import Pose, PoseStamped, PoseWithCovarianceStamped, TwistWithCovarianceStamped
 
+from fullperc_common.ros_conv import ns_to_stamp, pose_msg
 from fullperc_fusion.pipeline.ordered import FusedOutput
 from fullperc_msgs.msg import FusionStatus
 
-__all__ = ["ANGULAR_VAR_UNKNOWN", "OutputPublisher", "fill_pose", "publish_outputs"]
+__all__ = ["ANGULAR_VAR_UNKNOWN", "OutputPublisher", "fill_pose", "publish_final", "publish_outputs"]
 
 ANGULAR_VAR_UNKNOWN = 1.0e6   # [(rad/s)^2] variance of the angular velocity, which no filter estimates (docstring)
 
@@ -183,3 +184,19 @@ def publish_outputs(sets: dict[tuple[str, str], OutputPublisher], target: str, o
             if key == "" and tf_of is not None:
                 tfs.append(tf_of(o))
     return tfs
+
+
+def publish_final(pub: Any | None, outs: Iterable[FusedOutput], frame: str) -> None:
+    """``fullperc/<target>/final``: the primary filter's estimates of the items that left the history, while a reader
+    is matched (volatile, as every output here); a pose ``pose_msg`` refuses (NaN) is skipped."""
+    if pub is None or not pub.get_subscription_count():
+        return
+    for o in outs:
+        ps = PoseStamped()
+        ps.header.stamp = ns_to_stamp(o.t_ns)
+        ps.header.frame_id = frame
+        try:
+            ps.pose = pose_msg(o.p, o.q)
+        except ValueError:
+            continue
+        pub.publish(ps)

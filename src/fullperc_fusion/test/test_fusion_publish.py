@@ -147,3 +147,15 @@ def test_status_rate_caps_status_by_stamp_but_never_drops_a_hop_or_a_bump_change
     for o in outs:
         pub2.publish("tool", o, region=1)
     assert len(st2.sent) == len(outs)
+
+
+def test_final_only_while_read_and_never_a_nan():
+    from fullperc_fusion.fusion_publish import publish_final
+
+    unread, read = FakePub(0), FakePub(1)
+    outs = [_out(t_ns=7), _out(p=(np.nan, 0.0, 0.0), t_ns=8), _out(t_ns=9)]
+    publish_final(unread, outs, "or1_base")
+    publish_final(None, outs, "or1_base")
+    publish_final(read, outs, "or1_base")
+    assert unread.sent == []
+    assert [(m.header.frame_id, m.header.stamp.nanosec) for m in read.sent] == [("or1_base", 7), ("or1_base", 9)]
