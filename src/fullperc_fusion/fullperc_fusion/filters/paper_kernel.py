@@ -201,13 +201,13 @@ def update_axes(form: AxisForm, X: list[float], C: list[list[float]], t: int, tg
     total = 0.0
     for a in range(3):
         c0, c1, c2, c3, c4, c5 = C[a]
+        r = ax[a]
+        if inflate:   # a hop (only with a global sample): slots 2-4 of either layout are its ug2, sgg and yg
+            d = r[4] * r[4]
+            c5 = c5 + d
+            r = (r[0], r[1], r[2] + d, r[3] + d, *r[4:])
         if has_g and has_l:
-            ug0, ug1, ug2, sgg, yg, ul0, ul1, ul2, sll, yl, sgl = ax[a]
-            if inflate:
-                d = yg * yg
-                c5 = c5 + d
-                ug2 = ug2 + d
-                sgg += d
+            ug0, ug1, ug2, sgg, yg, ul0, ul1, ul2, sll, yl, sgl = r
             # U S^-1 U^T and U S^-1 y through S = L D L^T: W = U L^-T = [ug, ul - lgl ug], D = diag(sgg, d2)
             lgl = sgl / sgg
             d2 = sll - lgl * sgl
@@ -220,12 +220,7 @@ def update_axes(form: AxisForm, X: list[float], C: list[list[float]], t: int, tg
             n2, n3 = c2 - (kg0 * ug2 + kl0 * w2), c3 - (kg1 * ug1 + kl1 * w1)
             n4, n5 = c4 - (kg1 * ug2 + kl1 * w2), c5 - (kg2 * ug2 + kl2 * w2)
         else:
-            u0, u1, u2, s, y = ax[a]
-            if inflate:
-                d = y * y
-                c5 = c5 + d
-                u2 = u2 + d
-                s += d
+            u0, u1, u2, s, y = r
             k0, k1, k2 = u0 / s, u1 / s, u2 / s
             dx0, dx1, dx2 = k0 * y, k1 * y, k2 * y
             n0, n1, n2 = c0 - k0 * u0, c1 - k0 * u1, c2 - k0 * u2
