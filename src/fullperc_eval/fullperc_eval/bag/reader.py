@@ -148,6 +148,11 @@ def _raw_messages(reader: BagReader, topics: list[str]) -> RawMessages:
                        np.fromiter((m.timestamp for m in msgs), np.int64, len(msgs)), [m.data for m in msgs])
 
 
+def undecodable(reader: BagReader, topic: str, typ: str, e: DecodeError) -> BagError:
+    """The error of a bulk decode that nothing could read: bag, topic, message number (from 1) and type."""
+    return BagError(f"bag {str(reader.path)!r}: message {e.index + 1} of {topic} cannot be decoded as {typ} ({e})")
+
+
 def decoded_messages(reader: BagReader, topics: list[str]) -> list[DecodedMessage]:
     """Every PoseStamped / JointState message of ``topics`` decoded in bulk (:mod:`.fast_decode`), in bag order.
 
@@ -180,8 +185,7 @@ def decoded_messages(reader: BagReader, topics: list[str]) -> list[DecodedMessag
                     out[i] = DecodedMessage(topic, stamps[j], int(jb.t_ns[j]), "", names=jb.names[j],
                                             position=jb.position[j])
         except DecodeError as e:
-            raise BagError(f"bag {str(reader.path)!r}: message {e.index + 1} of {topic} cannot be decoded as "
-                           f"{typ} ({e})") from None
+            raise undecodable(reader, topic, typ, e) from None
     return out  # type: ignore[return-value]  # every slot filled: each record belongs to one topic
 
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from fullperc_eval.bag.errors import BagError
 from fullperc_eval.bag.fast_decode import DecodeError, decode_tracking_quality
-from fullperc_eval.bag.reader import BagReader, _raw_messages, decoded_messages
+from fullperc_eval.bag.reader import BagReader, _raw_messages, decoded_messages, undecodable
 from fullperc_fusion.pipeline.ordered import TargetConfig, TargetPipeline
 
 from .config import METHODS, EvaluationError
@@ -50,8 +50,7 @@ def omc_quality_by_stamp(reader: BagReader, config: TargetConfig) -> dict[int, d
         raw = _raw_messages(reader, [topic])
         qb = decode_tracking_quality(raw.data, lambda d: reader.deserialize(d, typ))
     except DecodeError as e:
-        raise BagError(f"bag {str(reader.path)!r}: message {e.index + 1} of {topic} cannot be decoded as "
-                       f"{typ} ({e})") from None
+        raise undecodable(reader, topic, typ, e) from None
     finally:
         reader.close()
     return {t: {"fit_error": fe, "markers_used": float(mu)}
