@@ -38,6 +38,7 @@ HERE = Path(__file__).resolve().parent
 WARMUP_NS = 1_000_000_000
 # a /diagnostics value counts as a drop counter when its key has one of these words (late, sync_late, lost, ...)
 LOAD_KEYS = ("processing", "queue_depth", "queue_depth_max", "lag_ms", "lag_max_ms", "callback_delay_max_ms",
+             "wakeup_p50_ms", "wakeup_p99_ms", "wakeup_max_ms", "received_to_published_p99_ms",
              "items", "rewinds", "replayed_items", "pending")
 DROP_WORDS = {"late", "lost", "dropped", "duplicate", "future", "old", "rejected"}
 

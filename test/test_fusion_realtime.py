@@ -297,10 +297,17 @@ def test_1khz_omc_and_1khz_ots_every_sample_fused_or_its_loss_counted_and_warned
     from fullperc_common.executor_choice import choose
 
     info = choose("fusion_node") == "single"
-    for key in ("queue_depth_max", "lag_max_ms", *(("callback_delay_max_ms",) if info else ())):
+    delayed = ("callback_delay", "received_to_published")   # the stages that need the message info
+    for key in ("queue_depth_max", "lag_max_ms", "wakeup_p50_ms", "wakeup_p99_ms", "wakeup_max_ms",
+                *(f"{s}_{q}_ms" for s in delayed for q in ("p50", "p99", "max") if info)):
         assert any(d[2].get(key) not in (None, "None") for d in out.diag), key
+    for d in out.diag:   # the latency stages of each report: positive and ordered (latency.py: p50 <= p99 <= max)
+        for stage in ("wakeup", *(delayed if info else ())):
+            q = [d[2].get(f"{stage}_{k}_ms") for k in ("p50", "p99", "max")]
+            if q[0] not in (None, "None"):
+                assert 0.0 <= float(q[0]) <= float(q[1]) <= float(q[2]), (stage, q)
     if not info:
-        assert all(d[2].get("callback_delay_max_ms") in (None, "None") for d in out.diag), "no invented delay"
+        assert all(d[2].get(f"{s}_max_ms") in (None, "None") for d in out.diag for s in delayed), "no invented delay"
     if dropped or lost:
         warned = [m for lvl, m, _ in out.diag if lvl >= 1 and ("lost samples" in m or "late x" in m)]
         assert warned, f"{dropped} dropped, {lost} lost, but no WARN naming them"

@@ -297,10 +297,11 @@ class FusionCore:
             return True
         return False
 
-    def input_done(self, batch: Sequence[tuple], delay_ns: int | None, clock_ns: int, now: float) -> bool:
+    def input_done(self, batch: Sequence[tuple], delay_ns: int | None, clock_ns: int, now: float,
+                   work_ns: int | None = None) -> bool:
         """The end of one input callback (:meth:`InputBook.callback`); True when the diagnostics' evaluation is a
         whole period late (an overloaded node runs input callbacks back to back and its executor no timer)."""
-        self.book.callback(batch, delay_ns, clock_ns, now)
+        self.book.callback(batch, delay_ns, clock_ns, now, work_ns)
         return now - self.diag_eval_at >= 2.0 * DIAG_EVAL_PERIOD_S
 
     def end_of_streams(self) -> None:

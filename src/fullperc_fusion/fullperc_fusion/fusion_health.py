@@ -46,11 +46,12 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from fullperc_fusion.filters.api import Role
+from fullperc_fusion.latency import LatencyHistogram
 
 OK, WARN, ERROR = 0, 1, 2
 GLOBAL, LOCAL = Role.GLOBAL.label, Role.LOCAL.label   # the per-source keys (filters.api.Role)
@@ -386,29 +387,35 @@ class SourceLoss:
             setattr(self, counter, getattr(self, counter) + 1)
 
 
+STAGES = ("callback_delay", "wakeup", "received_to_published")   # latency.py: what each stage measures
+
+
 @dataclass
 class LoadWindow:
-    """The input callbacks of one stretch of time: the largest queue depth, callback delay and lag, the smallest
-    lag, the number of callbacks. None where no callback measured it."""
+    """The input callbacks of one stretch of time: the largest queue depth and lag, the smallest lag, the number of
+    callbacks (None where no callback measured it), and a histogram of each latency stage (:data:`STAGES`)."""
 
     depth_max: int = 0
-    delay_max_ns: int | None = None
     lag_max_ns: int | None = None
     lag_min_ns: int | None = None
     callbacks: int = 0
+    stages: dict[str, LatencyHistogram] = field(default_factory=lambda: {s: LatencyHistogram() for s in STAGES})
 
-    def add(self, depth: int, delay_ns: int | None, lag_ns: int | None) -> None:
+    def add(self, depth: int, delay_ns: int | None, lag_ns: int | None, work_ns: int | None = None) -> None:
         self.callbacks += 1
         self.depth_max = max(self.depth_max, depth)
-        self.delay_max_ns = _opt(max, self.delay_max_ns, delay_ns)
         self.lag_max_ns = _opt(max, self.lag_max_ns, lag_ns)
         self.lag_min_ns = _opt(min, self.lag_min_ns, lag_ns)
+        for stage, ns in zip(STAGES, (delay_ns, work_ns, None if delay_ns is None or work_ns is None
+                                      else delay_ns + work_ns), strict=True):
+            if ns is not None:
+                self.stages[stage].add(ns)
 
     def merged(self, other: LoadWindow) -> LoadWindow:
         """Both stretches as one."""
-        return LoadWindow(max(self.depth_max, other.depth_max), _opt(max, self.delay_max_ns, other.delay_max_ns),
-                          _opt(max, self.lag_max_ns, other.lag_max_ns), _opt(min, self.lag_min_ns, other.lag_min_ns),
-                          self.callbacks + other.callbacks)
+        return LoadWindow(max(self.depth_max, other.depth_max), _opt(max, self.lag_max_ns, other.lag_max_ns),
+                          _opt(min, self.lag_min_ns, other.lag_min_ns), self.callbacks + other.callbacks,
+                          {s: self.stages[s].merged(other.stages[s]) for s in STAGES})
 
 
 def _opt(f, a: int | None, b: int | None) -> int | None:
@@ -447,13 +454,14 @@ class InputLoad:
     def lag_min_ns(self) -> int | None:
         return self.window.lag_min_ns
 
-    def callback(self, depth: int, delay_ns: int | None, lag_ns: int | None) -> None:
+    def callback(self, depth: int, delay_ns: int | None, lag_ns: int | None, work_ns: int | None = None) -> None:
         """``depth`` samples were waiting besides the callback's own; ``delay_ns`` from its reception to the
-        callback; ``lag_ns`` node clock - stamp of the newest sample, after it was fused."""
+        callback; ``lag_ns`` node clock - stamp of the newest sample, after it was fused; ``work_ns`` from the
+        callback's start until its outputs were published."""
         self.depth = depth
         if lag_ns is not None:
             self.lag_ns = lag_ns
-        self.window.add(depth, delay_ns, lag_ns)
+        self.window.add(depth, delay_ns, lag_ns, work_ns)
 
     def begin_report(self, previous_published: bool) -> None:
         """Fold the window into the report; ``previous_published``: the report set at the last evaluation went out
@@ -467,9 +475,11 @@ class InputLoad:
             return None if v is None else round(v * 1e-6, 3)
 
         r = self.report
-        return {"queue_depth": self.depth, "queue_depth_max": r.depth_max, "lag_ms": ms(self.lag_ns),
-                "lag_min_ms": ms(r.lag_min_ns), "lag_max_ms": ms(r.lag_max_ns),
-                "callback_delay_max_ms": ms(r.delay_max_ns), "input_callbacks": r.callbacks}
+        out = {"queue_depth": self.depth, "queue_depth_max": r.depth_max, "lag_ms": ms(self.lag_ns),
+               "lag_min_ms": ms(r.lag_min_ns), "lag_max_ms": ms(r.lag_max_ns), "input_callbacks": r.callbacks}
+        for stage in STAGES:   # median, p99 and maximum of each latency stage (latency.py)
+            out.update(r.stages[stage].figures_ms(stage))
+        return out
 
     def reset_period(self) -> None:
         """End of one evaluation period: a new window."""

@@ -31,8 +31,10 @@ Publishes:
                                source; ERROR: every sample of a source rejected), naming target and source;
                                WARN when the link monitor sees a bump of the static link (link and size named);
                                overload: queue_depth(_max), lag_ms / lag_max_ms (node clock - stamp of the newest
-                               fused sample), callback_delay_max_ms (the _max / _min figures over every input
-                               callback since the last published report), <omc|ots>_frames_lost / _samples_lost of the
+                               fused sample); per input wake-up, callback_delay / wakeup / received_to_published
+                               _p50_ms, _p99_ms, _max_ms (DDS reception -> callback -> outputs published; latency.py)
+                               (the _max / _min / _pNN figures over every input callback since the last published
+                               report), <omc|ots>_frames_lost / _samples_lost of the
                                target's sources (TrackingQuality frame-number gaps; visible frames whose pose never
                                came); WARN when the lag stayed above ``lag_warn`` for a whole period, or samples
                                were lost (held problem_hold)
@@ -180,7 +182,8 @@ class FusionNode(Node):
         self._flush_tf()
         received = info.get("received_timestamp") if isinstance(info, dict) else None
         clock = self.get_clock().now().nanoseconds   # 0: sim time not started, no lag known
-        if self.core.input_done(batch, None if not received else wall - int(received), clock, time.monotonic()):
+        if self.core.input_done(batch, None if not received else wall - int(received), clock, time.monotonic(),
+                                time.time_ns() - wall):
             self._update_diagnostics()   # its timer is a period late: an overloaded node runs no timer
         self._settle_inputs(changed)
         self._diag.publish_if_overdue()

@@ -138,11 +138,13 @@ class InputBook:
         self.callback_at: float | None = None   # monotonic time of the last input callback's end
         self.stale_s, self.hold_s, self.lag_warn_s = stale_s, hold_s, lag_warn_s
 
-    def callback(self, batch: Sequence[tuple], delay_ns: int | None, clock_ns: int, now: float) -> None:
+    def callback(self, batch: Sequence[tuple], delay_ns: int | None, clock_ns: int, now: float,
+                 work_ns: int | None = None) -> None:
         """One input callback took ``batch`` ((stamp_ns, device, body, ...) in stamp order); ``delay_ns``: from the
-        reception of its first sample to the callback; ``clock_ns``: the node clock after fusing (0: not started)."""
+        reception of its first sample to the callback; ``clock_ns``: the node clock after fusing (0: not started);
+        ``work_ns``: from the callback's start until its outputs were published."""
         lag = clock_ns - batch[-1][0] if clock_ns else None
-        self.load.callback(len(batch) - 1, delay_ns, lag)
+        self.load.callback(len(batch) - 1, delay_ns, lag, work_ns)
         self.behind_ns = lag or 0
         self.callback_at = now
         for t_ns, dev, body, *_ in batch:
