@@ -25,6 +25,7 @@ from fullperc_eval.bag.reader import BagReader, _raw_messages, decoded_messages,
 from fullperc_fusion.pipeline.ordered import TargetConfig, TargetPipeline
 
 from .config import METHODS, EvaluationError
+from .on_time import on_time_order
 from .replay_data import JOINT_TOPIC, JOINT_TYPE, POSE_TYPE, Outputs, Prepared, Replay, _stamp_ns, _task_name, prepare
 from .sources import SourceTap
 
@@ -58,7 +59,7 @@ def omc_quality_by_stamp(reader: BagReader, config: TargetConfig) -> dict[int, d
 
 
 def replay(bag: str | Path, config: TargetConfig, idle_flush_s: float = 0.5, progress: bool = True,
-           per_sample: bool = False, reader: BagReader | None = None) -> Replay:
+           per_sample: bool = False, reader: BagReader | None = None, on_time: bool = False) -> Replay:
     """Run the pipeline over the raw measurements of ``bag`` the way fusion_node would have.
 
     By default through the batched replay (:mod:`.batch`: vectorised decoding, validation, mapping and the paper's
@@ -66,11 +67,13 @@ def replay(bag: str | Path, config: TargetConfig, idle_flush_s: float = 0.5, pro
     on their own and their outputs merged (filters are independent of one another; the per-sample run gives the
     counts, warnings and tap, which do not depend on the filters); anything else it does not support falls back to
     the per-sample replay of every filter (``Replay.fallback`` says why). ``per_sample`` forces the per-sample
-    replay. ``reader``: the bag already opened (its metadata is not read again)."""
+    replay. ``reader``: the bag already opened (its metadata is not read again). ``on_time``: a pose sample the
+    recorder got more than ``history`` behind the others is fed where it would have been on time (:mod:`.on_time`:
+    the node's live estimates against the replay of its inputs); it runs per sample."""
     t_start = time.perf_counter()
     prep = prepare(bag, config, reader)
-    fallback = "per-sample replay requested"
-    if not per_sample:
+    fallback = "on-time order requested" if on_time else "per-sample replay requested"
+    if not per_sample and not on_time:
         from .batch import BatchUnsupported, ItemTap, batch_replay, split_filters, unsupported_reason
 
         fast, slow = split_filters(config)
@@ -92,15 +95,15 @@ def replay(bag: str | Path, config: TargetConfig, idle_flush_s: float = 0.5, pro
         if progress:   # why this bag takes the slow path (evaluate prints progress unless --quiet)
             print(f"note: per-sample replay of {Path(bag).name}: {fallback}", file=sys.stderr, flush=True)
         prep = prepare(bag, config)   # a fresh reader: the batched attempt may have read part of the bag
-    rep = _per_sample_replay(prep, config, idle_flush_s, progress, t_start)
+    rep = _per_sample_replay(prep, config, idle_flush_s, progress, t_start, on_time=on_time)
     rep.fallback = fallback
     return rep
 
 
 def _per_sample_replay(prep: Prepared, config: TargetConfig, idle_flush_s: float, progress: bool,
-                       t_start: float, taps: dict[str, Any] | None = None) -> Replay:
+                       t_start: float, taps: dict[str, Any] | None = None, on_time: bool = False) -> Replay:
     """The replay one message at a time through :class:`TargetPipeline` (the reference); ``taps``: further
-    do-nothing filters that record what the filters get (batch.ItemTap)."""
+    do-nothing filters that record what the filters get (batch.ItemTap); ``on_time``: see :func:`replay`."""
     reader, omc_topics, ots_topics, target_omc = prep.reader, prep.omc_topics, prep.ots_topics, prep.target_omc
     present, total, warnings = prep.present, prep.total, prep.warnings
     c = config.chain
@@ -135,7 +138,13 @@ def _per_sample_replay(prep: Prepared, config: TargetConfig, idle_flush_s: float
 
     try:
         # bulk-decoded (bag.fast_decode), in bag order; rosbags is opened only if a record needs it
-        for m in decoded_messages(reader, present):
+        messages = decoded_messages(reader, present)
+        if on_time:
+            messages, moved = on_time_order(messages, {*omc_topics, *ots_topics}, config.history_ns)
+            if moved:
+                warnings.append(f"on time: {moved} samples the recorder got over {config.history_ns * 1e-9:g} s "
+                                "behind newer ones fed where they would have been on time")
+        for m in messages:
             n += 1
             counts[m.topic] += 1
             if m.topic == JOINT_TOPIC:
