@@ -8,9 +8,10 @@ export PYTHON VENV
 ENV := source scripts/env.sh &&
 COLCON_FLAGS ?= --symlink-install --event-handlers console_direct- summary+
 PYTEST_ARGS ?=
-# `make test` runs the suite on this many pytest-xdist workers (one per core of the 2-core CI machine; 1 = no
-# workers). Whole test modules go to one worker (--dist loadscope), so a module's fixtures are built once.
-TEST_WORKERS ?= 2
+# `make test` runs the suite on this many pytest-xdist workers (1 = no workers): three on the 2-core CI machine, as
+# its multi-process tests spend about a fifth of their time waiting (DDS discovery, timers) and a third worker fills
+# that (docs/testing.md). Whole test modules go to one worker (--dist loadscope): a module's fixtures are built once.
+TEST_WORKERS ?= 3
 XDIST = $(if $(filter-out 0 1,$(TEST_WORKERS)),-n $(TEST_WORKERS) --dist loadscope)
 TASK ?= P-B-G-P
 
