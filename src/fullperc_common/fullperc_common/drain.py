@@ -25,14 +25,17 @@ def take_one(sub, raw: bool = False) -> tuple[Any, dict] | None:
         return handle.take_message(sub.msg_type, raw)
 
 
-def take_queued(sub, limit: int = 1000) -> list[Any]:
-    """Up to ``limit`` deserialized messages waiting on ``sub`` (oldest first); [] if unsupported."""
+def take_queued(sub, limit: int = 1000, raw: bool | None = None) -> list[Any]:
+    """Up to ``limit`` messages waiting on ``sub`` (oldest first); [] if unsupported. ``raw``: serialized (bytes)
+    or deserialized; by default what the subscription's callback gets (its ``raw``)."""
     out: list[Any] = []
     if getattr(sub, "handle", None) is None:
         return out
+    if raw is None:
+        raw = bool(getattr(sub, "raw", False))
     try:
         for _ in range(limit):
-            taken = take_one(sub)
+            taken = take_one(sub, raw)
             if taken is None:
                 break
             out.append(taken[0])

@@ -41,6 +41,7 @@ from fullperc_common.executor_choice import adapt_subscription
 from fullperc_common.params import ParameterError, declare
 from fullperc_fusion.fusion_config import BY_NAME, spec
 from fullperc_fusion.fusion_core import LIVE_PARAMS, FusionCore
+from fullperc_fusion.input_cdr import pose_from_cdr
 
 
 def input_qos(vals: dict[str, Any]) -> QoSProfile:
@@ -135,7 +136,7 @@ class Endpoints:
             qos.reliability = ReliabilityPolicy.BEST_EFFORT
             self.node.destroy_subscription(old)
             w.sub = self.node.create_subscription(
-                old.msg_type, topic, w.callback, qos,
+                old.msg_type, topic, w.callback, qos, raw=bool(getattr(old, "raw", False)),
                 event_callbacks=SubscriptionEventCallbacks(incompatible_qos=partial(self._warn, topic, "subscription")))
             adapt_subscription(self.node, w.sub)   # on the EventsExecutor, as the node's other (msg, info) callbacks
             w.switched = True
@@ -155,12 +156,13 @@ class Endpoints:
             msg_type, topic, output_qos(self.vals), qos_overriding_options=QoSOverridingOptions.with_default_policies(),
             event_callbacks=PublisherEventCallbacks(incompatible_qos=partial(self._warn, name, "publisher")))
 
-    def subscription(self, msg_type: Any, topic: str, callback: Callable) -> Any:
-        """An input subscription; with ``auto`` an :class:`InputSubscription` that :meth:`switch_pending` may remake."""
+    def subscription(self, msg_type: Any, topic: str, callback: Callable, raw: bool = False) -> Any:
+        """An input subscription; with ``auto`` an :class:`InputSubscription` that :meth:`switch_pending` may remake.
+        ``raw``: the callback gets the serialized message (bytes), and so do takes of its queue."""
         name = self.node.resolve_topic_name(topic)
         wrapped = InputSubscription(None, callback) if self.auto else None
         sub = self.node.create_subscription(   # a profile of its own: rclpy writes a topic's overrides into it
-            msg_type, topic, callback, input_qos(self.vals),
+            msg_type, topic, callback, input_qos(self.vals), raw=raw,
             qos_overriding_options=QoSOverridingOptions.with_default_policies(),
             event_callbacks=SubscriptionEventCallbacks(incompatible_qos=partial(self._warn, name, "subscription",
                                                                                 wrapped=wrapped)))
@@ -168,6 +170,13 @@ class Endpoints:
             return sub
         wrapped.sub = sub
         return wrapped
+
+
+def input_sample(dev: str, body: str, data: bytes) -> tuple:
+    """(stamp_ns, device, body, p, q) of one serialized PoseStamped of an input subscription (made ``raw``): an item
+    of fusion_node's input batch (``FusionCore.batch_key``), read by :mod:`.input_cdr`."""
+    t_ns, p, q = pose_from_cdr(data)
+    return t_ns, dev, body, p, q
 
 
 # ROS type of a parameter declared without a default value (optional ones, empty lists)

@@ -75,13 +75,13 @@ from fullperc_common import diagnostics as diag
 from fullperc_common.drain import take_queued
 from fullperc_common.node_main import run_node
 from fullperc_common.params import ParameterError
-from fullperc_common.ros_conv import pose_to_pq, stamp_to_ns
 from fullperc_common.tf import Broadcaster, StaticBroadcaster, transform_stamped
 from fullperc_fusion.fusion_config import read_values
 from fullperc_fusion.fusion_core import DIAG_EVAL_PERIOD_S, FusionCore, Log
-from fullperc_fusion.fusion_endpoints import Endpoints, declare_row, live_parameters
+from fullperc_fusion.fusion_endpoints import Endpoints, declare_row, input_sample, live_parameters
 from fullperc_fusion.fusion_interface import output_topic
 from fullperc_fusion.fusion_publish import OutputPublisher, publish_final, publish_outputs
+from fullperc_fusion.input_cdr import quality_from_cdr
 from fullperc_fusion.input_guard import CHECK_PERIOD_S, gid_hex, node_fqn, service_callers_line
 from fullperc_fusion.pipeline.arrival import ArrivalPipeline
 from fullperc_fusion.pipeline.ordered import FusedOutput
@@ -118,10 +118,10 @@ class FusionNode(Node):
         self._out_sets = {k: OutputPublisher(*v, status_rate=vals["status_rate"],
                                              frame=core.frames.base, vel_pub=vel.get(k[0]) if k[1] == "" else None)
                           for k, v in pubs.items()}
-        self._quality_subs = {key: ep.subscription(TrackingQuality, topic, partial(self._on_quality, key))
+        self._quality_subs = {key: ep.subscription(TrackingQuality, topic, partial(self._on_quality, key), raw=True)
                               for key, topic in core.quality_topics.items()}
         self._input_subs: list[tuple[str, str, object]] = [
-            (dev, b, ep.subscription(PoseStamped, topic, partial(self._on_input, dev, b)))
+            (dev, b, ep.subscription(PoseStamped, topic, partial(self._on_input, dev, b), raw=True))
             for dev, b, topic in core.pose_topics()]
         self._sub_of = {core.topic_of[(d, b)]: s for d, b, s in self._input_subs} | {
             core.quality_topics[k]: s for k, s in self._quality_subs.items()}   # input topic -> its subscription
@@ -162,19 +162,21 @@ class FusionNode(Node):
         return self.get_clock().now().nanoseconds if self.core.needs_clock else None
 
     # ---- input ------------------------------------------------------------------------------
-    def _on_input(self, dev: str, body: str, msg: PoseStamped, info) -> None:
+    def _on_input(self, dev: str, body: str, data: bytes, info) -> None:
         """One executor callback: this message plus everything queued on every input, in stamp order (a link
-        body's sample before a target sample of the same stamp: the same device frame, mapped with it). ``info``:
-        rclpy's message info (a required argument, so rclpy passes it), for the callback delay."""
+        body's sample before a target sample of the same stamp: the same device frame, mapped with it), taken
+        serialized and read by input_cdr (no Python message per sample). ``info``: rclpy's message info (a required
+        argument, so rclpy passes it), for the callback delay."""
         wall = time.time_ns()
-        batch = [(stamp_to_ns(msg.header.stamp), dev, body, msg)]
+        batch = [input_sample(dev, body, data)]
         for d, b, sub in self._input_subs:
-            batch.extend((stamp_to_ns(m.header.stamp), d, b, m) for m in take_queued(sub, self._take_max))
+            batch.extend(input_sample(d, b, m) for m in take_queued(sub, self._take_max))
         batch.sort(key=self.core.batch_key)
-        changed = self._guard_inputs({self.core.topic_of[(d, b)] for _, d, b, _ in batch})   # before fusing any
+        changed = self._guard_inputs({self.core.topic_of[(d, b)] for _, d, b, *_ in batch})   # before fusing any
         touched: set[str] = set()
-        for t_ns, d, b, m in batch:
-            touched.update(self._on_pose(d, b, t_ns, m))
+        now, clock_ns = time.monotonic(), self.get_clock().now().nanoseconds   # time guard: 0 = sim time not started
+        for t_ns, d, b, p, q in batch:
+            touched.update(self.core.on_pose(d, b, t_ns, p, q, now, clock_ns))
         for t in touched:
             self._publish(t, self.core.poll(t, self._host_ns()))
             self._publish_final(t)
@@ -188,19 +190,14 @@ class FusionNode(Node):
         self._settle_inputs(changed)
         self._diag.publish_if_overdue()
 
-    def _on_pose(self, dev: str, body: str, t_ns: int, msg: PoseStamped) -> list[str]:
-        """Push one pose into the pipelines of the targets it feeds; returns those targets."""
-        p, q = pose_to_pq(msg.pose)
-        # the time guard's clock: the node clock (0: sim time not started, nothing checked)
-        return self.core.on_pose(dev, body, t_ns, p, q, time.monotonic(), self.get_clock().now().nanoseconds)
-
-    def _on_quality(self, key: tuple[str, str], msg: TrackingQuality) -> None:
-        """This quality message and every one queued behind it (one executor round each would fall behind)."""
+    def _on_quality(self, key: tuple[str, str], data: bytes) -> None:
+        """This quality message and every one queued behind it (one executor round each would fall behind), taken
+        serialized and read by input_cdr."""
         self.core.quality_rx(key, time.monotonic())
         changed = self._guard_inputs([self.core.quality_topics[key]])
-        for m in [msg, *take_queued(self._quality_subs[key], self._take_max)]:
-            self.core.quality(key, int(m.frame_number), stamp_to_ns(m.header.stamp), bool(m.visible),
-                              float(m.fit_error), float(m.markers_used))
+        for m in [data, *take_queued(self._quality_subs[key], self._take_max)]:
+            t_ns, visible, fit_error, number, markers = quality_from_cdr(m)
+            self.core.quality(key, number, t_ns, visible, fit_error, float(markers))
         self._settle_inputs(changed)
 
     def _guard_inputs(self, topics=None) -> bool:
