@@ -36,8 +36,9 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import live_fusion  # noqa: E402
 
-ROWS = (("_on_input", "take_queued", "cb:take_queued"), ("_on_input", "StaticLinks", "cb:static_links"),
-        ("_on_input", "_on_pose", "cb:pipeline"), ("_on_input", "publish", "cb:publish"),
+ROWS = (("_on_input", "input_sample", "cb:read_cdr"), ("_on_input", "take_queued", "cb:take_queued"),
+        ("_on_input", "StaticLinks", "cb:static_links"),
+        ("_on_input", "on_pose", "cb:pipeline"), ("_on_input", "publish", "cb:publish"),
         ("_on_input", "", "cb:other"), ("_on_quality", "", "cb:quality"), ("_on_timer", "", "timer:_on_timer"),
         ("_update_diagnostics", "", "timer:diagnostics"))
 

@@ -50,8 +50,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from fullperc_common.latency import LatencyHistogram
 from fullperc_fusion.filters.api import Role
-from fullperc_fusion.latency import LatencyHistogram
 
 OK, WARN, ERROR = 0, 1, 2
 GLOBAL, LOCAL = Role.GLOBAL.label, Role.LOCAL.label   # the per-source keys (filters.api.Role)
@@ -387,7 +387,7 @@ class SourceLoss:
             setattr(self, counter, getattr(self, counter) + 1)
 
 
-STAGES = ("callback_delay", "wakeup", "received_to_published")   # latency.py: what each stage measures
+STAGES = ("callback_delay", "wakeup", "received_to_published")   # fullperc_common.latency: what each measures
 
 
 @dataclass
@@ -477,7 +477,7 @@ class InputLoad:
         r = self.report
         out = {"queue_depth": self.depth, "queue_depth_max": r.depth_max, "lag_ms": ms(self.lag_ns),
                "lag_min_ms": ms(r.lag_min_ns), "lag_max_ms": ms(r.lag_max_ns), "input_callbacks": r.callbacks}
-        for stage in STAGES:   # median, p99 and maximum of each latency stage (latency.py)
+        for stage in STAGES:   # median, p99 and maximum of each latency stage (fullperc_common.latency)
             out.update(r.stages[stage].figures_ms(stage))
         return out
 

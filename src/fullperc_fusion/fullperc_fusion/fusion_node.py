@@ -32,7 +32,7 @@ Publishes:
                                WARN when the link monitor sees a bump of the static link (link and size named);
                                overload: queue_depth(_max), lag_ms / lag_max_ms (node clock - stamp of the newest
                                fused sample); per input wake-up, callback_delay / wakeup / received_to_published
-                               _p50_ms, _p99_ms, _max_ms (DDS reception -> callback -> outputs published; latency.py)
+                               _p50_ms, _p99_ms, _max_ms (reception -> callback -> published; fullperc_common.latency)
                                (the _max / _min / _pNN figures over every input callback since the last published
                                report), <omc|ots>_frames_lost / _samples_lost of the
                                target's sources (TrackingQuality frame-number gaps; visible frames whose pose never

@@ -265,6 +265,29 @@ def test_input_load_reports_every_window_until_a_report_is_published():
     assert (v["queue_depth_max"], v["lag_max_ms"], v["input_callbacks"]) == (0, None, 0)
 
 
+def test_input_load_reports_each_stage():
+    """InputLoad's report: callback delay, the wake-up's own work and their sum, per callback; a callback without
+    rclpy's message info (the events executor) adds no delay and no sum, only its work."""
+    from fullperc_fusion.fusion_health import InputLoad
+
+    load = InputLoad()
+    load.callback(0, 2_000_000, None, 500_000)
+    load.callback(0, None, None, 8_000_000)
+    load.callback(1, 1_000_000, None, 1_000_000)
+    load.begin_report(previous_published=True)
+    v = load.values()
+    assert v["callback_delay_max_ms"] == 2.0 and v["wakeup_max_ms"] == 8.0 and v["received_to_published_max_ms"] == 2.5
+    assert 1.0 <= v["callback_delay_p50_ms"] <= 1.0 * 1.22          # of 1 and 2 ms: the 1 ms one's bin
+    assert 1.0 <= v["wakeup_p50_ms"] <= 1.22 and v["wakeup_p99_ms"] == 8.0
+    assert 2.0 <= v["received_to_published_p50_ms"] <= 2.0 * 1.22   # of 2.0 and 2.5 ms
+    # an unpublished report keeps its callbacks: the next one adds them (as for the other figures)
+    load.reset_period()
+    load.callback(0, 50_000_000, None, 100_000)
+    load.begin_report(previous_published=False)
+    v = load.values()
+    assert v["callback_delay_max_ms"] == 50.0 and v["input_callbacks"] == 4 and v["wakeup_max_ms"] == 8.0
+
+
 # ------------------------------------------------------------------------------------------- stamp offset
 def _waving(t: np.ndarray) -> np.ndarray:
     """An irregular hand-like motion [m] (no single period: the cross-correlation has one peak)."""

@@ -11,6 +11,7 @@ from __future__ import annotations
 import time
 
 import pytest
+from rclpy.serialization import serialize_message
 
 from fullperc_common.ros_conv import pose_stamped
 
@@ -34,7 +35,7 @@ def _feed(node, seconds: float) -> None:
     t_ns = time.time_ns()
     while time.monotonic() < end:
         t_ns += 8_333_333
-        node._on_input("omc", "tool", _omc_pose(t_ns), {})
+        node._on_input("omc", "tool", serialize_message(_omc_pose(t_ns)), {})   # raw subscriptions: bytes
         time.sleep(0.005)
 
 
@@ -55,5 +56,5 @@ def test_on_time_timers_leave_the_input_path_nothing_to_do(node):
     node._update_diagnostics()
     node._diag.publish()
     sent, evaluated = node._diag.published, node.core.diag_eval_at
-    node._on_input("omc", "tool", _omc_pose(time.time_ns()), {})
+    node._on_input("omc", "tool", serialize_message(_omc_pose(time.time_ns())), {})
     assert node._diag.published == sent and node.core.diag_eval_at == evaluated
