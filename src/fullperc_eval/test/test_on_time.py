@@ -1,5 +1,6 @@
-"""replay(on_time=True) (evaluation/on_time.py): a pose sample the recorder got more than ``history`` behind the
-others is fed where it would have been on time; every other message keeps the bag order."""
+"""replay(on_time=True) (evaluation/on_time.py): a pose sample the recorder got more than min(history, reorder window)
+behind the others is fed where it would have been on time; every other message keeps the bag order; the idle flush
+follows the stamps."""
 
 from __future__ import annotations
 
@@ -77,6 +78,28 @@ def _delayed_copy(dst: Path, topic: str, t0_ns: int, span_ns: int, delay_ns: int
     return n
 
 
+def _stalled_copy(dst: Path, t0_ns: int, stall_ns: int, lag_ns: int, in_flight_ns: int) -> None:
+    """``BAG`` as a recorder that stalled from receive time t0 for ``stall_ns`` records it: everything received in the
+    stall arrives in one burst at its end, in stamp order, the target's OMC samples ``lag_ns`` behind the rest (their
+    topic's delivery lagged), and so do the target's OMC samples stamped ``in_flight_ns`` before t0 (in flight)."""
+    with BagReader(BAG) as r, BagWriter(dst) as w:
+        for name, info in r.topics.items():
+            w.add_topic(name, info.msgtype)
+        rows = []
+        for m in r.messages(list(r.topics)):
+            t = key = m.timestamp
+            if m.topic.endswith("/pose"):
+                msg = r.deserialize(m.data, m.msgtype)
+                key = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+            omc = m.topic == "/omc/tool/pose"
+            if t0_ns <= t < t0_ns + stall_ns or (omc and t < t0_ns and key >= t0_ns - in_flight_ns):
+                t = t0_ns + stall_ns + (key + (lag_ns if omc else 0) - t0_ns + 200 * MS) // 1000
+            rows.append((m.topic, t, m.data))
+        for topic, t, data in rows:
+            w.write(topic, t, data)
+    shutil.copy(BAG / "calibration.yaml", dst)
+
+
 def _same(a, b) -> None:
     for f in a.outputs:
         assert np.array_equal(a.outputs[f]["t_ns"], b.outputs[f]["t_ns"]), f
@@ -103,5 +126,25 @@ def test_samples_the_recorder_got_late_are_fused_on_time(tmp_path):
     assert len(late.outputs["omc"]["t_ns"]) == len(orig.outputs["omc"]["t_ns"]) - n
     fixed = replay(bag, cfg, progress=False, on_time=True)
     assert [w for w in fixed.warnings if w.startswith("on time")] == [
-        f"on time: {n} samples the recorder got over 0.2 s behind newer ones fed where they would have been on time"]
+        f"on time: {n} samples the recorder got over 0.058 s behind newer ones fed where they would have been on time"]
     _same(orig, fixed)
+
+
+def test_a_recorder_stall_does_not_flush_the_on_time_replay(tmp_path):
+    """The recorder stalls 0.8 s, 20 s into the task (the Vega sees the tool then), and delivers the stall's messages
+    in one burst, the OMC's 20 ms behind the Vega's. The bag-order replay sees a receive gap longer than ``idle_flush``
+    (0.5 s), flushes, and drops the OMC samples stamped before the flushed ones as late; on time, the idle flush
+    follows the stamps, which did not pause, and the copy replays as the original output for output. (With the flush
+    on the receive times, the on-time replay still drops one.)"""
+    from fullperc_eval.evaluation.replay import replay
+
+    with BagReader(BAG) as r:
+        start = r.start_time
+    bag = tmp_path / "P-G-B"
+    _stalled_copy(bag, start + 20_000 * MS, 800 * MS, 20 * MS, 40 * MS)
+    cfg = _config()
+    late = replay(bag, cfg, progress=False)
+    assert any("late" in w for w in late.warnings), late.warnings
+    fixed = replay(bag, cfg, progress=False, on_time=True)
+    assert not any("late" in w for w in fixed.warnings), fixed.warnings
+    _same(replay(BAG, cfg, progress=False), fixed)

@@ -11,12 +11,21 @@ of stamps later than the node had; from there the replay's compensated filters w
 offline, 3.00 mm live, on the same stamps).
 
 So, to compare the node with the replay of its inputs (the demo's live-against-offline check), a pose sample stamped
-more than ``history`` (0.2 s: what fusion on arrival still fuses in order) before the newest pose sample before it in
-bag order is moved to just after the last pose sample placed before it stamped at or before it; every other message
-keeps its place. Device latencies are far below that, so a recording without such a stall is replayed exactly as by
-default (the committed bags: nothing moves). A sample the node itself got that late it dropped and counted (its
-``lost samples`` on /diagnostics), and the comparison counts what the node did not publish. The default replay
-(``on_time=False``) keeps the bag order: what a node that received as the recorder did fuses.
+more than ``history`` (0.2 s: what fusion on arrival still fuses in order) or the synchronizer's reorder window
+``2·slop + delay`` (58 ms by default; the bound is the shorter of the two) before the newest pose sample before it
+in bag order is moved to just after the last pose sample placed before it stamped at or before it; every other
+message keeps its place. Device latencies are far below that, so a recording without such a stall is replayed
+exactly as by default (the committed bags: nothing moves at 58 ms). A sample the node itself got that late it
+dropped and counted (its ``lost samples`` on /diagnostics), and the comparison counts what the node did not publish.
+
+The replay's idle flush (no target sample for ``idle_flush``: everything pending is processed, which moves the
+horizon to the newest stamp) then follows the stamps instead of the recorder's receive times: a recorder stall is a
+gap in its receive times only, and another CI bag had a flush there make 67 of the instrument's OMC samples late
+(stamped 3 ms before the horizon) that the node, which saw no pause, had fused. On the committed bags the stamps and
+the receive times pause alike: the same flushes.
+
+The default replay (``on_time=False``) keeps the bag order and the receive times: what a node that received as the
+recorder did fuses.
 """
 
 from __future__ import annotations

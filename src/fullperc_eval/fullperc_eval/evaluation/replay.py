@@ -68,8 +68,9 @@ def replay(bag: str | Path, config: TargetConfig, idle_flush_s: float = 0.5, pro
     counts, warnings and tap, which do not depend on the filters); anything else it does not support falls back to
     the per-sample replay of every filter (``Replay.fallback`` says why). ``per_sample`` forces the per-sample
     replay. ``reader``: the bag already opened (its metadata is not read again). ``on_time``: a pose sample the
-    recorder got more than ``history`` behind the others is fed where it would have been on time (:mod:`.on_time`:
-    the node's live estimates against the replay of its inputs); it runs per sample."""
+    recorder got more than ``history`` (or the reorder window, if shorter) behind the others is fed where it would
+    have been on time, and the idle flush follows the stamps (:mod:`.on_time`: the node's live estimates against the
+    replay of its inputs); it runs per sample."""
     t_start = time.perf_counter()
     prep = prepare(bag, config, reader)
     fallback = "on-time order requested" if on_time else "per-sample replay requested"
@@ -140,10 +141,11 @@ def _per_sample_replay(prep: Prepared, config: TargetConfig, idle_flush_s: float
         # bulk-decoded (bag.fast_decode), in bag order; rosbags is opened only if a record needs it
         messages = decoded_messages(reader, present)
         if on_time:
-            messages, moved = on_time_order(messages, {*omc_topics, *ots_topics}, config.history_ns)
+            bound = min(config.history_ns, 2 * config.slop_ns + config.delay_ns)
+            messages, moved = on_time_order(messages, {*omc_topics, *ots_topics}, bound)
             if moved:
-                warnings.append(f"on time: {moved} samples the recorder got over {config.history_ns * 1e-9:g} s "
-                                "behind newer ones fed where they would have been on time")
+                warnings.append(f"on time: {moved} samples the recorder got over {bound * 1e-9:g} s behind newer "
+                                "ones fed where they would have been on time")
         for m in messages:
             n += 1
             counts[m.topic] += 1
@@ -169,9 +171,11 @@ def _per_sample_replay(prep: Prepared, config: TargetConfig, idle_flush_s: float
             is_target = m.topic == target_omc or m.topic == f"/ots/{c.ots_target}/pose"
             if is_target:
                 # fusion_node's idle flush: no target sample for idle_flush seconds -> process everything pending
-                if last_target_recv is not None and pipe.sync.pending and m.timestamp - last_target_recv > idle_ns:
+                # (on_time: on the stamps, the timeline of a node that received every sample in time; on_time.py)
+                at = t_ns if on_time else m.timestamp
+                if last_target_recv is not None and pipe.sync.pending and at - last_target_recv > idle_ns:
                     take(pipe.flush())
-                last_target_recv = m.timestamp
+                last_target_recv = at if last_target_recv is None else max(at, last_target_recv) if on_time else at
             if dev == "omc":
                 body = omc_topics[m.topic]
                 pipe.push_omc(body, t_ns, pose, quality=omc_quality.get(t_ns) if body == c.omc_target else None)
