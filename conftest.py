@@ -289,7 +289,7 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
 
 
 # ---- scheduling: the heaviest test modules start first ---------------------------------------------------------
-# `make test` runs on two pytest-xdist workers with --dist loadscope (a module's tests on one worker). A module that
+# `make test` runs on several pytest-xdist workers with --dist loadscope (a module's tests on one worker). A module that
 # takes a minute and starts last leaves one worker idle while the other finishes it: the suite's wall time is then
 # the sum of the long tail. test/durations.json holds each module's measured seconds (setup + call + teardown,
 # written by `make test PYTEST_ARGS=--write-durations`); modules it does not know count as DEFAULT_MODULE_S.
