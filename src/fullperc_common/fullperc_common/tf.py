@@ -15,6 +15,8 @@ parent frame, which is exactly what a TF ``parent -> child`` transform holds (th
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from geometry_msgs.msg import Quaternion, TransformStamped, Vector3
 from rclpy.node import Node
@@ -74,18 +76,35 @@ def transform_to_T(msg: TransformStamped) -> np.ndarray:
 class Broadcaster:
     """``/tf``: ``send(transforms)`` publishes one TFMessage; ``add`` collects transforms and ``flush`` publishes
     everything collected as one TFMessage -- a node with many targets sends one message per wake-up instead of one
-    per target (every message costs rclpy's per-message path; a tf2 listener takes the transforms alike)."""
+    per target (every message costs rclpy's per-message path; a tf2 listener takes the transforms alike).
 
-    def __init__(self, node: Node, topic: str = TF_TOPIC) -> None:
+    ``rate`` [Hz] > 0 caps what ``add`` keeps: per child frame, a transform stamped at least ``1 / rate`` after the
+    last one kept (by stamp, not by the host clock, so a replay keeps the same ones; a stamp before the last one --
+    time went back -- is kept and starts again). 0 keeps every transform. Why: a viewer or a consumer of many targets
+    (RViz2, a tf2 buffer) wants the tree at its display rate, not every fused sample of every target."""
+
+    def __init__(self, node: Node, topic: str = TF_TOPIC, rate: float = 0.0) -> None:
+        if not (rate >= 0.0 and math.isfinite(rate)):
+            raise ValueError(f"tf rate must be a finite number >= 0 Hz, got {rate}")
         self.pub = node.create_publisher(TFMessage, topic, dynamic_qos())
         self._pending: list[TransformStamped] = []
+        self.period_ns = int(round(1e9 / rate)) if rate > 0 else 0
+        self._kept: dict[str, int] = {}   # child frame -> stamp [ns] of the last transform kept
 
     def send(self, transforms: list[TransformStamped]) -> None:
         if transforms:
             self.pub.publish(TFMessage(transforms=list(transforms)))
 
     def add(self, transforms: list[TransformStamped]) -> None:
-        self._pending.extend(transforms)
+        if not self.period_ns:
+            self._pending.extend(transforms)
+            return
+        for t in transforms:
+            ns = t.header.stamp.sec * 1_000_000_000 + t.header.stamp.nanosec
+            last = self._kept.get(t.child_frame_id)
+            if last is None or ns < last or ns - last >= self.period_ns:
+                self._kept[t.child_frame_id] = ns
+                self._pending.append(t)
 
     def flush(self) -> None:
         pending, self._pending = self._pending, []

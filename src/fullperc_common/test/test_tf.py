@@ -120,3 +120,39 @@ def test_broadcaster_collects_and_sends_one_message_per_flush():
     br.add([c])
     br.flush()
     assert pub.sent[-1] == ["reference"] and len(pub.sent) == 2
+
+
+def test_broadcaster_rate_keeps_one_transform_per_period_of_stamps_per_child():
+    """tf.rate 50 Hz over 400 Hz outputs of two targets: per child frame, the first transform of each 20 ms of stamps
+    (by stamp: the same ones in a replay); a stamp that went back is kept and restarts the count; 0 keeps all."""
+    class Pub:
+        def __init__(self) -> None:
+            self.sent: list = []
+
+        def publish(self, msg) -> None:
+            self.sent.append([(t.child_frame_id, t.header.stamp.sec * 1_000_000_000 + t.header.stamp.nanosec)
+                              for t in msg.transforms])
+
+    pub = Pub()
+    node = type("N", (), {"create_publisher": lambda self, *a: pub})()
+    br = Broadcaster(node, rate=50.0)
+    t0 = 1_700_000_000_000_000_000
+    for k in range(40):                    # 100 ms of outputs at 400 Hz, both targets each time
+        ns = t0 + k * 2_500_000
+        br.add([transform_stamped(ns, "base", child, T=np.eye(4)) for child in ("tool", "instrument")])
+        br.flush()
+    kept = [x for msg in pub.sent for x in msg]
+    for child in ("tool", "instrument"):
+        stamps = [ns - t0 for c, ns in kept if c == child]
+        assert stamps == [0, 20_000_000, 40_000_000, 60_000_000, 80_000_000], (child, stamps)
+    br.add([transform_stamped(t0 - 5_000_000_000, "base", "tool", T=np.eye(4))])   # time went back 5 s
+    br.add([transform_stamped(t0 - 4_999_000_000, "base", "tool", T=np.eye(4))])   # 1 ms later: not kept
+    br.flush()
+    assert pub.sent[-1] == [("tool", t0 - 5_000_000_000)]
+    every = Broadcaster(node, rate=0.0)
+    every.add([transform_stamped(t0 + k, "base", "tool", T=np.eye(4)) for k in range(3)])
+    every.flush()
+    assert len(pub.sent[-1]) == 3
+    for bad in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="tf rate"):
+            Broadcaster(node, rate=bad)

@@ -48,6 +48,8 @@ INTERFACE_PARAMS: tuple[Param, ...] = (
           "QoS history depth of inputs and outputs: > 3 s at 400 Hz, so a node stalled for seconds loses nothing"),
     Param("tf.enabled", True, "bool", None, "", "",
           "broadcast /tf (base -> <target>) and /tf_static (omc -> base, base -> ots, base -> diana_base)"),
+    Param("tf.rate", 0.0, "float", *NONNEGATIVE, "Hz",
+          "most /tf transforms per second per target, by fused stamp (0 = one per fused output of the primary filter)"),
     Param("tf.diana_base", None, "pose7", None, "", "m, quaternion x y z w",
           "optional T_base_diana_base (the arm's base in base) for /tf_static [x y z qx qy qz qw]"),
     Param("frames.base", "base", "str", *NONEMPTY, "", "frame of every output (the reference marker)"),

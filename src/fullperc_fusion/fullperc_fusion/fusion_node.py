@@ -21,7 +21,8 @@ Publishes:
   fullperc/<target>/final     PoseStamped (``processing: arrival``, ``publish_final``): the primary filter's estimate
                                of each item once it left the history -- final, equal to the offline evaluator's
   /tf                          tf2_msgs/TFMessage ``base`` -> ``<target>`` per fused output of the primary filter
-                               (stamp = fused stamp), every target's in one message per wake-up; ``tf.enabled``
+                               (stamp = fused stamp; ``tf.rate``: at most that many per s of stamps), every
+                               target's in one message per wake-up; ``tf.enabled``
   /tf_static                   (transient local) ``omc`` -> ``base`` (T_omc_base) and ``base`` -> ``ots``
                                (T_base_ots; not with ``local_chain: tracked``, where the OTS moves) once known, sent
                                again when they change (~/initialize, ~/calibrate, re-calibration); ``base`` ->
@@ -130,7 +131,7 @@ class FusionNode(Node):
         # own (reentrant) group: the answer waits for the collection, and the default group's callbacks (the data)
         # must run meanwhile; a second call is answered at once
         self.create_service(Trigger, "~/calibrate", self._on_calibrate, callback_group=ReentrantCallbackGroup())
-        self._tf = Broadcaster(self) if vals["tf.enabled"] else None
+        self._tf = Broadcaster(self, rate=vals["tf.rate"]) if vals["tf.enabled"] else None
         self._tf_static = StaticBroadcaster(self) if vals["tf.enabled"] else None
         self._send_static()
         self.create_timer(0.01, self._on_timer)

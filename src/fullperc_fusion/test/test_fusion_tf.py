@@ -131,3 +131,24 @@ def test_fusion_node_broadcasts_tf_and_tf_static(scenarios, request):
 
 def test_tf_disabled_publishes_no_tf(scenarios, request):
     scenarios.result(request.node.name)
+
+
+def test_tf_rate_reaches_the_broadcaster_and_a_negative_one_is_refused(rclpy_context):
+    """``tf.rate`` is the /tf broadcaster's cap (its behaviour: test_tf.py); below 0 it is refused at start."""
+    from rclpy.parameter import Parameter
+
+    from fullperc_common.params import ParameterError
+    from fullperc_fusion.fusion_node import FusionNode
+
+    node = FusionNode(context=rclpy_context, parameter_overrides=[Parameter("tf.rate", value=50.0)])
+    try:
+        assert node._tf.period_ns == 20_000_000
+    finally:
+        node.destroy_node()
+    default = FusionNode(context=rclpy_context)
+    try:
+        assert default._tf.period_ns == 0   # every output
+    finally:
+        default.destroy_node()
+    with pytest.raises(ParameterError, match="tf.rate"):
+        FusionNode(context=rclpy_context, parameter_overrides=[Parameter("tf.rate", value=-1.0)])
