@@ -36,9 +36,24 @@ _U32 = struct.Struct("<I")
 _QUALITY = struct.Struct("<fIH")  # fit_error, frame_number, markers_used (at the aligned fit_error)
 
 
-def _align(off: int, a: int) -> int:
+def cdr_align(off: int, a: int) -> int:
     """``off`` (from the start of the record) rounded up to ``a`` bytes, counted from the CDR body at byte 4."""
     return 4 + -(-(off - 4) // a) * a
+
+
+def quality_layout(slen: int, blen: int) -> tuple[int, int, int, int, int, int, int]:
+    """Offsets of the fields of a TrackingQuality record whose frame_id and body take ``slen`` / ``blen`` bytes (with
+    their NUL): (body length, visible, fit_error, frame_number, markers_used, latency, port_status); the record ends
+    4 bytes after the last. The one statement of the layout: :func:`quality_fields` here and the evaluator's bulk
+    decoder (``fullperc_eval.bag.fast_decode``) read it."""
+    off_blen = cdr_align(16 + slen, 4)
+    off_vis = off_blen + 4 + blen
+    off_fit = cdr_align(off_vis + 1, 4)
+    off_num = off_fit + 4
+    off_mk = off_num + 4
+    off_lat = cdr_align(off_mk + 2, 4)
+    off_port = off_lat + 4
+    return off_blen, off_vis, off_fit, off_num, off_mk, off_lat, off_port
 
 
 def pose_stamped_fields(data: bytes) -> tuple[int, tuple[float, ...]] | None:
@@ -47,7 +62,7 @@ def pose_stamped_fields(data: bytes) -> tuple[int, tuple[float, ...]] | None:
     if len(data) < 17 or data[:4] != CDR_LE:
         return None
     sec, nsec, n = _HEAD.unpack_from(data, 4)
-    off = _align(16 + n, 8)   # after the string
+    off = cdr_align(16 + n, 8)   # after the string
     if n < 1 or off + POSE_BYTES != len(data) or data[15 + n] != 0:
         return None
     return sec * 1_000_000_000 + nsec, _POSE.unpack_from(data, off)
@@ -76,14 +91,12 @@ def quality_fields(data: bytes) -> tuple[int, bool, float, int, int] | None:
     if len(data) < 17 or data[:4] != CDR_LE:
         return None
     sec, nsec, n = _HEAD.unpack_from(data, 4)
-    off_blen = _align(16 + n, 4)
+    off_blen = cdr_align(16 + n, 4)
     if n < 1 or off_blen + 4 > len(data) or data[15 + n] != 0:
         return None
     (b,) = _U32.unpack_from(data, off_blen)
-    off_vis = off_blen + 4 + b
-    off_fit = _align(off_vis + 1, 4)
-    off_lat = _align(off_fit + 10, 4)
-    if b < 1 or off_lat + 8 != len(data) or data[off_vis - 1] != 0 or data[off_vis] > 1:
+    _, off_vis, off_fit, _, _, _, off_port = quality_layout(n, b)
+    if b < 1 or off_port + 4 != len(data) or data[off_vis - 1] != 0 or data[off_vis] > 1:
         return None
     fit, number, markers = _QUALITY.unpack_from(data, off_fit)
     return sec * 1_000_000_000 + nsec, data[off_vis] == 1, fit, number, markers

@@ -36,9 +36,10 @@ from zlib import crc32
 
 import numpy as np
 
+from fullperc_fusion.input_cdr import CDR_LE, cdr_align, quality_layout
+
 from .errors import BagError
 
-CDR_LE = b"\x00\x01\x00\x00"
 POSE_FLOATS = 7
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 OP_CHANNEL, OP_MESSAGE, OP_CHUNK, OP_MESSAGE_INDEX, OP_DATA_END = 0x04, 0x05, 0x06, 0x07, 0x0F
@@ -123,11 +124,6 @@ def _strings(rows: np.ndarray, off: int, n: int) -> list[str]:
     return [names[k] for k in inv.ravel()]
 
 
-def _align(off: int, a: int) -> int:
-    """``off`` (from the start of the record) rounded up to ``a`` bytes, counted from the CDR body at byte 4."""
-    return 4 + -(-(off - 4) // a) * a
-
-
 def _groups(raws: Sequence[bytes]) -> dict[int, np.ndarray]:
     lens = np.fromiter((len(r) for r in raws), dtype=np.int64, count=len(raws))
     return {int(L): np.flatnonzero(lens == L) for L in np.unique(lens)}
@@ -148,7 +144,7 @@ def decode_pose_stamped(raws: Sequence[bytes], fallback: Callable[[bytes], Any])
         ok, t, slen = _header(rows)
         for s in np.unique(slen[ok]):
             s = int(s)
-            start = _align(16 + s, 8)
+            start = cdr_align(16 + s, 8)
             if s < 1 or start + 8 * POSE_FLOATS != length:
                 continue
             sel = ok & (slen == s) & (rows[:, 15 + s] == 0)
@@ -179,20 +175,20 @@ def _joint_layout(raw: bytes) -> tuple[list[str], int, int] | None:
         if raw[:4] != CDR_LE:
             return None
         (slen,) = struct.unpack_from("<I", raw, 12)
-        off = _align(16 + slen, 4)
+        off = cdr_align(16 + slen, 4)
         (count,) = struct.unpack_from("<I", raw, off)
         off += 4
         names = []
         for _ in range(count):
-            off = _align(off, 4)
+            off = cdr_align(off, 4)
             (k,) = struct.unpack_from("<I", raw, off)
             if k < 1 or raw[off + 3 + k] != 0:
                 return None
             names.append(raw[off + 4:off + 3 + k].decode())
             off += 4 + k
-        off = _align(off, 4)
+        off = cdr_align(off, 4)
         (npos,) = struct.unpack_from("<I", raw, off)
-        pos = _align(off + 4, 8) if npos else off + 4
+        pos = cdr_align(off + 4, 8) if npos else off + 4
         return (names, pos, npos) if pos + 8 * npos <= len(raw) else None
     except (struct.error, IndexError, UnicodeDecodeError):
         return None
@@ -240,20 +236,6 @@ def decode_joint_states(raws: Sequence[bytes], fallback: Callable[[bytes], Any])
     return JointBatch(t_ns, names, position)
 
 
-def _quality_layout(slen: int, blen: int) -> tuple[int, int, int, int, int, int, int]:
-    """Offsets of the fields of a TrackingQuality record whose frame_id and body take ``slen`` / ``blen`` bytes (with
-    their NUL): (body length, visible, fit_error, frame_number, markers_used, latency, port_status); the record ends
-    4 bytes after the last."""
-    off_blen = _align(16 + slen, 4)
-    off_vis = off_blen + 4 + blen
-    off_fit = _align(off_vis + 1, 4)
-    off_num = off_fit + 4
-    off_mk = off_num + 4
-    off_lat = _align(off_mk + 2, 4)
-    off_port = off_lat + 4
-    return off_blen, off_vis, off_fit, off_num, off_mk, off_lat, off_port
-
-
 def decode_tracking_quality(raws: Sequence[bytes], fallback: Callable[[bytes], Any]) -> QualityBatch:
     """Decode TrackingQuality CDR records in bulk; as :func:`decode_pose_stamped` (records off the layout of their
     string lengths, e.g. another encapsulation or a bool byte other than 0/1, go through ``fallback``).
@@ -275,14 +257,14 @@ def decode_tracking_quality(raws: Sequence[bytes], fallback: Callable[[bytes], A
         ok, t, slen = _header(rows)
         for s in np.unique(slen[ok]):
             s = int(s)
-            off_blen = _align(16 + s, 4)
+            off_blen = cdr_align(16 + s, 4)
             if s < 1 or off_blen + 4 > length:
                 continue
             sel_s = ok & (slen == s) & (rows[:, 15 + s] == 0)
             blen = _u32(rows, off_blen)
             for b in np.unique(blen[sel_s]):
                 b = int(b)
-                offs = _quality_layout(s, b)
+                offs = quality_layout(s, b)
                 if b < 1 or offs[-1] + 4 != length:
                     continue
                 vis = rows[:, offs[1]]
