@@ -120,7 +120,7 @@ def _per_sample_replay(prep: Prepared, config: TargetConfig, idle_flush_s: float
     counts = {t: 0 for t in present}
     frames = {"omc": None, "ots": None}
     idle_ns = int(idle_flush_s * 1e9)
-    last_target_recv: int | None = None
+    last_target_at: int | None = None   # receive time (on_time: stamp) of the newest target sample
     joint_names: list[str] | None = None
     n = 0
     last_print = time.monotonic()
@@ -173,9 +173,11 @@ def _per_sample_replay(prep: Prepared, config: TargetConfig, idle_flush_s: float
                 # fusion_node's idle flush: no target sample for idle_flush seconds -> process everything pending
                 # (on_time: on the stamps, the timeline of a node that received every sample in time; on_time.py)
                 at = t_ns if on_time else m.timestamp
-                if last_target_recv is not None and pipe.sync.pending and at - last_target_recv > idle_ns:
+                if last_target_at is not None and pipe.sync.pending and at - last_target_at > idle_ns:
                     take(pipe.flush())
-                last_target_recv = at if last_target_recv is None else max(at, last_target_recv) if on_time else at
+                if on_time and last_target_at is not None:   # a moved sample's older stamp does not go back
+                    at = max(at, last_target_at)
+                last_target_at = at
             if dev == "omc":
                 body = omc_topics[m.topic]
                 pipe.push_omc(body, t_ns, pose, quality=omc_quality.get(t_ns) if body == c.omc_target else None)
