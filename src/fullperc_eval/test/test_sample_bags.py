@@ -26,9 +26,10 @@ from fullperc_eval.sim.scene import PROFILES
 
 BAGS = workspace_root() / "bags"
 REL = 1e-9          # same machine: bit-identical; other CPUs/BLAS: last-digit differences at most
-# Two profiles x six bags of ~2.1 MB (~1.5 MB of the arm-held tool, ~0.6 MB of the hand-held instrument, issue 17):
-# 25.7 MB; the limit leaves ~10 % for growth and fails on anything like a doubling.
-MAX_TOTAL_BYTES = 28_000_000
+# Two profiles x six bags of ~2.9 MB (~1.5 MB of the arm-held tool, ~0.6 MB of the hand-held instrument, issue 17,
+# ~0.8 MB of the breathing patient reference, issue 41): 34.9 MB; the limit leaves ~10 % for growth and fails on
+# anything like a doubling.
+MAX_TOTAL_BYTES = 38_500_000
 
 
 def _stored(profile: str) -> dict[str, dict]:

@@ -83,12 +83,14 @@ def test_sim_serves_the_offline_measurements(procs, tmp_path, offline_future):
     for i in range(0, len(omc), 97):
         f = omc[i][0]
         b = {x.name: x for x in f.bodies}
-        assert set(b) == {"base", "ots_rig", "tool", "instrument"}   # the twin's second target too (sim.walker)
+        # the twin's extra targets too (sim.targets): the hand-held instrument and the patient reference
+        assert set(b) == {"base", "ots_rig", "tool", "instrument", "reference"}
         assert b["tool"].tracked == bool(tool.tracked[i])
-        inst = offline.omc.bodies["instrument"]
-        assert b["instrument"].tracked == bool(inst.tracked[i]) and b["instrument"].id == 4
-        if inst.tracked[i]:
-            np.testing.assert_allclose(b["instrument"].position_mm, inst.position[i] * 1000.0, rtol=0, atol=1e-9)
+        for name, body_id in (("instrument", 4), ("reference", 5)):
+            extra = offline.omc.bodies[name]
+            assert b[name].tracked == bool(extra.tracked[i]) and b[name].id == body_id
+            if extra.tracked[i]:
+                np.testing.assert_allclose(b[name].position_mm, extra.position[i] * 1000.0, rtol=0, atol=1e-9)
         if tool.tracked[i]:
             np.testing.assert_allclose(b["tool"].position_mm, tool.position[i] * 1000.0, rtol=0, atol=1e-9)
             np.testing.assert_allclose(b["tool"].quat_xyzw, tool.quat_xyzw[i], atol=1e-12)

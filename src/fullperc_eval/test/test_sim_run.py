@@ -28,9 +28,9 @@ def _short(scene, plan, seconds=3.0):
 @pytest.mark.slow
 def test_seeded_runs_are_bit_identical(run0):
     again = run_task(TASK, seed=0).flat()
-    # another seed gives another tool measurement (the tool's data do not depend on the second target:
-    # test_sim_walker.py, so its simulation is left out here)
-    other = run_task(TASK, seed=1, second_target=False).flat()
+    # another seed gives another tool measurement (the tool's data do not depend on the extra targets:
+    # test_sim_walker.py, test_sim_breathing.py, so their simulation is left out here)
+    other = run_task(TASK, seed=1, extra_targets=False).flat()
     first = run0.flat()
     assert first.keys() == again.keys()
     for k in first:

@@ -25,11 +25,11 @@ TASK, SEED, NAME = "P-G-B", 1, "instrument"
 
 @pytest.fixture(scope="module")
 def runs():
-    """(run without, run with the second target) of run_task, once per module: the first two tests compare them, the
+    """(run without, run with the extra targets) of run_task, once per module: the first two tests compare them, the
     jitter test adds the instrument to copies of the first (``simulate`` is what run_task runs before add_hand_held,
     so the run without is the jitter test's base run, not a second simulation of it) and compares with the second.
     Only read: every test that adds to a run adds to a deep copy."""
-    return run_task(TASK, seed=SEED, second_target=False), run_task(TASK, seed=SEED)
+    return run_task(TASK, seed=SEED, extra_targets=False), run_task(TASK, seed=SEED)
 
 
 def test_the_arm_held_tool_is_unchanged_by_the_second_target(runs):

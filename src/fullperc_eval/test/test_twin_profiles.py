@@ -283,14 +283,15 @@ def bag_stats(bag: Path, profile: str) -> dict:
 @pytest.fixture(scope="module")
 def seed_runs():
     """run_task(task, seed, profile), once per module for each: the twin task of the bags' seed as ``make dataset``
-    runs it (its bag is compared); every other without the hand-held second target, which task_stats does not read
-    (the arm-held tool's and base's data are the same without it: test_sim_walker.py)."""
+    runs it (its bag is compared); every other without the extra targets (the hand-held instrument, the patient
+    reference), which task_stats does not read (the arm-held tool's and base's data are the same without them:
+    test_sim_walker.py, test_sim_breathing.py)."""
     runs = {}
 
     def get(profile: str, task: str, seed: int):
         if (profile, task, seed) not in runs:
             full = seed == BAG_SEED and task == TWIN_TASK
-            runs[(profile, task, seed)] = run_task(task, seed=seed, profile=profile, second_target=full)
+            runs[(profile, task, seed)] = run_task(task, seed=seed, profile=profile, extra_targets=full)
         return runs[(profile, task, seed)]
     return get
 

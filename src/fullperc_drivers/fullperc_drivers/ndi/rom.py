@@ -39,7 +39,7 @@ MAX_MARKERS = 20
 PART_LEN = 20
 MANUFACTURER_LEN = OFF_PART_NUMBER - OFF_MANUFACTURER
 
-# Real NDI passive tool geometries (ndi.md §6), plus two of our own so tests can run 6 tools.
+# Real NDI passive tool geometries (ndi.md §6), plus our own so tests can run 7 tools.
 # name -> (part number, marker positions [mm])
 TOOLS: dict[str, tuple[str, list[tuple[float, float, float]]]] = {
     "tool": ("8700339", [(0, 0, 0), (0, 28.59, 41.02), (0, 0, 88.0), (0, -44.32, 40.45)]),
@@ -49,6 +49,9 @@ TOOLS: dict[str, tuple[str, list[tuple[float, float, float]]]] = {
     # Not NDI parts: distinct 4-marker planar geometries (segment lengths differ from the above).
     "tool_d": ("FP-0005", [(0, 0, 0), (0, 32.0, 22.0), (0, 0, 104.0), (0, -30.0, 61.0)]),
     "tool_e": ("FP-0006", [(0, 0, 0), (0, 52.0, 12.0), (0, 10.0, 77.0), (0, -40.0, 20.0)]),
+    # The twin's patient reference frame (fullperc_eval.sim.breathing): larger (segments 58-130 mm, each at least 5 mm
+    # from the others of the frame and the set unlike every tool above), as a patient reference is.
+    "reference": ("FP-0007", [(0, 0, 0), (0, 50.0, 30.0), (0, 0, 130.0), (0, -60.0, 70.0)]),
 }
 
 

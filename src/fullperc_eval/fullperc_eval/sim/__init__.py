@@ -14,9 +14,12 @@ Layer: below :mod:`fullperc_eval.evaluation`, above :mod:`fullperc_eval.bag` and
   docstring);
 * :mod:`.tasks` — the six region orders of the paper's Table 1 and the arc generator (shipped plans in
   ``config/task_plans.yaml``; regenerate with ``python -m fullperc_eval.sim --write-plans``);
+* :mod:`.target_model` — an extra target (one without a robot) measured by the OMC and Vega models;
 * :mod:`.walker` — the second target: a hand-held instrument a staff member carries through the room (own
   random streams, truth in ``run.extra_truth``);
-* :mod:`.runner` — :func:`run_task`: plan a task and simulate it (and the second target);
+* :mod:`.breathing` — the third target: a patient reference frame that moves only as the patient breathes;
+* :mod:`.targets` — the extra targets added to a run in a fixed order;
+* :mod:`.runner` — :func:`run_task`: plan a task and simulate it (and the extra targets);
 * :mod:`.sync_take` — a short take for time alignment: the tool waved in view of both trackers;
 * :mod:`.live` — plays a run out on the UDP streams and the Vega emulator;
 * :mod:`.dataset` — ``make dataset``: the six tasks as rosbag2 bags with their calibration;

@@ -31,8 +31,8 @@ from .dataset import sim_calibration, write_truth_bag
 from .live import LiveServer
 from .run import simulate
 from .scene import DEFAULT_PROFILE, PROFILES, VegaBump, build_scene
+from .targets import add_targets
 from .tasks import TASKS, TaskPlanningError, plan_task
-from .walker import add_hand_held
 
 
 def _addr(s: str) -> tuple[str, int]:
@@ -96,7 +96,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "metres along omc x and tilt by TILT degrees about omc y (what fusion_node's link monitor "
                          "must report)")
     ap.add_argument("--truth-out", metavar="DIR",
-                    help="after the task, write the second target's true poses (host-clock stamps of the served run) "
+                    help="after the task, write the extra targets' true poses (host-clock stamps of the served run) "
                          "as a bag with /sim/truth/<target> here (the demo merges it into its recording)")
     ap.add_argument("--calibration-out", help="write the run's calibration.yaml (true T_base_diana_base, "
                     "T_flange_tool) here, for evaluating a recording of this run")
@@ -141,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"sim: {e}", file=sys.stderr, flush=True)
         return 3
     scene = scene.with_diana_base(plan.T_omc_diana_base).with_vega_bump(bump)
-    run = add_hand_held(simulate(scene, plan.arc, task=args.task), scene)
+    run = add_targets(simulate(scene, plan.arc, task=args.task), scene)
     run.info["profile"] = scene.config.get("_profile", "base")
     print(json.dumps({"event": "plan", "task": args.task, "seed": args.seed, "profile": args.profile,
                       "joint": plan.arc.joint,

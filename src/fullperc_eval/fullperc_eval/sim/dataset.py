@@ -6,14 +6,16 @@ Each task becomes ``<out>/<task>/`` holding what a ``record`` of the live system
 topics with the drivers' types, frames, units and stamps -- plus the calibration the evaluator needs:
 
 * ``/omc/<body>/pose`` (PoseStamped, frame ``omc``; only when tracked) and ``/omc/<body>/quality``
-  (TrackingQuality, every frame) for the bodies ``base``, ``ots_rig``, ``tool`` (and the second target's);
-* ``/ots/<tool>/pose`` (frame ``ots``; only when visible) and ``/ots/<tool>/quality`` for ``tool``, ``base``;
+  (TrackingQuality, every frame) for the bodies ``base``, ``ots_rig``, ``tool`` (and the extra targets');
+* ``/ots/<tool>/pose`` (frame ``ots``; only when visible) and ``/ots/<tool>/quality`` for ``tool``, ``base``
+  (and the extra targets');
 * ``/diana/joint_states`` (JointState, ``joint1..joint7``, frame ``diana_base``) and ``/diana/flange_pose``
   (PoseStamped, FK of the nominal DH table, frame ``diana_base``);
-* the second target (:mod:`.walker`, ``instrument``): ``/omc/instrument/{pose,quality}``,
-  ``/ots/instrument/{pose,quality}`` like the tool's, and its ground truth ``/sim/truth/instrument`` (PoseStamped
-  in ``base`` at the OMC frame stamps, received at its stamp). **Simulator only**: no real recording has it; the
-  evaluator uses it for every target but the arm-held ``tool`` (whose truth is the Diana's forward kinematics);
+* the extra targets (:mod:`.targets`: ``instrument``, ``reference``): ``/omc/<target>/{pose,quality}``,
+  ``/ots/<target>/{pose,quality}`` like the tool's, and each one's ground truth ``/sim/truth/<target>``
+  (PoseStamped in ``base`` at the OMC frame stamps, received at its stamp). **Simulator only**: no real recording
+  has it; the evaluator uses it for every target but the arm-held ``tool`` (whose truth is the Diana's forward
+  kinematics);
 * ``calibration.yaml``: T_base_diana_base, T_flange_tool, T_omc_base -- the simulator's true values
   (see :mod:`fullperc_eval.evaluation.ground_truth` for why the evaluator does not estimate them);
 * ``metadata.yaml`` ``custom_data``: generator, task, seed, profile (the evaluator takes the task name from here).

@@ -8,9 +8,10 @@ So live and offline data are the same measurements.
 Streams (wire formats: :mod:`fullperc_drivers.streams`):
   * OMC: one UDP datagram per frame (``encode_omc``) to ``omc_addr`` (default 127.0.0.1:3883), sent
     ``latency`` after capture; ``timestamp_ns`` is the capture time on the device clock (host clock +
-    ``device_clock_offset_ns``), ``latency_s`` capture -> send, bodies ``base``, ``ots_rig``, ``tool`` (and the second
-    target's, ``instrument``) with the ids of scene.yaml, position in mm, quaternion x y z w, mean marker error in
-    mm, tracked flag, markers used (untracked bodies carry zeros and tracked = 0: no NaN on the wire);
+    ``device_clock_offset_ns``), ``latency_s`` capture -> send, bodies ``base``, ``ots_rig``, ``tool`` (and the
+    extra targets', ``instrument`` and ``reference``) with the ids of scene.yaml, position in mm, quaternion x y z w,
+    mean marker error in mm, tracked flag, markers used (untracked bodies carry zeros and tracked = 0: no NaN on the
+    wire);
   * Diana: one UDP datagram per joint-state sample (``encode_diana``) to ``diana_addr`` (default
     127.0.0.1:3884), stamped with the sample time on the device clock;
   * NDI Vega: the Combined-API emulator (:class:`fullperc_eval.emulators.vega_server.VegaEmulator`) on TCP
@@ -51,7 +52,7 @@ _ALIGN_TOLERANCE_NS = 1_000   # rounding between the host and the simulation clo
 
 def _roms(extra: dict[str, str] | None = None) -> dict[str, bytes]:
     """The NDI tool definitions the driver uploads (fullperc_drivers/config/emulator_roms/{tool,base}.rom, and
-    ``extra``: tool name -> ROM file there, the second target's); missing ones left out."""
+    ``extra``: tool name -> ROM file there, the extra targets'); missing ones left out."""
     out: dict[str, bytes] = {}
     for name, file in {"tool": "tool.rom", "base": "base.rom", **(extra or {})}.items():
         try:
@@ -89,11 +90,10 @@ class LiveServer:
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sent = {"omc": 0, "diana": 0}
         self._ids = {n: i + 1 for i, n in enumerate(OMC_BODIES)}
-        second = run.info.get("second_target")   # the hand-held instrument (sim.walker): its id and NDI tool
-        self._extra_roms = {}
-        if second:
-            self._ids[second["name"]] = int(second["omc_id"])
-            self._extra_roms[second["name"]] = second["rom_file"]
+        # the extra targets (sim.targets: the hand-held instrument, the patient reference): their ids and NDI tools
+        extra = run.info.get("extra_targets") or {}
+        self._ids.update({n: int(e["omc_id"]) for n, e in extra.items()})
+        self._extra_roms = {n: str(e["rom_file"]) for n, e in extra.items()}
 
     # ------------------------------------------------------------------------------------------ clock
     def host_ns(self, t_sim_ns) -> int:

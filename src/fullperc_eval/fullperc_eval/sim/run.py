@@ -15,8 +15,9 @@
     run.truth.T_omc_tool, run.truth.T_base_tool # (F, 4, 4) truth at the OMC frame times
     run.truth.region                            # (F,) BVV=1 / GVV=2 / PVV=3 of the true target position
     run.truth_ots                               # the same at the Vega frame times
-    run.extra_truth["instrument"]               # the hand-held second target's truth at the OMC frame times
-                                                # (omc.bodies / ots.tools hold its measurements; sim.walker)
+    run.extra_truth["instrument"]               # the extra targets' truth at the OMC frame times (also
+                                                # "reference"; omc.bodies / ots.tools hold their measurements;
+                                                # sim.targets)
     run.static                                  # T_omc_base, T_omc_ots, T_omc_ots_rig, T_ots_rig_ots,
                                                 # T_omc_diana_base, T_flange_tool (true values)
     run.flat()                                  # every array under a "group/name" key; run.save_npz(path)
@@ -119,7 +120,7 @@ class SimRun:
     cameras_true: tuple[np.ndarray, np.ndarray]  # C (K,3), R (K,3,3)
     cameras_believed: tuple[np.ndarray, np.ndarray]
     info: dict = field(default_factory=dict)
-    extra_truth: dict[str, Truth] = field(default_factory=dict)   # other targets' truth at the OMC frames (walker)
+    extra_truth: dict[str, Truth] = field(default_factory=dict)   # other targets' truth at the OMC frames (targets)
 
     @property
     def duration_s(self) -> float:

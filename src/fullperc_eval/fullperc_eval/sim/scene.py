@@ -10,8 +10,8 @@ Two files define it:
 
 :func:`build_scene` turns them into a :class:`Scene` for one seed. The seed drives, through independent
 ``numpy`` streams spawned from one ``SeedSequence``: the OMC extrinsic miscalibration, the staff walks,
-the OMC image noise and the OTS image noise (children 0-3; the second target, :mod:`.walker`, uses 4-6, so it never
-changes a draw of these). Same seed -> bit-identical scene and measurements.
+the OMC image noise and the OTS image noise (children 0-3; the extra targets, :mod:`.targets`, use 4-6 and 7-9, so
+they never change a draw of these). Same seed -> bit-identical scene and measurements.
 """
 
 from __future__ import annotations

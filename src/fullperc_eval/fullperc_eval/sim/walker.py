@@ -15,11 +15,12 @@ second one with a different kind of motion -- a person walking, not a robot turn
   shows an instrument to a tracker;
 * **carrier**: a vertical capsule (the person) standing ``carrier.offset_m`` behind the hand, away from the table
   centre. It occludes the instrument's own markers (the person's body between an instrument and the cameras
-  behind them: the "occluded stretches"), but **not** the arm-held tool, the base marker or the rig: those keep
-  their data bit for bit, so the committed bags and benchmarks of the six paper tasks do not change with this
-  target (a simplification; the room's other staff occlude everything).
+  behind them: the "occluded stretches") and the other extra targets (the patient reference, :mod:`.breathing`),
+  but **not** the arm-held tool, the base marker or the rig: those keep their data bit for bit, so the committed
+  bags and benchmarks of the six paper tasks do not change with this target (a simplification; the room's other
+  staff occlude everything).
 
-Measurements: the same OMC and Vega models as the arm-held tool (:mod:`.omc_model`, :mod:`.ots_model`, with the
+Measurements: :func:`.target_model.measure_target` (the same OMC and Vega models as the arm-held tool, with the
 arm's links, the room's staff, the static boxes and the carrier as occluders, and the Vega bump), with **separate
 random streams** (children 4, 5, 6 of the seed's ``SeedSequence``; the scene uses 0-3), so adding this target never
 changes a draw of the others. Ground truth: the instrument's true pose, ``run.extra_truth[name]``.
@@ -27,17 +28,14 @@ changes a draw of the others. Ground truth: the instrument's true pose, ``run.ex
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from fullperc_common.transforms import inv_T
-from fullperc_fusion.margin.view_margin import label_points
-
-from .omc_model import NoiseModel, Occluders, fit_body, observe_markers
-from .run import CHUNK, BodySeries, SimRun, ToolSeries, Truth, _arm_state, _occluders
+from .run import SimRun
 from .scene import BodyDef, Scene, SceneError
+from .target_model import Carrier, enabled_section, measure_target, target_body
 
 STREAMS = (4, 5, 6)   # SeedSequence children of the run seed: path jitter, OMC noise, Vega noise
 
@@ -68,19 +66,17 @@ class HandHeldDef:
 
 def load_hand_held(cfg: dict) -> HandHeldDef | None:
     """The ``second_target`` section of a scene config, or None when it is absent or ``enabled: false``."""
-    sec = cfg.get("second_target")
-    if not sec or not sec.get("enabled", True):
+    sec = enabled_section(cfg, "second_target")
+    if sec is None:
         return None
     src = cfg.get("_source", "<memory>")
+    body = target_body(cfg, "second_target")
     try:
-        mk = np.asarray(sec["markers_mm"], dtype=float) / 1000.0
-        n = np.asarray(sec.get("normal", [1, 0, 0]), dtype=float)
         wp = np.asarray([w["at"] for w in sec["path"]], dtype=float)
         dwell = np.asarray([float(w.get("dwell_s", 0.0)) for w in sec["path"]])
         car, jit = sec.get("carrier", {}), sec.get("jitter", {})
         d = HandHeldDef(
-            body=BodyDef(str(sec["name"]), int(sec["id"]), mk, n / np.linalg.norm(n), str(sec.get("rom", ""))),
-            rom_file=str(sec["rom_file"]), waypoints=wp, dwell_s=dwell, speed=float(sec["speed"]),
+            body=body, rom_file=str(sec["rom_file"]), waypoints=wp, dwell_s=dwell, speed=float(sec["speed"]),
             normal_to_vega=float(sec.get("normal_to_vega", 0.7)), carrier_radius=float(car.get("radius", 0.2)),
             carrier_height=float(car.get("height", 1.75)), carrier_offset=float(car.get("offset_m", 0.3)),
             sway_mm=float(jit.get("sway_mm", 0.0)), sway_hz=tuple(jit.get("sway_hz", (0.3, 1.5))),
@@ -88,12 +84,8 @@ def load_hand_held(cfg: dict) -> HandHeldDef | None:
             rotation_deg=float(jit.get("rotation_deg", 0.0)))
     except (KeyError, TypeError, ValueError, ZeroDivisionError) as e:
         raise SceneError(f"scene file {src}: field 'second_target': {type(e).__name__}: {e}") from None
-    if mk.ndim != 2 or mk.shape[1] != 3 or len(mk) < 3:
-        raise SceneError(f"scene file {src}: 'second_target.markers_mm' needs >= 3 [x y z] rows")
     if wp.ndim != 2 or wp.shape[1] != 3 or len(wp) < 2 or not d.speed > 0:
         raise SceneError(f"scene file {src}: 'second_target.path' needs >= 2 waypoints 'at: [x, y, z]', speed > 0")
-    if d.name in ("tool", "base", "ots_rig"):
-        raise SceneError(f"scene file {src}: 'second_target.name' {d.name!r} is taken by another body")
     return d
 
 
@@ -116,10 +108,15 @@ class BandNoise:
 
 
 class HandHeldPath:
-    """The instrument's true pose and its carrier over time (one seeded instance)."""
+    """The instrument's true pose and its carrier over time (one seeded instance; a
+    :class:`~.target_model.ExtraTarget`)."""
+
+    streams = STREAMS
 
     def __init__(self, d: HandHeldDef, T_omc_ots: np.ndarray, seed: int) -> None:
         self.d = d
+        self.body, self.rom_file = d.body, d.rom_file
+        self.carrier_capsule = Carrier(self.carrier, d.carrier_radius)
         self.vega = np.asarray(T_omc_ots, float)[:3, 3]
         legs = np.linalg.norm(np.diff(d.waypoints, axis=0), axis=1)
         # leg k runs from waypoint k (after its dwell) to k + 1; a minimum-jerk leg of mean speed v lasts len / v
@@ -175,72 +172,22 @@ class HandHeldPath:
         return (np.column_stack([xy, np.full(len(xy), r)]), np.column_stack([xy, np.full(len(xy), h - r)]))
 
 
-def _occ(scene: Scene, run: SimRun, path: HandHeldPath, t_ns: np.ndarray, staff: bool) -> Occluders:
-    _, _, origins, _ = _arm_state(scene, run.arc, t_ns)
-    occ = _occluders(scene, origins, t_ns, staff)
-    a, b = path.carrier(t_ns / 1e9)
-    return Occluders(np.concatenate([occ.cap_a, a[:, None]], axis=1), np.concatenate([occ.cap_b, b[:, None]], axis=1),
-                     np.concatenate([occ.cap_r, [path.d.carrier_radius]]), occ.boxes)
-
-
-def _truth(scene: Scene, T: np.ndarray, t_ns: np.ndarray) -> Truth:
-    labels, res = label_points(scene.layout, T[:, :3, 3])
-    return Truth(t_ns=t_ns, T_omc_tool=T, T_base_tool=inv_T(scene.T_omc_base) @ T, region=labels.astype(np.uint8),
-                 margin_deg=res.margin_deg)
-
-
 def add_hand_held(run: SimRun, scene: Scene, noise: bool = True, staff: bool = True) -> SimRun:
     """Measure the scene's second target over ``run``'s frames and add it to ``run`` (in place; also returned).
 
     Adds ``run.omc.bodies[name]``, ``run.ots.tools[name]``, ``run.extra_truth[name]`` (truth at the OMC frames) and
-    ``run.info['second_target']``. A scene without a ``second_target`` section leaves the run unchanged.
+    its entry in ``run.info['extra_targets']``. A scene without a ``second_target`` section leaves the run unchanged.
     """
-    d = load_hand_held(scene.config)
-    if d is None:
+    path = hand_held(scene)
+    if path is None:
         return run
-    path = HandHeldPath(d, scene.T_omc_ots, scene.seed)
-    cfg = scene.config
-    rng_omc, rng_ots = (np.random.default_rng(np.random.SeedSequence(scene.seed, spawn_key=(k,))) for k in STREAMS[1:])
-    nm = scene.omc_noise if noise else NoiseModel(0.0, 1.0, 0.0)
-    ots = scene.ots if noise else replace(scene.ots, noise=NoiseModel(0.0, 1.0, 0.0))
-    M = len(d.body.markers)
-    omc_fits, ots_fits, parts = [], [], []
-    for which, t_all in (("omc", run.omc.t_ns), ("ots", run.ots.t_ns)):
-        for a in range(0, len(t_all), CHUNK):
-            tc = t_all[a:a + CHUNK]
-            T = path.poses(tc / 1e9)
-            X = np.einsum("fij,mj->fmi", T[:, :3, :3], d.body.markers) + T[:, None, :3, 3]
-            N = T[:, :3, :3] @ d.body.normal
-            occ = _occ(scene, run, path, tc, staff)
-            if which == "omc":
-                z = rng_omc.standard_normal((len(tc), M, scene.omc_cams.K, 2)) if noise else \
-                    np.zeros((len(tc), M, scene.omc_cams.K, 2))
-                obs = observe_markers(scene.omc_cams, X, np.ones((len(tc), M), bool), occ, nm, z,
-                                      normals=np.broadcast_to(N[:, None], X.shape),
-                                      max_view_angle_deg=float(cfg["omc"]["max_view_angle_deg"]),
-                                      min_cams=int(cfg["omc"]["min_cameras_per_marker"]))
-                omc_fits.append(fit_body(d.body.markers, obs, int(cfg["omc"]["min_markers_per_body"])))
-                continue
-            z = rng_ots.standard_normal((len(tc), M, 2, 2)) if noise else np.zeros((len(tc), M, 2, 2))
-            after, T_bumped = scene.bumped_at(tc)
-            for sel, T_ots in ((~after, scene.T_omc_ots), (after, T_bumped)):
-                if not sel.any():
-                    continue
-                o = Occluders(occ.cap_a[sel], occ.cap_b[sel], occ.cap_r, occ.boxes)
-                fit, part = ots.measure(T_ots, d.body.markers, X[sel], N[sel], o, z[sel])
-                ots_fits.append(fit)
-                parts.append(part)
-
-    def cat(fits, name):
-        return np.concatenate([getattr(f, name) for f in fits])
-
-    run.omc.bodies[d.name] = BodySeries(cat(omc_fits, "tracked"), cat(omc_fits, "position"),
-                                        cat(omc_fits, "quat_xyzw"), cat(omc_fits, "mean_error"),
-                                        cat(omc_fits, "markers_used"), cat(omc_fits, "cameras_seeing"),
-                                        cat(omc_fits, "rays"))
-    run.ots.tools[d.name] = ToolSeries(cat(ots_fits, "tracked"), cat(ots_fits, "position"), cat(ots_fits, "quat_xyzw"),
-                                       cat(ots_fits, "rms_error"), cat(ots_fits, "markers_used"), np.concatenate(parts))
-    run.extra_truth[d.name] = _truth(scene, path.poses(run.omc.t_ns / 1e9), run.omc.t_ns)
-    run.info["second_target"] = {"name": d.name, "omc_id": d.body.id, "rom_file": d.rom_file,
-                                 "path_s": round(path.duration, 3)}
+    measure_target(run, scene, path, [path.carrier_capsule], noise=noise, staff=staff)
+    run.info.setdefault("extra_targets", {})[path.d.name] = {
+        "kind": "hand_held", "omc_id": path.d.body.id, "rom_file": path.d.rom_file, "path_s": round(path.duration, 3)}
     return run
+
+
+def hand_held(scene: Scene) -> HandHeldPath | None:
+    """The scene's seeded instrument path (None without a ``second_target`` section or with ``enabled: false``)."""
+    d = load_hand_held(scene.config)
+    return None if d is None else HandHeldPath(d, scene.T_omc_ots, scene.seed)
