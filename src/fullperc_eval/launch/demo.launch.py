@@ -47,9 +47,7 @@ def generate_launch_description():
     fusion = Node(package="fullperc_fusion", executable="fusion_node", name="fusion_node",
                   parameters=[{"filter": "cbkf", "filters": ["ckf", "bkf", "kf", "omc"],
                                "calibration_file": C("calibration_file"), "targets": ["tool", "instrument"],
-                               "instrument.accel_noise": 2.0, "instrument.hop_to_bias": False,
-                               "instrument.init_vel_std": 0.9, "tool.ang_accel_noise": 0.005,
-                               "qos_depth": 10000, "history": 3.0,
+                               "instrument.motion": "hand", "qos_depth": 10000, "history": 3.0,
                                "reorder_delay": 2.5}],   # demo_graph.yaml says why
                   # at SIGINT it fuses what its input queues still hold (demo_graph.yaml's grace)
                   sigterm_timeout="30")

@@ -1,10 +1,10 @@
-"""The hand-held instrument of the committed bags, evaluated with fusion.yaml (docs/targets.md).
+"""The hand-held instrument of the committed bags: how a target's motion decides its fusion (docs/targets.md).
 
-Its own motion model, velocity prior and hop rule (fusion.yaml's `instrument` block: `accel_noise` from its truth's
-v_max * a_max, `init_vel_std` its v_max, `hop_to_bias: false`) keep the compensated filters at the OMC's level on
-the walk; with the arm-held tool's values (the node-wide `noise.accel`, `init.vel_std`, `hop_to_bias`) the walk's
-accelerations leave the hop gate and go into the bias, and so does the motion of a target already walking when first
-seen; that bias is applied metres away where the Vega cannot correct it -- the defect this pins.
+With the arm's motion (the ``arm`` preset: the paper filters' tuning) the walk's jumps pass the hop gate and go into
+the bias, and so does the motion of a target already walking when first seen; that bias is applied metres away where
+the Vega cannot correct it -- the defect this pins. The ``hand`` preset keeps the compensated filters at the OMC's
+level. ``motion: auto`` (the shipped fusion.yaml sets no target's motion) lets fullperc find that itself
+(filters/fullperc_imm.py); the paper's filters, one motion model each, then keep the node-wide (arm) values.
 """
 
 from __future__ import annotations
@@ -19,36 +19,60 @@ from fullperc_fusion.fusion_config import default_fusion_config_path, node_key
 
 ROOT = Path(__file__).resolve().parents[3]
 BAG = ROOT / "bags" / "paper" / "G-B-P"
+SPEC_BAG = ROOT / "bags" / "spec" / "G-B-P"
 COMPENSATED = ("ckf", "cbkf", "fullperc")
 
 
-@pytest.fixture(scope="module")
-def shipped():
-    return evaluate_bag(BAG, target="instrument", progress=False).result["mae_mm"]
-
-
-def test_the_compensated_filters_stay_at_the_omcs_level_on_the_walk(shipped):
-    for m in COMPENSATED:
-        assert shipped[m] <= 1.15 * shipped["omc"], (m, shipped)
-    assert shipped["kf"] <= shipped["omc"]
-
-
-def test_with_the_spec_omc_ckf_and_fullperc_stay_near_it():
-    """The `spec` OMC (0.2 mm) leaves little room: CKF and fullperc within 1.5x of it (with the arm's values: 39x and
-    42x). CBKF is not held to it: its biased estimator (paper eq. 4-8) shrinks a coordinate that crosses a plane of
-    `base` while the position's variance is large (13 mm^2 before the Vega first sees the instrument) towards 0, by up
-    to 1.5 mm, kept until the Vega sees it (docs/targets.md)."""
-    spec = evaluate_bag(ROOT / "bags" / "spec" / "G-B-P", target="instrument", progress=False).result["mae_mm"]
-    for m in ("ckf", "fullperc"):
-        assert spec[m] <= 1.5 * spec["omc"], (m, spec)
-
-
-def test_with_the_arms_motion_model_and_hop_rule_the_walk_goes_into_the_bias(shipped, tmp_path):
+def _with_motion(tmp_path: Path, motion: str) -> Path:
     doc = yaml.safe_load(default_fusion_config_path().read_text())
-    del doc[node_key(doc)]["ros__parameters"]["instrument"]
-    path = tmp_path / "arm_tuning.yaml"
+    doc[node_key(doc)]["ros__parameters"]["instrument"] = {"motion": motion}
+    path = tmp_path / f"{motion}.yaml"
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
-    arm = evaluate_bag(BAG, target="instrument", progress=False, fusion_config=path).result["mae_mm"]
-    assert arm["omc"] == shipped["omc"]
+    return path
+
+
+def _mae(bag: Path, config: Path | None = None) -> dict[str, float]:
+    return evaluate_bag(bag, target="instrument", progress=False, fusion_config=config).result["mae_mm"]
+
+
+@pytest.fixture(scope="module")
+def results(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("motion")
+    return {"auto": _mae(BAG), "hand": _mae(BAG, _with_motion(tmp, "hand")), "arm": _mae(BAG, _with_motion(tmp, "arm")),
+            "spec_auto": _mae(SPEC_BAG), "spec_hand": _mae(SPEC_BAG, _with_motion(tmp, "hand"))}
+
+
+def test_with_the_hand_preset_the_compensated_filters_stay_at_the_omcs_level(results):
+    hand = results["hand"]
     for m in COMPENSATED:
-        assert arm[m] > 1.5 * shipped["omc"] and arm[m] > 1.5 * shipped[m], (m, arm, shipped)
+        assert hand[m] <= 1.15 * hand["omc"], (m, hand)
+    assert hand["kf"] <= hand["omc"]
+
+
+def test_with_the_arms_motion_the_walk_goes_into_the_bias(results):
+    arm, hand = results["arm"], results["hand"]
+    assert arm["omc"] == hand["omc"]
+    for m in COMPENSATED:
+        assert arm[m] > 1.5 * hand["omc"] and arm[m] > 1.5 * hand[m], (m, arm, hand)
+
+
+def test_auto_finds_the_hand_for_fullperc_and_the_paper_filters_keep_the_arms_values(results):
+    """motion auto, the shipped default: fullperc stays at the OMC's level and near the hand preset (its goal: within
+    5 % over 10 seeds, `make accuracy`; one bag here); the paper's filters fuse with the node-wide values as with the
+    arm preset, bit for bit."""
+    auto, hand, arm = results["auto"], results["hand"], results["arm"]
+    assert auto["fullperc"] <= 1.15 * auto["omc"], auto
+    assert auto["fullperc"] <= 1.10 * hand["fullperc"], (auto, hand)
+    for m in ("kf", "bkf", "ckf", "cbkf"):
+        assert auto[m] == arm[m], m
+
+
+def test_with_the_spec_omc_fullperc_stays_near_it(results):
+    """The `spec` OMC (0.2 mm) leaves little room: fullperc within 1.5x of it, with auto as with the hand preset (with
+    the arm's values: ~40x). CBKF is not held to it: its biased estimator (paper eq. 4-8) shrinks a coordinate that
+    crosses a plane of `base` while the position's variance is large (13 mm^2 before the Vega first sees the
+    instrument) towards 0, by up to 1.5 mm, kept until the Vega sees it (docs/targets.md)."""
+    for key in ("spec_auto", "spec_hand"):
+        spec = results[key]
+        assert spec["fullperc"] <= 1.5 * spec["omc"], (key, spec)
+    assert results["spec_hand"]["ckf"] <= 1.5 * results["spec_hand"]["omc"], results["spec_hand"]

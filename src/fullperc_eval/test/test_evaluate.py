@@ -196,15 +196,15 @@ def test_result_has_the_eval_json_schema(synth_eval):
 # ------------------------------------------------------------------------------------------ configuration
 def test_fusion_yaml_maps_to_the_node_defaults():
     """fusion.yaml says every value equals the node's built-in default: loading it must give the dataclass
-    defaults (a drift between the file and the code would make live and offline disagree), but for the arm-held
-    tool's turn model (fullperc's ``tool.ang_accel_noise``; the demo's node gets it with -p)."""
+    defaults (a drift between the file and the code would make live and offline disagree); the target's ``motion``
+    is the node's per-target default ``auto`` (the filters' dataclass says "fixed" for a direct caller)."""
     cfg, flat = replay_config()
     want = TargetConfig(name="tool", chain=ChainConfig(), filters=METHODS, params=FilterParams())
     # the params may be a FilterParams subclass carrying a further filter's fields too (fullperc): the paper's
     # fields must be FilterParams' defaults, and every field the defaults of the class the config built
     assert isinstance(cfg.params, FilterParams)
     assert {f.name: getattr(cfg.params, f.name) for f in dataclasses.fields(FilterParams)} == vars(want.params)
-    assert cfg.params == dataclasses.replace(type(cfg.params)(), ang_accel_noise=0.005)
+    assert cfg.params == dataclasses.replace(type(cfg.params)(), motion="auto")
     assert (cfg.slop_ns, cfg.delay_ns) == (want.slop_ns, want.delay_ns)
     for f in dataclasses.fields(ChainConfig):
         a, b = getattr(cfg.chain, f.name), getattr(want.chain, f.name)

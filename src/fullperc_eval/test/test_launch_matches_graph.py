@@ -47,23 +47,22 @@ def _graph_fusion_params() -> dict[str, str]:
     return dict(cmd[i + 1].split(":=", 1) for i, w in enumerate(cmd) if w == "-p")
 
 
-def _fusion_yaml_target(target: str) -> dict:
-    doc = yaml.safe_load((PKG.parent / "fullperc_fusion" / "config" / "fusion.yaml").read_text())
-    section = next(v for k, v in doc.items() if k.split("/")[-1] == "fusion_node")   # fusion_node or /**/fusion_node
-    return section["ros__parameters"][target]
+def test_the_targets_fusion_parameters_are_the_demos_in_graph_launch_file_and_offline_evaluation(tmp_path):
+    """The demo's live fusion_node and its offline evaluation must fuse the hand-held instrument with the same motion
+    (graph/demo.py DEMO_TARGET_PARAMS, which fusion_params_with writes for the evaluation), or live and offline differ
+    for it; the shipped fusion.yaml sets no target's motion (motion auto)."""
+    from fullperc_eval.graph.demo import DEMO_TARGET_PARAMS, fusion_params_with
 
-
-def test_the_targets_fusion_parameters_are_fusion_yamls_in_graph_and_launch_file():
-    """The demo's live fusion_node and its offline evaluation (which reads fusion.yaml) must fuse the hand-held
-    instrument with the same motion model and hop rule, and the arm-held tool with the same turn model, or live and
-    offline differ for them."""
-    want = {f"instrument.{k}": v for k, v in _fusion_yaml_target("instrument").items()}
-    assert want.keys() == {"instrument.accel_noise", "instrument.hop_to_bias", "instrument.init_vel_std"}
-    tool = _fusion_yaml_target("tool")
-    assert tool.keys() == {"omc_body", "ots_tool", "ang_accel_noise"}     # the device names are the target's name
-    want["tool.ang_accel_noise"] = tool["ang_accel_noise"]
+    want = dict(DEMO_TARGET_PARAMS)
+    assert want == {"instrument.motion": "hand"}
+    shipped = yaml.safe_load((PKG.parent / "fullperc_fusion" / "config" / "fusion.yaml").read_text())
+    params = next(v for k, v in shipped.items() if k.split("/")[-1] == "fusion_node")["ros__parameters"]
+    assert "instrument" not in params and set(params["tool"]) == {"omc_body", "ots_tool"}
+    offline = yaml.safe_load(fusion_params_with(None, tmp_path).read_text())
+    offline = next(iter(offline.values()))["ros__parameters"]
+    assert {f"instrument.{k}": v for k, v in offline["instrument"].items()} == want
     given = _graph_fusion_params()
-    assert {k: yaml.safe_load(given[k]) for k in want} == want
+    assert {k: yaml.safe_load(v) for k, v in given.items() if k.startswith(("instrument.", "tool."))} == want
     tree = ast.parse((PKG / "launch" / "demo.launch.py").read_text())
     fusion = next(n for n in ast.walk(tree) if isinstance(n, ast.Call) and getattr(n.func, "id", "") == "Node"
                   and any(k.arg == "executable" and k.value.value == "fusion_node" for k in n.keywords))

@@ -32,8 +32,9 @@ from fullperc_fusion.calibration.io import load_calibration
 from fullperc_fusion.calibration.monitor import MonitorParams
 from fullperc_fusion.calibration.se3_stats import CalibrationError, CalibrationSettings, StaticThresholds
 from fullperc_fusion.filters.fullperc_params import HOP_INTO
+from fullperc_fusion.filters.motion import MOTIONS, PRESETS, preset_fields
 from fullperc_fusion.filters.paper_family import FilterParams
-from fullperc_fusion.filters.registry import FILTERS
+from fullperc_fusion.filters.registry import FILTERS, params_of_every_filter
 from fullperc_fusion.fusion_health import HealthParams
 from fullperc_fusion.fusion_interface import INTERFACE_PARAMS, TARGET_FRAME
 from fullperc_fusion.pipeline.frame_chain import LOCAL_CHAINS, STATIC_LINK_MODES, ChainConfig
@@ -58,19 +59,7 @@ from fullperc_fusion.pipeline.sources import SOURCE_KEYS, device_param, read_sou
 PAPER_ORDER = tuple(reversed(FILTER_NAMES[:5])) + FILTER_NAMES[5:]
 
 
-def _params_of_every_filter() -> type[FilterParams]:
-    """The registered parameter dataclass that every registered filter's is a base of (FullpercParams: the paper's
-    FilterParams plus fullperc's fields). One object of it serves every filter of a target (``TargetConfig.params``);
-    a filter reads its own dataclass's fields only."""
-    types = {s.params for s in FILTERS.values()}
-    top = [t for t in types if all(issubclass(t, u) for u in types)]
-    if len(top) != 1:
-        raise TypeError("no registered parameter dataclass extends every other one: "
-                        f"{sorted(t.__name__ for t in types)}")
-    return top[0]
-
-
-FILTER_PARAMS = _params_of_every_filter()
+FILTER_PARAMS = params_of_every_filter()
 _F = FILTER_PARAMS()
 _C, _T, _H, _S, _M = ChainConfig(), TargetConfig(), HealthParams(), CalibrationSettings(), MonitorParams()
 
@@ -149,6 +138,11 @@ PARAMS: tuple[Param, ...] = (
           "longer silence of both sources re-initialises p and v"),
     _filter_row("fullperc.ang_accel_noise", "ang_accel_noise", "float", *NONNEGATIVE, "rad^2/s^3",
           "fullperc: white angular-acceleration density q_alpha"),
+    _filter_row("fullperc.motion_models", "motion_models", "str_list", lambda v: bool(v) and len(set(v)) == len(v)
+          and set(v) <= set(PRESETS), f"distinct ones of {tuple(PRESETS)}", "",
+          "fullperc: the motion presets a target with motion auto weighs (filters/motion.py)"),
+    _filter_row("fullperc.motion_dwell", "motion_dwell", "float", *POSITIVE, "s",
+          "fullperc: mean time a target keeps one motion (motion auto: the models' switching rate)"),
     _filter_row("fullperc.rot_bias_walk", "rot_bias_walk", "float", *NONNEGATIVE, "rad^2/s",
           "fullperc: random walk of the OMC's orientation bias"),
     _filter_row("fullperc.rot_global_std", "rot_global_std", "float", *POSITIVE, "rad",
@@ -243,6 +237,9 @@ PARAMS: tuple[Param, ...] = (
 # Per target; the name is "<target>.<suffix>"; a string's default (None) is the target's name, a number's none
 # (the node-wide value applies). A row with a ``field`` replaces the node-wide row of that field for the target.
 TARGET_PARAMS: tuple[Param, ...] = (
+    Param("motion", "auto", "str", *one_of(MOTIONS), "",
+          "how the target moves: auto (fullperc weighs fullperc.motion_models itself, the paper's filters keep the "
+          "node-wide values) | arm | hand | static (a preset of every filter's motion values; filters/motion.py)"),
     Param("omc_body", None, "str", *NONEMPTY, "", "OMC rigid body of the target (global measurement)"),
     Param("ots_tool", None, "str", *NONEMPTY, "", "NDI tool of the target (local measurement)"),
     Param("ang_accel_noise", None, "float", *POSITIVE, "rad^2/s^3",
@@ -275,7 +272,7 @@ def spec(name: str) -> Param:
     target, _, suffix = name.rpartition(".")
     for tp in TARGET_PARAMS:
         if suffix == tp.name and target:
-            return replace(tp, name=name, default=target if tp.kind == "str" else tp.default)
+            return replace(tp, name=name, default=target if tp.kind == "str" and tp.default is None else tp.default)
     if target and suffix in SOURCE_KEYS:   # a source block (sources.py)
         return source_param(target, suffix)
     if target and "." not in target and "." not in suffix:   # <target>.<source>: the target's device of a source
@@ -364,11 +361,14 @@ def primary_and_extra(vals: dict[str, Any]) -> tuple[str, list[str]]:
 
 
 def target_overrides(vals: dict[str, Any], target: str) -> dict[str, Any]:
-    """The filter parameters ``target`` sets for itself: each :data:`TARGET_PARAMS` row with a ``field`` (the
-    target's own motion model, prior and hop rule), given a value. They replace the node-wide ones for that target
-    only, so an arm-held tool and a hand-held instrument can share one node."""
-    return {tp.field: vals[f"{target}.{tp.name}"] for tp in TARGET_PARAMS
-            if tp.field and vals.get(f"{target}.{tp.name}") is not None}
+    """The filter parameters ``target`` sets for itself: its ``motion`` preset's values (:mod:`.filters.motion`),
+    over them each :data:`TARGET_PARAMS` row with a ``field`` given a value, and ``motion`` ("auto" for fullperc's
+    IMM, else "fixed"). They replace the node-wide ones for that target only, so an arm-held tool and a hand-held
+    instrument can share one node."""
+    motion = vals.get(f"{target}.motion") or "auto"
+    own = {tp.field: vals[f"{target}.{tp.name}"] for tp in TARGET_PARAMS
+           if tp.field and vals.get(f"{target}.{tp.name}") is not None}
+    return {**preset_fields(motion), **own, "motion": "auto" if motion == "auto" else "fixed"}
 
 
 def _pose(v: list[float] | None):

@@ -1,19 +1,19 @@
 """The fast ``fullperc`` filter (filters.fullperc) against its general form, the reference (fullperc_reference).
 
-Agreement, stated once, checked after every step of long randomised streams: position, velocity, bias (b + g),
-the global position innovation and the orientation quaternion to 1e-12 absolute (m, m/s, unit quaternion); every
+Agreement, stated once, checked after every step of long randomised streams: position, velocity, bias (b + g), the
+global position innovation and the orientation quaternion to 1e-12 absolute (m, m/s, unit quaternion); every
 covariance entry (the full 21x21 P and the 6x6 pose covariance) to 1e-11 of sqrt(P_ii P_jj), i.e. relative to the
 scale of that entry (P spans 1e-10 m^2 to 0.25 rad^2/s^2, so one absolute figure would say little); hop, reset,
-sources, stamp and the hop counters exactly. NIS and NIS_global to 1e-10 of max(1, NIS): NIS divides by a 0.1 mm
-sigma, so the ~1e-15 m by which two implementations' positions differ after thousands of steps is ~1e-11 of it,
-doubled by the square (measured: <= 1.4e-11). Streams: global only / local only / pairs (either sample up to 4 ms
-older), with and without orientation (a position-only start included), fixed noise / diagonal / full 6x6
-covariances with position-rotation terms (the lever-arm form of measurement_models.local_covariance), ``sys_var``
-extras (valid and invalid), gaps beyond ``max_gap_s`` (re-initialisation), position hops and rotation jumps, fast
-turns (rotations past 120 deg: the other branch of the quaternion conversion), snapshot/restore, the frame
-changing every 250 items (``express_in``, with and without a local sample in the item), the global rotation-noise
-scale mu (``rot_noise_scale``) learnt both below and above 1. The fast form's SO(3) on floats (so3_float) against the
-shared ``fullperc_common.so3``.
+sources, stamp and the hop counters exactly. NIS, NIS_global and the log-likelihood to 1e-10 of max(1, |value|): NIS
+divides by a 0.1 mm sigma, so the ~1e-15 m by which two implementations' positions differ after thousands of steps
+is ~1e-11 of it, doubled by the square (measured: <= 1.4e-11). Streams: global only / local only / pairs (either
+sample up to 4 ms older), with and without orientation (a position-only start included), fixed noise / diagonal /
+full 6x6 covariances with position-rotation terms (the lever-arm form of measurement_models.local_covariance),
+``sys_var`` extras (valid and invalid), gaps beyond ``max_gap_s`` (re-initialisation), position hops and rotation
+jumps, fast turns (rotations past 120 deg: the other branch of the quaternion conversion), snapshot/restore, the
+frame changing every 250 items (``express_in``, with and without a local sample in the item), the global rotation-
+noise scale mu (``rot_noise_scale``) learnt both below and above 1. The fast form's SO(3) on floats (so3_float)
+against the shared ``fullperc_common.so3``.
 """
 
 from __future__ import annotations
@@ -135,6 +135,7 @@ def _agree(a, b) -> None:
     assert _scaled(a.P, b.P) <= COV_TOL, "P"
     assert abs(a.nis - b.nis) <= 100 * TOL * max(1.0, b.nis)
     assert abs(a.nis_global - b.nis_global) <= 100 * TOL * max(1.0, b.nis_global)
+    assert abs(a.log_lik - b.log_lik) <= 100 * TOL * max(1.0, abs(b.log_lik)), "log_lik"
 
 
 def _frames(seed: int):
@@ -153,6 +154,7 @@ def _frames(seed: int):
 
 def _run(items, params=None):
     fast, ref = FullpercFilter(params), FullpercReference(params)
+    fast.likelihood = True   # Step.log_lik, which the reference always fills (motion: auto's model weights)
     seen = {"hop": 0, "reset": 0, "pair": 0, "lag": 0, "q": 0, "full": 0, "rot_hop": 0, "scaled": 0, "moved": 0,
             "mu_low": 0, "mu_high": 0}
     frames = _frames(7)
@@ -234,6 +236,7 @@ def test_fixed_noise_and_position_only_streams():
 def test_snapshot_and_restore_replay_identically_and_agree():
     items = _items(26, 600)
     fast, ref = FullpercFilter(), FullpercReference()
+    fast.likelihood = True
     for ms in items[:200]:
         t = max(m.t_ns for m in ms)
         for f in (fast, ref):

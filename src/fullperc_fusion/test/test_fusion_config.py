@@ -20,7 +20,6 @@ from fullperc_fusion.pipeline.ordered import TargetConfig
 
 # fusion.yaml's `tool.ang_accel_noise`: the simulated OR's tool is held by the arm (test_truth_motion.py ties the
 # value to its truth motion); the node-wide default is a hand-held target's
-TOOL_TURN = 0.005
 
 
 def _same_config(a: TargetConfig, b: TargetConfig) -> None:
@@ -39,13 +38,12 @@ def _write(tmp_path, params: dict, top: str = "fusion_node"):
 
 
 def test_shipped_file_gives_the_built_in_defaults():
-    """fusion.yaml says every value equals the node's built-in default, but for the targets' motion models: the
-    simulated OR's tool is held by the arm (``tool.ang_accel_noise``, fullperc's alone: the paper's filters get
-    exactly the defaults)."""
+    """fusion.yaml says every value equals the node's built-in default, and no target sets its own motion: the tool's
+    filters get exactly the defaults, with ``motion`` auto (the node's per-target default; the filters' dataclass
+    says "fixed" for a direct caller)."""
     cfg, values = fc.load_fusion_config()
-    arm_held = dataclasses.replace(FullpercParams(), ang_accel_noise=TOOL_TURN)
-    _same_config(cfg, TargetConfig(name="tool", chain=ChainConfig(), filters=fc.PAPER_ORDER, params=arm_held))
-    assert FullpercParams().ang_accel_noise == 0.5          # the node-wide default stays the hand-held one
+    auto = dataclasses.replace(FullpercParams(), motion="auto")
+    _same_config(cfg, TargetConfig(name="tool", chain=ChainConfig(), filters=fc.PAPER_ORDER, params=auto))
     assert values["_source"].endswith("fusion.yaml")
     for p in fc.PARAMS:
         assert values[p.name] == fc.convert(p, None), p.name
@@ -55,9 +53,7 @@ def test_shipped_file_gives_the_built_in_defaults():
 def test_empty_file_and_defaults_agree(tmp_path):
     a, _ = fc.load_fusion_config(_write(tmp_path, {}))
     b, _ = fc.load_fusion_config()
-    assert (a.params.ang_accel_noise, b.params.ang_accel_noise) == (0.5, TOOL_TURN)
-    b_plain = dataclasses.replace(b.params, ang_accel_noise=a.params.ang_accel_noise)
-    _same_config(a, dataclasses.replace(b, params=b_plain))
+    _same_config(a, b)
     # a ROS wildcard params file works too
     c, _ = fc.load_fusion_config(_write(tmp_path, {"noise": {"accel": 0.2}}, top="/**"))
     assert c.params.accel_noise == 0.2
@@ -343,7 +339,7 @@ def test_target_parameter_names_cannot_be_source_names(tmp_path, name):
 
 
 # the filter parameters the node does not expose: the paper's ablations (shrink_blocks, eq14_covariance), set in code
-NOT_NODE_PARAMETERS = {"shrink_blocks", "eq14_covariance"}
+NOT_NODE_PARAMETERS = {"shrink_blocks", "eq14_covariance", "motion"}   # motion: per target, <target>.motion
 
 
 def test_every_filter_field_is_set_by_exactly_one_row_with_the_dataclass_default():
@@ -416,16 +412,20 @@ def test_rules_are_named_once_and_explain_the_error():
     assert fc.spec("hop_gate").why == pt.POSITIVE.why
 
 
-def test_the_shipped_fusion_yaml_gives_the_instrument_its_own_model(tmp_path):
-    """fusion.yaml's `instrument` block (the twin's hand-held target; the demo passes the same with -p) acts for the
-    instrument only; the tool keeps the node-wide values but its own turn model, and the instrument the node-wide
-    turn model."""
-    from fullperc_fusion.fusion_config import default_fusion_config_path
+def test_a_targets_motion_preset_sets_every_filters_motion_and_auto_none(tmp_path):
+    """``<target>.motion``: a preset (filters/motion.py) sets accel_noise, init_vel_std, hop_to_bias and
+    ang_accel_noise of every filter of that target and makes fullperc a single model ("fixed"); the target's own
+    values win over its preset's; auto (the default) changes no field and makes fullperc the IMM ("auto")."""
+    from fullperc_fusion.filters.motion import PRESETS
 
-    inst = fc.load_fusion_config(default_fusion_config_path(), target="instrument").config
-    tool = fc.load_fusion_config(default_fusion_config_path(), target="tool").config
-    assert inst.params.hop_to_bias is False and inst.params.accel_noise > 10 * tool.params.accel_noise
-    assert inst.params.init_vel_std > 5 * tool.params.init_vel_std
-    plain = fc.load_fusion_config(_write(tmp_path, {"targets": ["tool"]})).config.params
-    assert tool.params == dataclasses.replace(plain, ang_accel_noise=TOOL_TURN)
-    assert inst.params.ang_accel_noise == plain.ang_accel_noise
+    p = _write(tmp_path, {"targets": ["tool", "instrument", "pointer"], "instrument": {"motion": "hand"},
+                          "pointer": {"motion": "static", "init_vel_std": 0.05}})
+    tool, inst, pointer = (fc.load_fusion_config(p, target=t).config.params for t in ("tool", "instrument", "pointer"))
+    plain = FullpercParams()
+    assert tool == dataclasses.replace(plain, motion="auto")
+    assert inst == dataclasses.replace(plain, motion="fixed", **PRESETS["hand"])
+    assert pointer == dataclasses.replace(plain, motion="fixed", **{**PRESETS["static"], "init_vel_std": 0.05})
+    assert fc.spec("x.motion").default == "auto"
+    with pytest.raises(fc.FusionConfigError, match="instrument.motion"):
+        fc.load_fusion_config(_write(tmp_path, {"targets": ["instrument"], "instrument": {"motion": "walk"}}),
+                              target="instrument")

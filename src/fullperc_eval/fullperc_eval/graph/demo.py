@@ -83,17 +83,25 @@ LIVE_HISTORY_S = 3.0
 # the node's default 0.05 s: the node never output the first 22 OMC items, and its bias states drifted 0.05-0.1 mm
 # in MAE from the offline ones). Below LIVE_HISTORY_S: an item's links are settled before it leaves the history.
 DEMO_REORDER_S = 2.5
+# The demo runs the paper's filters side by side, which have one motion model each: the hand-held instrument gets
+# the `hand` preset (fullperc would weigh its own: motion auto). demo_graph.yaml and demo.launch.py pass it with -p,
+# fusion_params_with writes it for the offline evaluation (test_launch_matches_graph keeps the three equal).
+DEMO_TARGET_PARAMS = {"instrument.motion": "hand"}
 
 
 def fusion_params_with(calibration: Path | None, out: Path) -> Path:
     """fusion_node's installed params file for the offline evaluation of the demo's recording, written to
-    ``out/fusion.yaml``: ``reorder_delay`` = :data:`DEMO_REORDER_S` (the node's), and with ``calibration`` its
+    ``out/fusion.yaml``: ``reorder_delay`` = :data:`DEMO_REORDER_S` (the node's), :data:`DEMO_TARGET_PARAMS`, and
+    with ``calibration`` its
     ``calibration_file`` (the evaluation must run with the links the live node loaded)."""
     from fullperc_fusion.fusion_config import default_fusion_config_path, node_key
 
     doc = yaml.safe_load(default_fusion_config_path().read_text()) or {}
     params = doc.setdefault(node_key(doc), {}).setdefault("ros__parameters", {})
     params["reorder_delay"] = DEMO_REORDER_S
+    for name, value in DEMO_TARGET_PARAMS.items():
+        target, key = name.split(".")
+        params.setdefault(target, {})[key] = value
     if calibration is not None:
         params["calibration_file"] = str(calibration)
     path = out / "fusion.yaml"
@@ -157,7 +165,9 @@ def run_demo(task: str, seed: str, out: Path, root: Path, speed: str = "1.0",
     if (truth / "metadata.yaml").exists():   # the hand-held instrument's simulator truth: into the bag
         try:
             merge_bag(bag, truth)
-            targets += sorted(t.rsplit("/", 1)[1] for t in BagReader(bag).topics if t.startswith(TRUTH_PREFIX + "/"))
+            topics = BagReader(bag).topics   # a twin target the graph did not fuse (the patient reference): no OMC
+            targets += sorted(t.rsplit("/", 1)[1] for t in topics if t.startswith(TRUTH_PREFIX + "/")
+                              and f"/fullperc/{t.rsplit('/', 1)[1]}/pose" in topics)
         except (BagError, OSError) as e:
             print(f"demo: the second target's truth stays in {truth} ({e}); evaluating the tool only", file=sys.stderr)
     print(f"\ndemo: graph finished in {time.monotonic() - t0:.0f} s; evaluating {bag} (targets {', '.join(targets)})",

@@ -126,6 +126,8 @@ class Step:
     innovation: np.ndarray = field(default_factory=lambda: np.zeros(3))  # global rows if any, else local
     nis: float = 0.0               # NIS of the whole (stacked) update, dof = rows of H
     nis_global: float = 0.0        # NIS of the global rows alone (the hop test)
+    log_lik: float = 0.0           # log N(y; 0, S) of the whole update, before a hop raises S (fullperc, when asked:
+                                   #   its ``likelihood`` flag; the model weights of motion: auto, fullperc_imm.py)
     hop: bool = False
     reset: bool = False            # this sample (re-)initialised the state; no update was made
     m: np.ndarray | None = None    # diagonal of M (biased kinds)

@@ -61,6 +61,7 @@ from fullperc_fusion.filters.api import (
 )
 from fullperc_fusion.filters.fullperc_reference import FullpercReference
 from fullperc_fusion.filters.fullperc_state import FullpercState, N, noise_scale_step
+from fullperc_fusion.filters.motion import hop_mixture
 from fullperc_fusion.filters.paper_family import FilterParams
 from fullperc_fusion.filters.rot_noise_scale import pair_estimate, scale_decay, scale_step, scaled_cov
 from fullperc_fusion.filters.so3_float import R9_IDENT, R9_to_quat, exp9, log9, mul9, mul9_t, quat_to_R9
@@ -68,6 +69,7 @@ from fullperc_fusion.filters.so3_float import R9_IDENT, R9_to_quat, exp9, log9, 
 __all__ = ["FullpercFilter", "N"]
 
 _I21 = np.eye(N)
+_LOG_2PI = math.log(2.0 * math.pi)
 _POSE = np.array([21 * r + c for r in (0, 1, 2, 9, 10, 11) for c in (0, 1, 2, 9, 10, 11)])   # [p, theta] of P.ravel()
 _F_PV = ([0, 1, 2], [3, 4, 5])
 _F_TW = ([9, 10, 11], [12, 13, 14])
@@ -90,15 +92,16 @@ def _nis3(S: list, y0: float, y1: float, y2: float) -> float:
     return e0 * e0 / d0 + e1 * e1 / d1 + e2 * e2 / d2
 
 
-def _solve(S: np.ndarray, y: np.ndarray, U: np.ndarray) -> np.ndarray:
-    """S^-1 [y | U^T] (k x 22): LAPACK's dgesv (the LU solve of np.linalg.solve) without numpy's ~4 us wrapper."""
+def _solve(S: np.ndarray, y: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(S^-1 [y | U^T] (k x 22), S's LU factors): LAPACK's dgesv (the LU solve of np.linalg.solve) without numpy's
+    ~4 us wrapper; the factors' diagonal gives log |S|."""
     B = np.empty((len(y), N + 1))
     B[:, 0] = y
     B[:, 1:] = U.T
-    _, _, Z, info = _dgesv(S, B)
+    lu, _, Z, info = _dgesv(S, B)
     if info != 0:
         raise np.linalg.LinAlgError("singular innovation covariance")
-    return Z
+    return Z, lu
 
 
 class FullpercFilter(StepCompat):
@@ -109,6 +112,7 @@ class FullpercFilter(StepCompat):
     """
 
     kind = "fullperc"
+    likelihood = False   # fill Step.log_lik (the reference always does; motion: auto's models ask for it)
 
     def __init__(self, params: FilterParams | None = None) -> None:
         self._ref = FullpercReference(params)   # re-initialisation and the non-finite reset are delegated to it
@@ -384,8 +388,10 @@ class FullpercFilter(StepCompat):
         U = P @ H.T
         S = H @ U + Rm
         yv = np.array(y)
-        Z = _solve(S, yv, U)
+        Z, lu = _solve(S, yv, U)
         nis = sum(map(mul, y, Z[:, 0].tolist()))
+        log_lik = -0.5 * (nis + float(np.log(np.abs(lu.diagonal())).sum()) + len(y) * _LOG_2PI) \
+            if self.likelihood else 0.0
         nis_g = 0.0
         hop = False
         if mg is not None:
@@ -404,7 +410,11 @@ class FullpercFilter(StepCompat):
                 P[k + 1, k + 1] += y[1] * y[1]
                 P[k + 2, k + 2] += y[2] * y[2]
                 U = P @ H.T
-                Z = _solve(H @ U + Rm, yv, U)
+                Z, lu = _solve(H @ U + Rm, yv, U)
+                if self.likelihood:   # the reference's hop mixture of the likelihood (motion.hop_mixture)
+                    hop_ll = -0.5 * (sum(map(mul, y, Z[:, 0].tolist())) + float(np.log(np.abs(lu.diagonal())).sum())
+                                     + len(y) * _LOG_2PI)
+                    log_lik = hop_mixture(log_lik, hop_ll)
         Gt = Z[:, 1:]                      # K^T = S^-1 U^T
         dx = (yv @ Gt).tolist()
         d0, d1, d2 = dx[9], dx[10], dx[11]
@@ -428,7 +438,8 @@ class FullpercFilter(StepCompat):
             self._mu, self._tmu = mu[1:]
         if ml is not None:   # where the local source last saw the tool (beta's and b's spatial decay)
             self._tl, self._ra, self._dmax = ml.t_ns, xn[0:3], 0.0
-        return self._step(t, mg, ml, innovation=np.array(y[0:3]), nis=nis, nis_global=nis_g, hop=hop)
+        return self._step(t, mg, ml, innovation=np.array(y[0:3]), nis=nis, nis_global=nis_g, hop=hop,
+                          log_lik=log_lik)
 
     def _rot_scale(self, mg: Measurement, ml: Measurement | None, Rblocks: list, Rq_g: tuple, Rq_l: tuple | None,
                    Eb: tuple) -> tuple:

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fullperc_fusion.filters.motion import PRESETS
 from fullperc_fusion.filters.paper_family import FilterParams
 
 __all__ = ["HOP_INTO", "FullpercParams"]
@@ -59,6 +60,11 @@ class FullpercParams(FilterParams):
     rot_noise_adapt_min, rot_noise_adapt_max  mu's bounds (0.05 and 25: the OMC's rotation std 0.22x to 5x the model's).
     rot_noise_length L [m] over which mu returns to 1 once the local source has lost the tool, by the distance beta
                      decays over (0.0527: ``rot_bias_length``'s fit; 0: mu kept).
+    motion           "fixed" (one model: the fields above) or "auto": one model per preset of ``motion_models``, run
+                     as an IMM (:mod:`.fullperc_imm`; the node's ``<target>.motion``, :mod:`.motion`).
+    motion_models    the presets ``auto`` runs (:data:`.motion.PRESETS`).
+    motion_dwell     tau [s], the mean time a target keeps one motion (the IMM's switching rate): 2 s, an
+                     instrument is picked up, carried and laid down over seconds, not frames.
     rot_sys_std      stationary per-axis std of that part [rad]. 3.38 s and 8.94 mrad: the slow part of the raw
                      OMC rotation error's structure function fitted as white + two Gauss-Markov processes
                      (``paper`` bags: fast 5.3 mrad / 0.33 s, slow 8.94 mrad / 3.38 s; the fast part reverts within
@@ -89,6 +95,9 @@ class FullpercParams(FilterParams):
     rot_noise_adapt_min: float = 0.05
     rot_noise_adapt_max: float = 25.0
     rot_noise_length: float = 0.0527
+    motion: str = "fixed"
+    motion_models: tuple[str, ...] = ("static", "arm", "hand")
+    motion_dwell: float = 2.0
 
     def validate(self) -> FullpercParams:
         super().validate()
@@ -106,6 +115,15 @@ class FullpercParams(FilterParams):
                 raise ValueError(f"filter parameter {name} must be finite and > 0, got {v!r}")
         if not (np.isfinite(float(self.noise_adapt_max)) and self.noise_adapt_max >= 1.0):
             raise ValueError(f"filter parameter noise_adapt_max must be finite and >= 1, got {self.noise_adapt_max!r}")
+        if self.motion not in ("fixed", "auto"):
+            raise ValueError(f"filter parameter motion must be 'fixed' or 'auto', got {self.motion!r}")
+        self.motion_models = tuple(self.motion_models)
+        if not self.motion_models or len(set(self.motion_models)) != len(self.motion_models) or not set(
+                self.motion_models) <= set(PRESETS):
+            raise ValueError(f"filter parameter motion_models must be distinct presets of {tuple(PRESETS)}, got "
+                             f"{self.motion_models!r}")
+        if not (np.isfinite(float(self.motion_dwell)) and self.motion_dwell > 0):
+            raise ValueError(f"filter parameter motion_dwell must be finite and > 0, got {self.motion_dwell!r}")
         lo, hi = float(self.rot_noise_adapt_min), float(self.rot_noise_adapt_max)
         if not (np.isfinite(lo) and np.isfinite(hi) and 0.0 < lo <= 1.0 <= hi):
             raise ValueError(f"filter parameters rot_noise_adapt_min/max must be finite with 0 < min <= 1 <= max, got "

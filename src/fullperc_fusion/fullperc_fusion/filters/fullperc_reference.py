@@ -73,6 +73,10 @@ a Gauss-Markov process forgets it at the rate the sensor's error does, and the m
   docs/fullperc_filter.md "Where a hop goes". A rotation hop (NIS of the global rotation rows above the gate) is
   flagged but not put into beta: the OMC's rotation jumps revert within frames and are part of its R
   (:func:`measurement_models.omc_covariance`), so a jump kept in beta would stay wrong after the OMC recovers.
+* the update's log-likelihood log N(y; 0, S) (``Step.log_lik``), with S before a hop raises it; at a hop that goes
+  into the bias, the mixture (1 - pi) N(y; 0, S) + pi N(y; 0, S_hop) with the raised S_hop
+  (:func:`.motion.hop_mixture`): how well this model predicted the sample -- the weight of a motion model in
+  ``motion: auto`` (:mod:`.fullperc_imm`).
 * error-state update (Joseph form), injection p += dp ..., R = Exp(dtheta) R, and the reset of the error state:
   P = G P G^T with G_thth = I - [dtheta/2]x (the first-order reset Jacobian of the multiplicative update).
 * why the spatial decay: the OMC's rotation error is a field over the room (its structure function over the
@@ -125,6 +129,7 @@ from fullperc_fusion.filters.fullperc_state import (
     copy_state,
     noise_scale_step,
 )
+from fullperc_fusion.filters.motion import hop_mixture
 from fullperc_fusion.filters.paper_family import FilterParams
 from fullperc_fusion.filters.rot_noise_scale import pair_estimate, scale_decay, scale_step, scaled_cov
 
@@ -132,6 +137,7 @@ __all__ = ["N", "FullpercReference", "noise_scale_step"]
 
 _I3 = np.eye(3)
 _IN = np.eye(N)
+_LOG_2PI = math.log(2.0 * math.pi)
 
 
 class FullpercReference(StepCompat):
@@ -411,6 +417,7 @@ class FullpercReference(StepCompat):
             s.sys_var = float(sv) if sv is not None and math.isfinite(sv) and sv > 0 else pr.sys_std**2
         S = H @ P @ H.T + Rm
         nis = float(y @ np.linalg.solve(S, y))
+        log_lik = -0.5 * (nis + np.linalg.slogdet(S)[1] + len(y) * _LOG_2PI)   # before a hop raises S
         nis_g = 0.0
         hop = False
         if mg is not None:
@@ -427,6 +434,8 @@ class FullpercReference(StepCompat):
                 k = G_ if pr.hop_into == "g" else B_
                 P[k, k] += np.diag(y[0:3] ** 2)
                 S = H @ P @ H.T + Rm
+                log_lik = hop_mixture(log_lik, -0.5 * (float(y @ np.linalg.solve(S, y)) + np.linalg.slogdet(S)[1]
+                                                       + len(y) * _LOG_2PI))
         G = np.linalg.solve(S, H @ P).T
         dx = G @ y
         IKH = _IN - G @ H
@@ -452,7 +461,7 @@ class FullpercReference(StepCompat):
         if mu is not None:
             s.rot_scale, s.t_rot_scale_ns = mu[1:]
         self._local_fused(ml)
-        return self._step(t, mg, ml, innovation=y[0:3].copy(), nis=nis, nis_global=nis_g, hop=hop)
+        return self._step(t, mg, ml, innovation=y[0:3].copy(), nis=nis, nis_global=nis_g, hop=hop, log_lik=log_lik)
 
     def _rot_scale(self, t: int, mg: Measurement, ml: Measurement | None, blocks: list) -> tuple:
         """(mu for this update, then mu and the pair clock after it) of a global sample with an orientation,

@@ -16,11 +16,20 @@ from functools import partial
 
 from fullperc_fusion.filters.api import Capabilities, Filter
 from fullperc_fusion.filters.fullperc import FullpercFilter
+from fullperc_fusion.filters.fullperc_imm import FullpercImm
 from fullperc_fusion.filters.fullperc_params import FullpercParams
 from fullperc_fusion.filters.paper_family import FilterParams, PassThrough
 from fullperc_fusion.filters.paper_fast import ClosedFormFilter
 
 FilterFactory = Callable[[FilterParams | None], Filter]
+
+
+def _fullperc(params: FilterParams | None) -> Filter:
+    """``fullperc``: the IMM over the motion presets when its ``motion`` is ``auto`` (:mod:`.fullperc_imm`), else
+    the filter with the motion of its fields."""
+    if isinstance(params, FullpercParams) and params.motion == "auto":
+        return FullpercImm(params)
+    return FullpercFilter(params)
 
 
 @dataclass(frozen=True)
@@ -43,8 +52,9 @@ FILTERS: dict[str, FilterSpec] = {
     "kf": FilterSpec(partial(ClosedFormFilter, "kf"), FilterParams, _PAPER),
     "omc": FilterSpec(PassThrough, FilterParams, _PAPER),             # the raw global source, for comparison
     # ours: CBKF's compensated position + per-measurement model covariance + orientation on SO(3); the fast form
-    # (filters.fullperc) of the general fullperc_reference.FullpercReference, the tests' reference
-    "fullperc": FilterSpec(FullpercFilter, FullpercParams, Capabilities(models=True, orientation=True)),
+    # (filters.fullperc) of the general fullperc_reference.FullpercReference, the tests' reference; with motion
+    # auto one per motion preset as an IMM (filters.fullperc_imm)
+    "fullperc": FilterSpec(_fullperc, FullpercParams, Capabilities(models=True, orientation=True)),
 }
 
 
@@ -75,3 +85,15 @@ def make_filter(name: str, params: FilterParams | None = None) -> Filter:
     """A new filter ``name`` (a key of :data:`FILTERS`) with its own fields of ``params`` (:func:`own_params`;
     default: its own parameter dataclass's defaults)."""
     return spec(name).factory(own_params(name, params))
+
+
+def params_of_every_filter() -> type[FilterParams]:
+    """The registered parameter dataclass that every registered filter's is a base of (FullpercParams: the paper's
+    FilterParams plus fullperc's fields). One object of it serves every filter of a target (``TargetConfig.params``);
+    a filter reads its own dataclass's fields only."""
+    types = {s.params for s in FILTERS.values()}
+    top = [t for t in types if all(issubclass(t, u) for u in types)]
+    if len(top) != 1:
+        raise TypeError("no registered parameter dataclass extends every other one: "
+                        f"{sorted(t.__name__ for t in types)}")
+    return top[0]
