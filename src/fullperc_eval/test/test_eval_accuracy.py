@@ -154,7 +154,7 @@ def _fake_seeds(monkeypatch, used: dict | None = None):
 
     from fullperc_eval.evaluation import accuracy as acc
 
-    def fake_run_seed(profile, seed, cache, fusion_config, key):
+    def fake_run_seed(profile, seed, cache, fusion_config, key, presets=True):
         if used is not None:
             used[(profile, seed)] = fusion_config
         rows = [dict(r, profile=profile) for r in _rows(True, seeds=(seed,))]

@@ -41,7 +41,8 @@ def _row(task: str, seed: int, target: str, scale: float) -> dict:
     r = {"task": task, "seed": seed, "profile": "x", "mae_mm": mae, "mae_by_region_mm": reg,
          "b_to_p": {"max_mm": dict(mae), "median_mm": dict(mae)} if task == "G-B-P" and target == "tool" else None,
          "orientation_mae_deg": None, "orientation_by_region_deg": None, "orientation_by_local_deg": None,
-         "before_first_local": None, "nees": nees}
+         "before_first_local": None, "nees": nees,
+         "motion_presets_mae_mm": {"arm": 1.02 * mae["fullperc"], "hand": 1.1 * mae["fullperc"], "static": 3.0}}
     return {**r, "target": target} if target != "legacy" else r
 
 
@@ -90,7 +91,7 @@ def _fake(monkeypatch, targets):
 
     from fullperc_eval.evaluation import accuracy as acc
 
-    def fake_run_seed(profile, seed, cache, fusion_config, key):
+    def fake_run_seed(profile, seed, cache, fusion_config, key, presets=True):
         rows = [dict(r, profile=profile) for r in _seed_rows(seed, targets)]
         return {"profile": profile, "seed": seed, "rows": rows, "generated": 0, "sim_s": 0.0, "eval_s": 0.0}
 
@@ -134,15 +135,20 @@ def test_main_reports_every_target_and_keeps_the_tools_output(tmp_path, monkeypa
     assert order == sorted(order, key=lambda x: (("paper", "spec").index(x[0]), x[1]))
 
 
+def _committed_bags_as_cache(tmp_path: Path) -> None:
+    """The committed seed-0 ``paper`` bags linked where ``run_seed("paper", 0, tmp_path, ..., key="k")`` looks."""
+    d = tmp_path / "paper-k" / "seed0"
+    d.mkdir(parents=True)
+    for t in TASK_ORDER:
+        (d / t).symlink_to(ROOT / "bags" / "paper" / t)
+
+
 def test_run_seed_evaluates_every_target_of_the_committed_bags(tmp_path, monkeypatch):
     """The real path up to the evaluation: the committed seed-0 bags stand in for the cache (links, nothing
     generated); the targets come from the bags' truth topics; each evaluation is asked for its target."""
     from fullperc_eval.evaluation import accuracy, metrics
 
-    d = tmp_path / "paper-k" / "seed0"
-    d.mkdir(parents=True)
-    for t in TASK_ORDER:
-        (d / t).symlink_to(ROOT / "bags" / "paper" / t)
+    _committed_bags_as_cache(tmp_path)
     asked = []
 
     class Fake:
@@ -156,18 +162,49 @@ def test_run_seed_evaluates_every_target_of_the_committed_bags(tmp_path, monkeyp
 
     monkeypatch.setattr(metrics, "evaluate_bag", fake_evaluate_bag)
     monkeypatch.setattr(accuracy, "generate", lambda *a, **k: pytest.fail("a committed bag was regenerated"))
-    r = accuracy.run_seed("paper", 0, str(tmp_path), "cfg.yaml", "k")
-    assert asked == [(t, g, "cfg.yaml") for t in TASK_ORDER for g in ("tool", "instrument")]
-    assert [(x["task"], x["target"]) for x in r["rows"]] == [(t, g) for t in TASK_ORDER for g in ("tool", "instrument")]
-    assert {x["mae_mm"]["fullperc"] for x in r["rows"] if x["target"] == "instrument"} == {3.0}
+    r = accuracy.run_seed("paper", 0, str(tmp_path), "cfg.yaml", "k", presets=False)
+    targets = ("tool", "instrument", "reference")   # the arm-held tool, then the twin's targets by name
+    assert asked == [(t, g, "cfg.yaml") for t in TASK_ORDER for g in targets]
+    assert [(x["task"], x["target"]) for x in r["rows"]] == [(t, g) for t in TASK_ORDER for g in targets]
+    assert {x["mae_mm"]["fullperc"] for x in r["rows"] if x["target"] != "tool"} == {3.0}
     assert r["generated"] == 0
+
+
+def test_run_seed_evaluates_fullperc_with_each_motion_preset_for_the_auto_check(tmp_path, monkeypatch):
+    """With presets (the default), each bag-target is evaluated once more per motion preset: fullperc (and the OMC)
+    only, the target's motion set to the preset's fields and "fixed", everything else as configured; the row keeps
+    fullperc's MAE per preset."""
+    from fullperc_eval.evaluation import accuracy, metrics
+    from fullperc_fusion.filters.motion import PRESETS
+
+    _committed_bags_as_cache(tmp_path)
+    seen = []
+
+    class Fake:
+        def __init__(self, value):
+            self.result = {"mae_mm": {"omc": 2.0, "fullperc": value}, "mae_by_region_mm": {}, "b_to_p": None,
+                           "nees": {}}
+
+    def fake_evaluate_bag(bag, *, fusion_config=None, target="tool", progress=True, config=None):
+        if config is None:
+            return Fake(1.0)
+        seen.append((Path(bag).name, target, config.filters, config.params))
+        preset = next(p for p, f in PRESETS.items() if all(getattr(config.params, k) == v for k, v in f.items()))
+        return Fake({"arm": 1.5, "hand": 2.5, "static": 3.5}[preset])
+
+    monkeypatch.setattr(metrics, "evaluate_bag", fake_evaluate_bag)
+    r = accuracy.run_seed("paper", 0, str(tmp_path), None, "k")
+    assert len(seen) == len(TASK_ORDER) * 3 * len(PRESETS)
+    assert all(f == ("omc", "fullperc") and p.motion == "fixed" for _, _, f, p in seen)
+    assert {x["target"]: x["motion_presets_mae_mm"] for x in r["rows"]}["instrument"] == {
+        "arm": 1.5, "hand": 2.5, "static": 3.5}
 
 
 def test_the_row_of_a_real_instrument_evaluation_feeds_the_checks(cached_evaluate_bag):
     """One committed bag, its instrument evaluated with fusion.yaml: the row keeps the figures the checks read and
     the checks give what the evaluation's own figures give."""
     bag = ROOT / "bags" / "paper" / "P-G-B"
-    assert task_targets(bag) == ["tool", "instrument"]
+    assert task_targets(bag) == ["tool", "instrument", "reference"]
     res = cached_evaluate_bag(bag, "instrument").result
     row = task_row("P-G-B", 0, "paper", "instrument", res)
     assert row["target"] == "instrument" and row["mae_mm"] == res["mae_mm"]

@@ -72,8 +72,8 @@ def test_region_checks_are_ratios_of_the_means_over_task_seeds():
     assert g["margin"] == pytest.approx(1.0 - g["value"])
     for r in rows:
         r["mae_by_region_mm"].pop("PVV")
-    g = region_vs_omc("spec", "tool", rows, "PVV")
-    assert g["ok"] is None and g["value"] is None and g["margin"] is None
+    g = region_vs_omc("spec", "tool", rows, "PVV")   # never in PVV: nothing to check (the next test)
+    assert g["ok"] is True and g["value"] is None and g["margin"] is None
 
 
 def test_cbkf_check_asks_ten_percent_for_the_tool_in_the_paper_profile_only():
@@ -123,13 +123,46 @@ def test_nees_per_published_filter_and_which_meet_it():
     assert nees_checks("spec", "tool", {})[-1]["ok"] is None
 
 
+def test_a_region_the_target_never_enters_is_met_with_nothing_to_check():
+    rows = _rows()
+    for r in rows:
+        r["mae_by_region_mm"] = {"BVV": r["mae_by_region_mm"]["BVV"]}
+    c = region_vs_omc("paper", "reference", rows, "GVV")
+    assert c["ok"] is True and c["value"] is None and "never in GVV" in c["detail"]
+    for r in rows:   # the evaluator writes a region it never saw with null figures
+        r["mae_by_region_mm"]["GVV"] = {"omc": None, "fullperc": None}
+    assert region_vs_omc("paper", "reference", rows, "GVV")["ok"] is True
+    rows[0]["mae_by_region_mm"]["GVV"] = {"omc": 1.0}   # entered, but without the method's figure: not met
+    assert region_vs_omc("paper", "reference", rows, "GVV")["ok"] is None
+
+
+def test_auto_against_the_best_motion_preset_on_the_same_task_seeds():
+    from fullperc_eval.evaluation.target_goals import auto_vs_presets
+
+    rows = _rows()
+    assert auto_vs_presets("paper", "tool", rows)["ok"] is None      # no preset figures: not met by default
+    for r, (arm, hand) in zip(rows, [(1.0, 2.0), (1.2, 1.8), (0.8, 2.2)], strict=False):
+        r["motion_presets_mae_mm"] = {"arm": arm, "hand": hand}
+    auto = np.mean([r["mae_mm"]["fullperc"] for r in rows[:3]])
+    c = auto_vs_presets("paper", "tool", rows[:3])
+    assert c["value"] == pytest.approx(auto / 1.0) and "best: arm" in c["detail"] and c["bound"] == "<= 1.05"
+    assert c["ok"] is False and c["margin"] == pytest.approx(1.05 - auto)
+    for r in rows[:3]:
+        r["motion_presets_mae_mm"] = {"arm": auto + 1.0, "hand": auto - 0.01}
+    c = auto_vs_presets("paper", "tool", rows[:3])
+    assert c["ok"] is True and "best: hand" in c["detail"] and c["value"] == pytest.approx(auto / (auto - 0.01))
+    rows[1]["motion_presets_mae_mm"] = {"arm": 1.2}   # a row without every preset is left out
+    assert "over 2 task-seeds" in auto_vs_presets("paper", "tool", rows[:3])["detail"]
+
+
 def test_all_checks_of_a_target_their_lines_and_table():
     rows = _rows()
     nees = _nees({"omc": (0.0, None), "cbkf": (0.97, None), "fullperc": (0.85, 0.95)})
     checks = target_goal_checks("paper", "instrument", rows, nees)
     names = [c["goal"] for c in checks]
     assert names == ["mae_vs_omc_every_task_seed", "mae_vs_omc_GVV", "mae_vs_omc_PVV", "mae_vs_cbkf",
-                     "nees_position_share95", "nees_position_share95", "nees_pose_share95", "nees_share95_filters"]
+                     "motion_auto_vs_best_preset", "nees_position_share95", "nees_position_share95",
+                     "nees_pose_share95", "nees_share95_filters"]
     assert all(c["target"] == "instrument" and c["profile"] == "paper" for c in checks)
     lines = target_goal_lines(checks)
     assert [x["name"] for x in lines][:2] == ["goal41_mae_vs_omc_every_task_seed_fullperc_instrument",

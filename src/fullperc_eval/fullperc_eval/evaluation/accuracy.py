@@ -2,7 +2,7 @@
 
     python -m fullperc_eval.evaluation.accuracy --seeds 0-9 --profile paper|spec|both [--fusion-config FILE]
         [--jobs 2] [--json bags/accuracy.json] [--cache DIR] [--noise-model calibrated|builtin|FILE]
-        [--calibration-seeds 100-102]
+        [--calibration-seeds 100-102] [--no-presets]
 
 Per (profile, seed): the six bags are generated with :func:`fullperc_eval.sim.dataset.generate` into
 ``<cache>/<profile>-<twin hash>/seed<k>/`` (reused when present: the hash covers the merged scene configuration and
@@ -25,7 +25,9 @@ holds (the tool and each target with simulator truth ``/sim/truth/<target>``, e.
 :mod:`.accuracy_targets`); each row of ``task_seeds`` names its ``target``. Then, per profile and target, the tool
 too: Table 1 (MAE per task and method, mean ± sd over seeds), the MAE by region per method against the OMC's, the
 NEES pooled per method (``summary[profile]["targets"][target]``), and issue 41's acceptance checks
-(:mod:`.target_goals`, ``target_goals[profile]``) with pass/fail and the margin.
+(:mod:`.target_goals`, ``target_goals[profile]``) with pass/fail and the margin; for its check of ``motion: auto``
+each bag is also evaluated with fullperc alone under each motion preset (``motion_presets_mae_mm`` of a row;
+``--no-presets`` skips it).
 
 The noise model of ``fullperc`` (``fullperc.noise_model_file``, :mod:`fullperc_fusion.filters.noise_model_file`), per
 profile: ``builtin`` (default) keeps the built-in model (the ``spec`` bags' statistics: what fusion_node runs
@@ -67,6 +69,7 @@ from .accuracy_targets import (
     format_nees,
     format_target,
     pooled_nees,
+    preset_maes,
     split_targets,
     target_json_lines,
     target_of,
@@ -168,7 +171,8 @@ def ensure_bags(d: Path, seed: int, profile: str) -> list[str]:
     return missing
 
 
-def run_seed(profile: str, seed: int, cache: str, fusion_config: str | None, key: str) -> dict[str, Any]:
+def run_seed(profile: str, seed: int, cache: str, fusion_config: str | None, key: str,
+             presets: bool = True) -> dict[str, Any]:
     """Generate (or reuse) and evaluate the six bags of one seed, every target each bag holds
     (:func:`.accuracy_targets.task_targets`: the tool and each one with simulator truth); returns per-task rows,
     per task the tool's first, each with its ``target``."""
@@ -182,6 +186,8 @@ def run_seed(profile: str, seed: int, cache: str, fusion_config: str | None, key
         for target in task_targets(d / t):
             r = evaluate_bag(d / t, fusion_config=fusion_config, target=target, progress=False).result
             rows.append(task_row(t, seed, profile, target, r))
+            if presets:   # issue 41's motion: auto against each preset (target_goals e)
+                rows[-1]["motion_presets_mae_mm"] = preset_maes(d / t, fusion_config, target, evaluate_bag)
     return {"profile": profile, "seed": seed, "rows": rows, "generated": len(missing),
             "sim_s": t1 - t0, "eval_s": time.monotonic() - t1}
 
@@ -353,6 +359,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--noise-model", default="builtin",
                     help="fullperc's noise model: builtin, calibrated (fitted per profile on --calibration-seeds) "
                          "or a noise-model file (default builtin)")
+    ap.add_argument("--no-presets", action="store_true",
+                    help="skip fullperc's runs with each motion preset (issue 41's auto-vs-preset check)")
     ap.add_argument("--calibration-seeds", default=CALIBRATION_SEEDS,
                     help=f"seeds whose bags the calibrated noise model is fitted on (default {CALIBRATION_SEEDS})")
     args = ap.parse_args(argv)
@@ -375,7 +383,8 @@ def main(argv: list[str] | None = None) -> int:
     results: list[dict[str, Any]] = []
     jobs = [(p, s) for p in profiles for s in seeds]
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as ex:
-        futs = {ex.submit(run_seed, p, s, cache, noise[p]["fusion_config"], keys[p]): (p, s) for p, s in jobs}
+        futs = {ex.submit(run_seed, p, s, cache, noise[p]["fusion_config"], keys[p], not args.no_presets): (p, s)
+                for p, s in jobs}
         for f in as_completed(futs):
             r = f.result()
             results.append(r)

@@ -102,6 +102,24 @@ def task_row(task: str, seed: int, profile: str, target: str, r: dict[str, Any])
             "target": target}
 
 
+def preset_maes(bag: Path, fusion_config: str | None, target: str, evaluate_bag) -> dict[str, float]:
+    """fullperc's MAE [mm] on one bag with each motion preset instead of the configured motion (the target's motion
+    set to the preset, nothing else changed): the figures :func:`.target_goals.auto_vs_presets` compares ``motion:
+    auto`` with. ``evaluate_bag`` is :func:`.metrics.evaluate_bag` (passed in: this module stays light)."""
+    from dataclasses import replace
+
+    from fullperc_fusion.filters.motion import PRESETS
+
+    from .config import replay_config
+
+    config, _ = replay_config(fusion_config, target)
+    out = {}
+    for name, fields in PRESETS.items():
+        cfg = replace(config, filters=("omc", "fullperc"), params=replace(config.params, motion="fixed", **fields))
+        out[name] = evaluate_bag(bag, target=target, config=cfg, progress=False).result["mae_mm"]["fullperc"]
+    return out
+
+
 def target_of(row: dict[str, Any]) -> str:
     """A row's target; rows without one (a run before targets were evaluated) are the tool's."""
     return row.get("target") or ARM_TARGET
