@@ -21,8 +21,11 @@ The presets are physical classes of motion, not fits to any recording (the twin'
   second or two: q_alpha 0.5. A jump of its OMC pose cannot be told from the hand's own motion: no hop into the
   bias.
 * ``static``: a marker fixed to something that barely moves, e.g. a patient reference frame on the table: breathing
-  moves it by a few mm at 12-20 per minute, v ~ 2 pi f A ~ 6 mm/s, a ~ (2 pi f)^2 A ~ 13 mm/s^2, q_a ~ 1e-4; a
-  tilt of ~1 mrad per breath, q_alpha 1e-5; ``init_vel_std`` 0.01 m/s. Steps of its OMC pose are the sensor's.
+  moves it by a few mm at 12-20 per minute, v ~ 2 pi f A ~ 6 mm/s, a ~ (2 pi f)^2 A ~ 13 mm/s^2, q_a ~ 1e-4;
+  ``init_vel_std`` 0.01 m/s. Its orientation keeps the arm's q_alpha: breathing tilts it by only ~1 mrad, but a
+  patient is turned and re-draped by staff, and a class that ruled out turning would, in ``auto``, give any target
+  that stands still while it turns (an arm-held tool) a far too small orientation covariance. Steps of its OMC pose
+  are the sensor's.
 
 Why a speed envelope: each class is also defined by how fast its target can move -- an arm's tool at up to
 ``MAX_SPEED`` 0.25 m/s (the speed limit of a collaborative or surgical arm's tool), a breathing patient's marker at
@@ -72,7 +75,7 @@ __all__ = ["HOP_PRIOR", "MAX_SPEED", "MOTIONS", "PRESETS", "SPEED_TOL", "hop_mix
 PRESETS: dict[str, dict[str, float | bool]] = {
     "arm": {"accel_noise": 0.05, "ang_accel_noise": 0.005, "init_vel_std": 0.1, "hop_to_bias": True},
     "hand": {"accel_noise": 2.0, "ang_accel_noise": 0.5, "init_vel_std": 1.0, "hop_to_bias": False},
-    "static": {"accel_noise": 1e-4, "ang_accel_noise": 1e-5, "init_vel_std": 0.01, "hop_to_bias": True},
+    "static": {"accel_noise": 1e-4, "ang_accel_noise": 0.005, "init_vel_std": 0.01, "hop_to_bias": True},
 }
 MOTIONS = ("auto", *PRESETS)   # the values of <target>.motion
 MAX_SPEED = {"arm": 0.25, "hand": 3.0, "static": 0.02}   # [m/s] the speed envelope of each class (module docstring)
