@@ -13,7 +13,7 @@ import numpy as np
 import yaml
 
 from fullperc_eval.graph.cli import main as supervisor_main
-from fullperc_eval.graph.demo import DEMO_REORDER_S, fusion_params_with, graph_path, sim_diana_base
+from fullperc_eval.graph.demo import DEMO_REORDER_S, DEMO_TARGET_PARAMS, fusion_params_with, graph_path, sim_diana_base
 from fullperc_eval.graph.supervisor import load_graph
 from fullperc_fusion.fusion_config import default_fusion_config_path, node_key, read_params_file
 
@@ -63,9 +63,11 @@ def test_offline_evaluation_uses_the_same_calibration(tmp_path):
     path = fusion_params_with(cal, tmp_path)
     got, default = read_params_file(path), read_params_file(default_fusion_config_path())
     assert got["calibration_file"] == str(cal)
-    assert {k: v for k, v in got.items() if k not in ("calibration_file", "reorder_delay")} == \
-        {k: v for k, v in default.items() if k not in ("calibration_file", "reorder_delay")}
+    demo_own = ("calibration_file", "reorder_delay", *DEMO_TARGET_PARAMS)
+    assert {k: v for k, v in got.items() if k not in demo_own} == \
+        {k: v for k, v in default.items() if k not in demo_own}
     assert got["reorder_delay"] == DEMO_REORDER_S
+    assert {k: got[k] for k in DEMO_TARGET_PARAMS} == DEMO_TARGET_PARAMS   # the instrument's preset, as the node gets
     assert (d := yaml.safe_load(path.read_text()))[node_key(d)]["ros__parameters"]["calibration_file"] == str(cal)
 
 
