@@ -108,14 +108,14 @@ def preset_maes(bag: Path, fusion_config: str | None, target: str, evaluate_bag)
     auto`` with. ``evaluate_bag`` is :func:`.metrics.evaluate_bag` (passed in: this module stays light)."""
     from dataclasses import replace
 
-    from fullperc_fusion.filters.motion import PRESETS
+    from fullperc_fusion.filters.motion import PRESETS, with_preset
 
     from .config import replay_config
 
     config, _ = replay_config(fusion_config, target)
     out = {}
-    for name, fields in PRESETS.items():
-        cfg = replace(config, filters=("omc", "fullperc"), params=replace(config.params, motion="fixed", **fields))
+    for name in PRESETS:
+        cfg = replace(config, filters=("omc", "fullperc"), params=with_preset(config.params, name))
         out[name] = evaluate_bag(bag, target=target, config=cfg, progress=False).result["mae_mm"]["fullperc"]
     return out
 

@@ -60,8 +60,8 @@ from fullperc_fusion.filters.api import (
     split_update,
 )
 from fullperc_fusion.filters.fullperc_reference import FullpercReference
-from fullperc_fusion.filters.fullperc_state import FullpercState, N, noise_scale_step
-from fullperc_fusion.filters.motion import hop_mixture
+from fullperc_fusion.filters.fullperc_state import POSE_FLAT, FullpercState, N, noise_scale_step
+from fullperc_fusion.filters.motion import gaussian_log_lik, hop_mixture
 from fullperc_fusion.filters.paper_family import FilterParams
 from fullperc_fusion.filters.rot_noise_scale import pair_estimate, scale_decay, scale_step, scaled_cov
 from fullperc_fusion.filters.so3_float import R9_IDENT, R9_to_quat, exp9, log9, mul9, mul9_t, quat_to_R9
@@ -69,8 +69,6 @@ from fullperc_fusion.filters.so3_float import R9_IDENT, R9_to_quat, exp9, log9, 
 __all__ = ["FullpercFilter", "N"]
 
 _I21 = np.eye(N)
-_LOG_2PI = math.log(2.0 * math.pi)
-_POSE = np.array([21 * r + c for r in (0, 1, 2, 9, 10, 11) for c in (0, 1, 2, 9, 10, 11)])   # [p, theta] of P.ravel()
 _F_PV = ([0, 1, 2], [3, 4, 5])
 _F_TW = ([9, 10, 11], [12, 13, 14])
 _F_GG = ([18, 19, 20], [18, 19, 20])
@@ -390,8 +388,7 @@ class FullpercFilter(StepCompat):
         yv = np.array(y)
         Z, lu = _solve(S, yv, U)
         nis = sum(map(mul, y, Z[:, 0].tolist()))
-        log_lik = -0.5 * (nis + float(np.log(np.abs(lu.diagonal())).sum()) + len(y) * _LOG_2PI) \
-            if self.likelihood else 0.0
+        log_lik = gaussian_log_lik(nis, float(np.log(np.abs(lu.diagonal())).sum()), len(y)) if self.likelihood else 0.0
         nis_g = 0.0
         hop = False
         if mg is not None:
@@ -412,8 +409,8 @@ class FullpercFilter(StepCompat):
                 U = P @ H.T
                 Z, lu = _solve(H @ U + Rm, yv, U)
                 if self.likelihood:   # the reference's hop mixture of the likelihood (motion.hop_mixture)
-                    hop_ll = -0.5 * (sum(map(mul, y, Z[:, 0].tolist())) + float(np.log(np.abs(lu.diagonal())).sum())
-                                     + len(y) * _LOG_2PI)
+                    hop_ll = gaussian_log_lik(sum(map(mul, y, Z[:, 0].tolist())),
+                                              float(np.log(np.abs(lu.diagonal())).sum()), len(y))
                     log_lik = hop_mixture(log_lik, hop_ll)
         Gt = Z[:, 1:]                      # K^T = S^-1 U^T
         dx = (yv @ Gt).tolist()
@@ -472,4 +469,4 @@ class FullpercFilter(StepCompat):
         has_R = self._has_R
         return Step(t, np.array(x[0:3]), np.array(x[3:6]), np.array([x[6] + x[18], x[7] + x[19], x[8] + x[20]]),
                     P, src, q=R9_to_quat(self._R) if has_R else None,
-                    pose_cov=P.ravel()[_POSE].reshape(6, 6) if has_R else None, reset=kw.pop("reset", False), **kw)
+                    pose_cov=P.ravel()[POSE_FLAT].reshape(6, 6) if has_R else None, reset=kw.pop("reset", False), **kw)

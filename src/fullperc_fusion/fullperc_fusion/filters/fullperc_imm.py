@@ -31,15 +31,13 @@ import numpy as np
 from fullperc_fusion.filters.api import Measurement, Step, StepCompat
 from fullperc_fusion.filters.fullperc import FullpercFilter
 from fullperc_fusion.filters.fullperc_params import FullpercParams
-from fullperc_fusion.filters.fullperc_state import N
-from fullperc_fusion.filters.motion import PRESETS, mix, mixing, posterior, speed_log_lik, transition
+from fullperc_fusion.filters.fullperc_state import POSE_FLAT, TH
+from fullperc_fusion.filters.motion import mix, mixing, posterior, speed_log_lik, transition, with_preset
 from fullperc_fusion.filters.paper_family import FilterParams
 from fullperc_fusion.filters.so3_float import R9_to_quat, exp9, log9, mul9, mul9_t
 
 __all__ = ["FullpercImm"]
 
-_TH = slice(9, 12)
-_POSE = np.array([N * r + c for r in (0, 1, 2, 9, 10, 11) for c in (0, 1, 2, 9, 10, 11)])
 
 
 class FullpercImm(StepCompat):
@@ -53,7 +51,7 @@ class FullpercImm(StepCompat):
         self.names = tuple(pr.motion_models)
         self.models = []
         for name in self.names:
-            f = FullpercFilter(replace(pr, motion="fixed", **PRESETS[name]))
+            f = FullpercFilter(with_preset(pr, name))
             f.likelihood = True
             self.models.append(f)
         self.reset()
@@ -100,7 +98,7 @@ class FullpercImm(StepCompat):
         out = []
         for f in models:
             d = np.array(f._x) - xr
-            d[_TH] = log9(mul9_t(f._R, Rr))
+            d[TH] = log9(mul9_t(f._R, Rr))
             out.append(d)
         return out
 
@@ -115,7 +113,7 @@ class FullpercImm(StepCompat):
         for j, fj in enumerate(fs):
             dx0, P0 = mix(W[:, j], self._offsets(fj, fs), [f._P for f in fs])
             x = (np.array(fj._x) + dx0).tolist()
-            R = mul9(exp9(*dx0[_TH].tolist()), fj._R)
+            R = mul9(exp9(*dx0[TH].tolist()), fj._R)
             x[9] = x[10] = x[11] = 0.0
             mixed.append((x, R, P0))
         for f, (x, R, P) in zip(fs, mixed, strict=True):
@@ -158,7 +156,7 @@ class FullpercImm(StepCompat):
         dx, P = mix(mu, self._offsets(ref, self.models), [s.P for s in steps])
         x = np.array(ref._x) + dx
         has_q = top.q is not None
-        q = R9_to_quat(mul9(exp9(*dx[_TH].tolist()), ref._R)) if has_q else None
+        q = R9_to_quat(mul9(exp9(*dx[TH].tolist()), ref._R)) if has_q else None
         return Step(top.t_ns, x[0:3], x[3:6], x[6:9] + x[18:21], P, top.sources, innovation=top.innovation,
                     nis=top.nis, nis_global=top.nis_global, hop=top.hop, reset=top.reset, q=q,
-                    pose_cov=P.ravel()[_POSE].reshape(6, 6) if has_q else None, log_lik=log_l)
+                    pose_cov=P.ravel()[POSE_FLAT].reshape(6, 6) if has_q else None, log_lik=log_l)

@@ -129,7 +129,7 @@ from fullperc_fusion.filters.fullperc_state import (
     copy_state,
     noise_scale_step,
 )
-from fullperc_fusion.filters.motion import hop_mixture
+from fullperc_fusion.filters.motion import gaussian_log_lik, hop_mixture
 from fullperc_fusion.filters.paper_family import FilterParams
 from fullperc_fusion.filters.rot_noise_scale import pair_estimate, scale_decay, scale_step, scaled_cov
 
@@ -137,7 +137,6 @@ __all__ = ["N", "FullpercReference", "noise_scale_step"]
 
 _I3 = np.eye(3)
 _IN = np.eye(N)
-_LOG_2PI = math.log(2.0 * math.pi)
 
 
 class FullpercReference(StepCompat):
@@ -417,7 +416,7 @@ class FullpercReference(StepCompat):
             s.sys_var = float(sv) if sv is not None and math.isfinite(sv) and sv > 0 else pr.sys_std**2
         S = H @ P @ H.T + Rm
         nis = float(y @ np.linalg.solve(S, y))
-        log_lik = -0.5 * (nis + np.linalg.slogdet(S)[1] + len(y) * _LOG_2PI)   # before a hop raises S
+        log_lik = gaussian_log_lik(nis, np.linalg.slogdet(S)[1], len(y))   # before a hop raises S
         nis_g = 0.0
         hop = False
         if mg is not None:
@@ -434,8 +433,8 @@ class FullpercReference(StepCompat):
                 k = G_ if pr.hop_into == "g" else B_
                 P[k, k] += np.diag(y[0:3] ** 2)
                 S = H @ P @ H.T + Rm
-                log_lik = hop_mixture(log_lik, -0.5 * (float(y @ np.linalg.solve(S, y)) + np.linalg.slogdet(S)[1]
-                                                       + len(y) * _LOG_2PI))
+                log_lik = hop_mixture(log_lik, gaussian_log_lik(float(y @ np.linalg.solve(S, y)),
+                                                                np.linalg.slogdet(S)[1], len(y)))
         G = np.linalg.solve(S, H @ P).T
         dx = G @ y
         IKH = _IN - G @ H

@@ -15,12 +15,15 @@ import numpy as np
 
 from fullperc_fusion.filters.fullperc_params import FullpercParams
 
-__all__ = ["BE", "B_", "G_", "N", "P_", "TH", "V_", "W_", "FullpercState", "copy_state", "noise_scale_step"]
+__all__ = ["BE", "B_", "G_", "N", "POSE_FLAT", "P_", "TH", "V_", "W_", "FullpercState", "copy_state",
+           "noise_scale_step"]
 
 # the error state dx = [dp dv db | dtheta dw dbeta | dg] (:mod:`.fullperc_reference`)
 N = 21
 P_, V_, B_, TH, W_, BE, G_ = (slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15), slice(15, 18),
                               slice(18, 21))
+# the [p, theta] rows and columns of P.ravel(): a step's 6x6 pose covariance is P.ravel()[POSE_FLAT].reshape(6, 6)
+POSE_FLAT = np.array([N * r + c for r in (0, 1, 2, 9, 10, 11) for c in (0, 1, 2, 9, 10, 11)])
 
 
 def noise_scale_step(lam: float, t_prev_ns: int | None, t_ns: int, nis_g: float, pr: FullpercParams) -> float:

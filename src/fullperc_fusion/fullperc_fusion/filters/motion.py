@@ -65,11 +65,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import replace
 
 import numpy as np
 
-__all__ = ["HOP_PRIOR", "MAX_SPEED", "MOTIONS", "PRESETS", "SPEED_TOL", "hop_mixture", "mix", "mixing",
-           "posterior", "preset_fields", "speed_log_lik", "transition"]
+__all__ = ["HOP_PRIOR", "MAX_SPEED", "MOTIONS", "PRESETS", "SPEED_TOL", "gaussian_log_lik", "hop_mixture", "mix",
+           "mixing", "posterior", "preset_fields", "speed_log_lik", "transition", "with_preset"]
 
 # the motion fields of each preset (FilterParams / FullpercParams field names; module docstring for the values)
 PRESETS: dict[str, dict[str, float | bool]] = {
@@ -78,6 +79,7 @@ PRESETS: dict[str, dict[str, float | bool]] = {
     "static": {"accel_noise": 1e-4, "ang_accel_noise": 0.005, "init_vel_std": 0.01, "hop_to_bias": True},
 }
 MOTIONS = ("auto", *PRESETS)   # the values of <target>.motion
+_LOG_2PI = math.log(2.0 * math.pi)
 MAX_SPEED = {"arm": 0.25, "hand": 3.0, "static": 0.02}   # [m/s] the speed envelope of each class (module docstring)
 SPEED_TOL = 0.05   # [m/s] how far beyond it a speed estimate may be before it counts against the class
 HOP_PRIOR = 0.01   # prior probability that a flagged hop is the sensor's, in a model that puts hops into the bias
@@ -88,6 +90,12 @@ def preset_fields(motion: str) -> dict[str, float | bool]:
     if motion not in MOTIONS:
         raise ValueError(f"motion must be one of {MOTIONS}, got {motion!r}")
     return dict(PRESETS.get(motion, {}))
+
+
+def with_preset(params, motion: str):
+    """``params`` (a filter parameter dataclass) as one model of preset ``motion``: its motion fields, ``motion``
+    "fixed" (the model of the IMM, or fullperc evaluated under that preset)."""
+    return replace(params, motion="fixed", **PRESETS[motion])
 
 
 def transition(dt: float, n: int, dwell: float) -> np.ndarray:
@@ -133,6 +141,11 @@ def speed_log_lik(speed: float, motion: str) -> float:
     SPEED_TOL^2) for a speed e beyond it (module docstring)."""
     e = speed - MAX_SPEED[motion]
     return 0.0 if e <= 0.0 else -0.5 * (e / SPEED_TOL) ** 2
+
+
+def gaussian_log_lik(nis: float, log_det: float, dof: int) -> float:
+    """log N(y; 0, S) from its NIS y^T S^-1 y, log |S| and the dimension of y (both forms of fullperc, Step.log_lik)."""
+    return -0.5 * (nis + log_det + dof * _LOG_2PI)
 
 
 def hop_mixture(log_lik: float, hop_log_lik: float) -> float:
