@@ -105,7 +105,7 @@ def target_params(targets: list[str]) -> list[str]:
 
 def run_live(nodes: list[list[str]], targets: list[str], domain: int | None, duration: float,
              omc_hz: float = 240.0, ots_hz: float = 400.0, executor: str | None = None,
-             command: list[str] | None = None, consumers: tuple[str, ...] = ()) -> LiveResult:
+             command: list[str] | None = None, consumers: tuple[str, ...] = (), array: bool = False) -> LiveResult:
     """Run ``len(nodes)`` fusion_node processes (each with the given extra ``--ros-args``) against the publisher.
 
     ``domain`` None: a domain id no test or other bench on this machine holds (fullperc_common.testing.claim_domain),
@@ -113,12 +113,16 @@ def run_live(nodes: list[list[str]], targets: list[str], domain: int | None, dur
     (fullperc_common.executor_choice); None leaves the node's default. ``command``: the node's command instead of
     the installed fusion_node (e.g. bench/echo_floor.py). ``consumers``: further outputs subscribed here besides
     every target's fused pose -- ``pose_cov``, ``status``, ``velocity`` (per target) and ``/tf`` -- received and
-    counted only (fusion_node publishes a topic only while it has a reader)."""
+    counted only (fusion_node publishes a topic only while it has a reader). ``array``: the fused poses are read from
+    ``/fullperc/poses`` (fullperc_msgs/FusedPoseArray, one entry per target per wake-up) instead of each target's
+    pose topic, which is then not subscribed: a consumer of the array only. Latency is then per entry; a sample
+    folded into a newer entry of the same wake-up counts as lost by :func:`uncovered`."""
     if domain is None:
         from fullperc_common.testing import claim_domain
 
         with claim_domain() as lease:
-            return run_live(nodes, targets, lease.domain, duration, omc_hz, ots_hz, executor, command, consumers)
+            return run_live(nodes, targets, lease.domain, duration, omc_hz, ots_hz, executor, command, consumers,
+                            array)
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseStamped
@@ -151,9 +155,19 @@ def run_live(nodes: list[list[str]], targets: list[str], domain: int | None, dur
 
     qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
     node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 100)
-    for t in targets:
+    if array:
+        from fullperc_msgs.msg import FusedPoseArray
+
+        def on_array(m) -> None:
+            now = time.time_ns()
+            for e in m.poses:
+                if e.target in fused:
+                    fused[e.target].append((now, e.stamp.sec * 1_000_000_000 + e.stamp.nanosec))
+        node.create_subscription(FusedPoseArray, "/fullperc/poses", on_array, qos)
+    for t in () if array else targets:
         node.create_subscription(PoseStamped, f"/fullperc/{t}/pose",
                                  lambda m, s=fused[t]: s.append((time.time_ns(), stamp(m))), qos)
+    ready = ["/fullperc/poses"] if array else [f"/fullperc/{t}/pose" for t in targets]
     node.create_subscription(PoseStamped, f"/omc/{targets[0]}/pose",
                              lambda m: raw.append((time.time_ns(), stamp(m))), qos)
     consumed = _subscribe_consumers(node, targets, consumers, qos)
@@ -167,7 +181,7 @@ def run_live(nodes: list[list[str]], targets: list[str], domain: int | None, dur
     # CPU is counted from when every node is constructed (its pose publisher seen here): importing and building a
     # node costs ~1.2-1.6 s of CPU, which a 6 s step would otherwise book as 0.2-0.27 core of load
     t_wait = time.monotonic()
-    while (any(node.count_publishers(f"/fullperc/{t}/pose") < 1 for t in targets)
+    while (any(node.count_publishers(topic) < 1 for topic in ready)
            and time.monotonic() - t_wait < 120 and all(p.poll() is None for p in procs)):
         time.sleep(0.05)
     cpu0 = [cpu_seconds(p.pid) for p in procs]

@@ -37,6 +37,9 @@ INTERFACE_PARAMS: tuple[Param, ...] = (
           "arrival: publish fullperc/<target>/final, the primary filter's estimates once final (= offline)"),
     Param("publish_velocity", False, "bool", None, "", "",
           "publish fullperc/<target>/velocity (TwistWithCovarianceStamped, frames.base) from the primary filter"),
+    Param("publish_poses", True, "bool", None, "", "",
+          "publish fullperc/poses (FusedPoseArray, frames.base): every target's newest fused pose and covariance of "
+          "the primary filter, one message per wake-up, while a subscriber is matched"),
     Param("status_rate", 0.0, "float", *NONNEGATIVE, "Hz",
           "most FusionStatus messages per second per target and filter, by fused stamp (0 = one per fused output); "
           "an output flagged as a hop, or whose link_bumped changed, always goes out"),
@@ -85,6 +88,10 @@ def frames_of(vals: dict) -> Frames:
     return Frames(vals.get("frames.base", d.base), vals.get("frames.omc", d.omc), vals.get("frames.ots", d.ots),
                   vals.get("frames.diana_base", d.diana_base),
                   tuple((t, vals.get(f"{t}.frame") or t) for t in vals.get("targets", ())))
+
+
+POSES_TOPIC = "fullperc/poses"
+"""The relative name of the poses array (``publish_poses``): every target's newest fused pose per wake-up."""
 
 
 def output_topic(target: str, what: str, filter: str = "") -> str:

@@ -20,6 +20,7 @@ Publishes:
                                ``processing: arrival`` fused when an item leaves the history: final, ``history`` late)
   fullperc/<target>/final     PoseStamped (``processing: arrival``, ``publish_final``): the primary filter's estimate
                                of each item once it left the history -- final, equal to the offline evaluator's
+  fullperc/poses               fullperc_msgs/FusedPoseArray: per wake-up every target's newest pose_cov (publish_poses)
   /tf                          tf2_msgs/TFMessage ``base`` -> ``<target>`` per fused output of the primary filter
                                (stamp = fused stamp; ``tf.rate``: at most that many per s of stamps), every
                                target's in one message per wake-up; ``tf.enabled``
@@ -35,10 +36,9 @@ Publishes:
                                fused sample); per input wake-up, callback_delay / wakeup / received_to_published
                                _p50_ms, _p99_ms, _max_ms (reception -> callback -> published; fullperc_common.latency)
                                (the _max / _min / _pNN figures over every input callback since the last published
-                               report), <omc|ots>_frames_lost / _samples_lost of the
-                               target's sources (TrackingQuality frame-number gaps; visible frames whose pose never
-                               came); WARN when the lag stayed above ``lag_warn`` for a whole period, or samples
-                               were lost (held problem_hold)
+                               report), <omc|ots>_frames_lost / _samples_lost of the target's sources (TrackingQuality
+                               frame-number gaps; visible frames whose pose never came); WARN when the lag stayed
+                               above ``lag_warn`` for a whole period, or samples were lost (held problem_hold)
 Services:
   ~/initialize (std_srvs/Trigger) re-estimates the static links of every target from the next samples
                (``static_links``: average of init_samples, or calibrate over calibration.duration).
@@ -80,13 +80,13 @@ from fullperc_common.tf import Broadcaster, StaticBroadcaster, transform_stamped
 from fullperc_fusion.fusion_config import read_values
 from fullperc_fusion.fusion_core import DIAG_EVAL_PERIOD_S, FusionCore, Log
 from fullperc_fusion.fusion_endpoints import Endpoints, declare_row, input_sample, live_parameters
-from fullperc_fusion.fusion_interface import output_topic
-from fullperc_fusion.fusion_publish import OutputPublisher, publish_final, publish_outputs
+from fullperc_fusion.fusion_interface import POSES_TOPIC, output_topic
+from fullperc_fusion.fusion_publish import OutputPublisher, PosesPublisher, publish_final, publish_outputs
 from fullperc_fusion.input_cdr import quality_from_cdr
 from fullperc_fusion.input_guard import CHECK_PERIOD_S, gid_hex, node_fqn, service_callers_line
 from fullperc_fusion.pipeline.arrival import ArrivalPipeline
 from fullperc_fusion.pipeline.ordered import FusedOutput
-from fullperc_msgs.msg import FusionStatus, Region, TrackingQuality
+from fullperc_msgs.msg import FusedPoseArray, FusionStatus, Region, TrackingQuality
 
 
 class FusionNode(Node):
@@ -119,6 +119,8 @@ class FusionNode(Node):
         self._out_sets = {k: OutputPublisher(*v, status_rate=vals["status_rate"],
                                              frame=core.frames.base, vel_pub=vel.get(k[0]) if k[1] == "" else None)
                           for k, v in pubs.items()}
+        self._poses = PosesPublisher(ep.publisher(FusedPoseArray, POSES_TOPIC) if vals["publish_poses"] else None,
+                                     core.frames.base, core.targets, core.publish_error)
         self._quality_subs = {key: ep.subscription(TrackingQuality, topic, partial(self._on_quality, key), raw=True)
                               for key, topic in core.quality_topics.items()}
         self._input_subs: list[tuple[str, str, object]] = [
@@ -182,7 +184,7 @@ class FusionNode(Node):
             self._publish(t, self.core.poll(t, self._host_ns()))
             self._publish_final(t)
             self._log(self.core.watch_links(t, time.monotonic()))
-        self._flush_tf()
+        self._flush_wakeup()
         received = info.get("received_timestamp") if isinstance(info, dict) else None
         clock = self.get_clock().now().nanoseconds   # 0: sim time not started, no lag known
         if self.core.input_done(batch, None if not received else wall - int(received), clock, time.monotonic(),
@@ -234,7 +236,7 @@ class FusionNode(Node):
         for t, outs in self.core.flush_all():
             self._publish(t, outs)
             self._publish_final(t)
-        self._flush_tf()
+        self._flush_wakeup()
         for key, sub in self._quality_subs.items():
             while m := take_queued(sub, 1):
                 self._on_quality(key, m[0])
@@ -250,7 +252,7 @@ class FusionNode(Node):
         for t, outs in self.core.due_outputs(now, self._host_ns()):
             self._publish(t, outs)
             self._publish_final(t)
-        self._flush_tf()
+        self._flush_wakeup()
 
     # ---- services ---------------------------------------------------------------------------
     def _callers(self, service: str) -> str:
@@ -313,25 +315,25 @@ class FusionNode(Node):
 
     def _publish(self, target: str, outs: list[FusedOutput]) -> None:
         self._send_static()
-        now = time.monotonic()
-        core = self.core
+        core, now = self.core, time.monotonic()
         core.note_skipped(target, now)
         tfs = publish_outputs(
-            self._out_sets, target, outs, core.primary, core.extra, self._region.get(target, 0),
+            self._out_sets, target, outs, core.primary, core.extra, self._region.get(target, 0), poses=self._poses,
             on_primary=partial(core.primary_output, target, now), on_error=partial(core.publish_error, target),
             tf_of=None if self._tf is None or not self._tf.wanted() else
             lambda o: transform_stamped(o.t_ns, core.frames.base, core.frames.of(target), p=o.p, q_xyzw=o.q))
         if tfs:
-            self._tf.add(tfs)   # sent at the end of the wake-up (_flush_tf)
+            self._tf.add(tfs)   # sent at the end of the wake-up (_flush_wakeup), as fullperc/poses
 
     def _publish_final(self, target: str) -> None:
         """fullperc/<target>/final: the primary filter's estimates of the items that left the history."""
         publish_final(self._final_pubs.get(target), self.core.final_outputs(target), self.core.frames.base)
 
-    def _flush_tf(self) -> None:
-        """/tf: what this wake-up's outputs of every target added, as one TFMessage."""
+    def _flush_wakeup(self) -> None:
+        """/tf and fullperc/poses: what this wake-up's outputs of every target added, one message each."""
         if self._tf is not None:
             self._tf.flush()
+        self._poses.flush()
 
     def _update_diagnostics(self) -> None:
         for name, level, message, values in self.core.diagnostics(time.monotonic(), self._diag.published):

@@ -27,6 +27,13 @@ a 36-element list checked element by element. Here:
   which a consumer's fusion then ignores -- rather than a finite difference of orientations, whose noise (the OMC's
   few mrad per sample at 120 Hz: ~1 rad/s) would be presented as a measurement. The raw ``omc`` filter has no
   velocity state: nothing is published for it.
+* the poses array (``publish_poses``, issue 38 item 1): ``fullperc/poses`` (fullperc_msgs/FusedPoseArray), once per
+  wake-up, the newest primary output of every target that had one -- the field comments of FusedPoseArray.msg say
+  what each holds. Why: a consumer of many targets otherwise matches a pose_cov subscription per target and pays
+  rclpy's per-message path per target and output; one message per wake-up costs it (and the node) one. It is
+  collected as /tf is (``tf.Broadcaster``: ``add`` per output, one message at the end of the wake-up), keeps only a
+  reference per target until then (the last output a target's pose topic got, so an entry equals the newest
+  ``/fullperc/<target>/pose_cov`` of the wake-up), and builds and publishes nothing while no reader is matched.
 
 Every header's frame is the node's ``frames.base`` (``frame`` here).
 """
@@ -42,9 +49,10 @@ from geometry_msgs.msg import Pose, PoseStamped, PoseWithCovarianceStamped, Twis
 
 from fullperc_common.ros_conv import ns_to_stamp, pose_msg
 from fullperc_fusion.pipeline.ordered import FusedOutput
-from fullperc_msgs.msg import FusionStatus
+from fullperc_msgs.msg import FusedPose, FusedPoseArray, FusionStatus
 
-__all__ = ["ANGULAR_VAR_UNKNOWN", "OutputPublisher", "fill_pose", "publish_final", "publish_outputs"]
+__all__ = ["ANGULAR_VAR_UNKNOWN", "OutputPublisher", "PosesPublisher", "fill_pose", "publish_final",
+           "publish_outputs"]
 
 ANGULAR_VAR_UNKNOWN = 1.0e6   # [(rad/s)^2] variance of the angular velocity, which no filter estimates (docstring)
 
@@ -161,13 +169,69 @@ class OutputPublisher:
         return dt >= self.status_period_ns or dt < 0
 
 
+class PosesPublisher:
+    """``fullperc/poses``: one FusedPoseArray per wake-up with the newest primary output of every target that had one
+    (module docstring). :meth:`add` per published output, :meth:`flush` at the end of the wake-up.
+
+    ``pub`` None (``publish_poses: false``): no topic, every call a no-op. ``targets`` fixes the entries' order (the
+    node's ``targets``: a consumer reads the array the same way every time). ``on_error(target, output, why)``: an
+    output refused here (:func:`fill_pose`'s checks, or a non-finite covariance) -- left out, never sent as NaN."""
+
+    def __init__(self, pub: Any | None, frame: str, targets: Iterable[str],
+                 on_error: Callable[[str, FusedOutput, str], None] | None = None) -> None:
+        self.pub = pub
+        self.on_error = on_error
+        self.msg = FusedPoseArray()
+        self.msg.header.frame_id = frame
+        self._entries = {t: FusedPose(target=t) for t in targets}   # built once, refilled (as OutputPublisher's)
+        self._newest: dict[str, FusedOutput] = {}   # target -> its last output of this wake-up
+
+    def add(self, target: str, o: FusedOutput) -> None:
+        """``o`` was published as ``target``'s fused pose: the entry of this wake-up, unless a later one comes."""
+        if self.pub is not None:
+            self._newest[target] = o
+
+    def flush(self) -> FusedPoseArray | None:
+        """Publish the wake-up's entries as one message (returned; None when nothing went out: no entry, no reader,
+        or every entry refused) and start the next wake-up."""
+        newest, self._newest = self._newest, {}
+        if not newest or not self.pub.get_subscription_count():
+            return None
+        poses, t_max = [], None
+        for target, e in self._entries.items():
+            o = newest.get(target)
+            if o is None:
+                continue
+            try:
+                fill_pose(e.pose.pose, o.p, o.q)
+                cov = np.array(o.cov, dtype=np.float64).reshape(36)   # ValueError on a wrong shape
+                if not np.isfinite(cov).all():
+                    raise ValueError("refusing to publish a non-finite covariance")
+            except ValueError as err:
+                if self.on_error is not None:
+                    self.on_error(target, o, f"fullperc/poses: {err}")
+                continue
+            e.pose.covariance = cov
+            e.stamp.sec, e.stamp.nanosec = divmod(int(o.t_ns), 1_000_000_000)
+            poses.append(e)
+            t_max = int(o.t_ns) if t_max is None else max(t_max, int(o.t_ns))
+        if t_max is None:
+            return None
+        msg = self.msg
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(t_max, 1_000_000_000)
+        msg.poses = poses
+        self.pub.publish(msg)
+        return msg
+
+
 def publish_outputs(sets: dict[tuple[str, str], OutputPublisher], target: str, outs: Iterable[FusedOutput],
                     primary: str, extra: Iterable[str], region: int,
                     on_primary: Callable[[FusedOutput], None], on_error: Callable[[FusedOutput, str], None],
-                    tf_of: Callable[[FusedOutput], Any] | None) -> list:
+                    tf_of: Callable[[FusedOutput], Any] | None, poses: PosesPublisher | None = None) -> list:
     """fusion_node's per-output loop: the primary's outputs on ``/fullperc/<target>/...`` (and /tf: the returned
-    transforms), a side-by-side filter's on ``/fullperc/<target>/<filter>/...``. ``on_primary``: the health
-    monitor's hook; ``on_error``: a refused (non-finite) pose; ``tf_of``: the /tf transform of an output."""
+    transforms; ``fullperc/poses``: added to ``poses``), a side-by-side filter's on ``/fullperc/<target>/<filter>/...``.
+    ``on_primary``: the health monitor's hook; ``on_error``: a refused (non-finite) pose; ``tf_of``: the /tf transform
+    of an output."""
     extra = set(extra)
     tfs = []
     for o in outs:
@@ -181,8 +245,11 @@ def publish_outputs(sets: dict[tuple[str, str], OutputPublisher], target: str, o
             except ValueError as e:   # never publish NaN; the pipeline should have caught it already
                 on_error(o, str(e))
                 continue
-            if key == "" and tf_of is not None:
-                tfs.append(tf_of(o))
+            if key == "":
+                if tf_of is not None:
+                    tfs.append(tf_of(o))
+                if poses is not None:
+                    poses.add(target, o)
     return tfs
 
 
