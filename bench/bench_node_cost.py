@@ -17,6 +17,10 @@ Figures (CPU seconds of the node process while data flowed, per second of data a
                                    pose consumer (the echo has no array; both consumers read one topic), no goal: set
                                    beside [pose] it shows what reading every target from one message costs
                                    (``lost`` also counts samples folded into a newer entry of the same wake-up)
+  node_cpu_per_target[pose,partner_wait=0]  fusion_node with the pose consumer and ``partner_wait: 0`` (every sample
+                                   fused on arrival, a pair's first sample fused alone and again with its partner:
+                                   docs/nodes.md "Processing on arrival"); baseline: the echo floor [pose]; set beside
+                                   [pose] it shows what waiting for a due partner saves
   gc_full_collection_ms            one full garbage collection with fusion_node's modules loaded, after
                                    ``node_main.settle_heap`` (what every node does once built); baseline: the same
                                    collection without it (a callback stalls that long when the collector runs one)
@@ -44,10 +48,12 @@ REPEATS = int(os.environ.get("FULLPERC_BENCH_REPEATS", "3"))
 TARGETS = ["tool"]
 CONSUMERS = {"pose": (), "every": ("pose_cov", "status", "/tf"), "array": ()}
 NODES = {"fusion": None, "echo": [sys.executable, str(HERE / "echo_floor.py"), "--targets", ",".join(TARGETS)]}
+VARIANTS = {"partner_wait=0": ["-p", "partner_wait:=0.0"]}   # fusion_node with one setting changed, pose consumer
 
 
 def run(node: str, consumer: str) -> dict:
-    res = run_live([target_params(TARGETS)], TARGETS, None, DURATION, command=NODES[node],
+    extra = VARIANTS[node.split(":", 1)[1]] if node.startswith("fusion:") else []
+    res = run_live([target_params(TARGETS) + extra], TARGETS, None, DURATION, command=NODES.get(node),
                    consumers=CONSUMERS[consumer], array=consumer == "array")
     return {"share": sum(res.node_cpu_s) / DURATION / len(TARGETS), "lost": sum(res.lost.values()),
             "sent": sum(res.sent.values()), "fused": res.fused_total, "consumed": res.consumed,
@@ -81,6 +87,7 @@ def gc_pause() -> None:
 def main() -> None:
     gc_pause()
     configs = [(n, c) for n in NODES for c in CONSUMERS if (n, c) != ("echo", "array")]   # the echo has no array
+    configs += [(f"fusion:{v}", "pose") for v in VARIANTS]
     runs: dict[tuple[str, str], list[dict]] = {k: [] for k in configs}
     for r in range(REPEATS):
         for k in configs[r % len(configs):] + configs[:r % len(configs)]:
@@ -94,6 +101,10 @@ def main() -> None:
         goal = {"goal_ratio": {"pose": 0.8, "every": 1.1}[c]} if c != "array" else {}
         emit(f"node_cpu_per_target[{c}]", share[("fusion", c)], "cores", baseline=floor, targets=len(TARGETS),
              seconds=DURATION, runs=runs[("fusion", c)], **goal)
+    for v in VARIANTS:
+        k = (f"fusion:{v}", "pose")
+        emit(f"node_cpu_per_target[pose,{v}]", share[k], "cores", baseline=share[("echo", "pose")],
+             targets=len(TARGETS), seconds=DURATION, runs=runs[k])
 
 
 if __name__ == "__main__":

@@ -53,6 +53,7 @@ from fullperc_fusion.pipeline.param_table import (
     one_of,
 )
 from fullperc_fusion.pipeline.sources import SOURCE_KEYS, device_param, read_source_values, source_param, source_set
+from fullperc_fusion.pipeline.target import TIMING_PARAMS
 
 # every method: the paper's five in the column order of its Table 1 (omc, kf, bkf, ckf, cbkf: the first five of
 # the registry reversed), then every further registered filter (fullperc) in registry order
@@ -193,22 +194,7 @@ PARAMS: tuple[Param, ...] = (
           "fullperc: noise model of this installation's OMC (written by fit_noise_model); '' = the built-in one. "
           "Its omc_bias values replace fullperc.sys_time, sys_std, rot_sys_time, rot_sys_std, rot_bias_walk, "
           "rot_bias_length, bias_length, bias_field_std"),
-    Param("slop", _T.slop_ns * 1e-9, "float", *NONNEGATIVE, "s",
-          "pair OMC and OTS samples closer than this"),
-    Param("reorder_delay", _T.delay_ns * 1e-9, "float", *NONNEGATIVE, "s",
-          "wait for late / reordered samples before processing"),
-    Param("clock", "stamps", "str", *one_of(("stamps", "host"), "stamps or host"), "",
-          "what 'now' is for the synchronizer: the newest stamp, or the node clock"),
-    Param("max_future", _T.max_future_ns * 1e-9, "float", *POSITIVE, "s",
-          "a sample stamped more than this ahead of the node clock is rejected (named on /diagnostics)"),
-    Param("idle_flush", 0.5, "float", *POSITIVE, "s",
-          "without target samples for this long: process everything pending (arrival: the history becomes final)"),
-    Param("processing", _T.processing, "str", *one_of(("arrival", "ordered"), "arrival or ordered"), "",
-          "arrival: fuse each sample when it arrives, rewind and replay for late ones | ordered: wait slop + "
-          "reorder_delay, then fuse in stamp order"),
-    Param("history", _T.history_ns * 1e-9, "float", *POSITIVE, "s",
-          "arrival: a sample up to this much older than the newest is still fused in order (rewind and replay); "
-          "older: dropped, named on /diagnostics"),
+    *TIMING_PARAMS,   # slop ... partner_wait (pipeline/target.py)
     Param("lag_warn", 0.2, "float", *POSITIVE, "s",
           "processing lag (node clock - stamp of the newest fused sample) above this for a whole /diagnostics "
           "period -> WARN (overload; beyond `history` late samples are dropped)"),
@@ -409,6 +395,7 @@ def target_config(get: Get | dict[str, Any], target: str, filters: tuple[str, ..
                             slop_ns=int(vals["slop"] * 1e9), delay_ns=int(vals["reorder_delay"] * 1e9),
                             max_future_ns=round(vals["max_future"] * 1e9), max_speed=vals["plausibility.max_speed"],
                             processing=vals["processing"], history_ns=int(round(vals["history"] * 1e9)),
+                            partner_wait_ns=int(round(vals["partner_wait"] * 1e9)),
                             monitor=monitor_params(vals), layout=model_layout(vals, tuple(filters)))
     except ParameterError:
         raise

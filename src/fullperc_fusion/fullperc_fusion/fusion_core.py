@@ -322,9 +322,11 @@ class FusionCore:
         """The timer's flush policy (module docstring): (target, outputs) of every target with something due."""
         idle = now - self.last_target_rx > self.idle_flush
         for t, pipe in self.pipes.items():
-            if isinstance(pipe, ArrivalPipeline):   # nothing waits; after idle_flush the history becomes final
+            if isinstance(pipe, ArrivalPipeline):   # after idle_flush the history becomes final
                 if idle and pipe.pending:
                     yield t, pipe.flush()
+                elif pipe.waiting:   # a sample waiting for its partner: fused once its wait is over
+                    yield t, pipe.poll()
                 continue
             if pipe.sync.pending == 0:
                 continue

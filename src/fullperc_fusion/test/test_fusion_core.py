@@ -133,6 +133,24 @@ def test_arrival_history_is_flushed_when_idle_and_not_before():
     assert list(c.due_outputs(last + 5.0, None)) == []       # nothing pending, nothing to do
 
 
+def test_a_sample_waiting_for_its_partner_goes_out_on_the_timer_once_its_wait_is_over():
+    """The OMC sample of frame 10 waits for the OTS sample due at its stamp (partner_wait, pipeline/partner_hold.py),
+    which never comes: the node's timer (due_outputs) polls the target while it waits, and gets its estimate once
+    the host clock passed partner_wait -- not before."""
+    c = make_core(filters=["kf"])
+    last = frames(c, 0, 10)
+    pipe = c.pipes["tool"]
+    host = {"ns": 0}
+    pipe.hold.clock = lambda: host["ns"]
+    push(c, "omc", "tool", 10, last + 0.01)
+    assert pipe.waiting == 1 and c.poll("tool", None) == []
+    assert [(t, o) for t, o in c.due_outputs(last + 0.01, None)] == [("tool", [])]
+    host["ns"] += int(c.pipes["tool"].config.partner_wait_ns)
+    out = list(c.due_outputs(last + 0.01, None))
+    assert [(t, [o.t_ns for o in outs if o.filter == "cbkf"]) for t, outs in out] == [("tool", [T0 + int(10 * S / HZ)])]
+    assert pipe.waiting == 0 and c.pipes["tool"].config.partner_wait_ns == 4_000_000   # the node's default
+
+
 def test_a_link_sample_does_not_postpone_the_idle_flush():
     c = make_core()
     last = frames(c, 0, 10)

@@ -16,7 +16,9 @@ How (every rule is the synchronizer's, :class:`~synchronizer.ApproxSync`, so pai
   history is where the replay starts: the live lane is restored whole from that entry's snapshot
   (:meth:`~.lane.FilterLane.restore`) and the items from there on are processed with
   ``TargetPipeline._process_item`` -- the very function ordered processing uses. Usually only the new item is
-  processed; a partner that completes a pair replays one or two items.
+  processed; a partner that completes a pair replays one or two items -- unless the first sample of the pair
+  waited for it (``partner_wait``, :mod:`.partner_hold`): a sample whose partner is due is held up to that long
+  and then fused with it in one re-pairing (:meth:`ArrivalPipeline._fuse`), so the pair is fused once.
 * Items leave the history once their first stamp is more than ``history`` older than the newest sample: their
   outputs are then final (:meth:`ArrivalPipeline.take_final`). A sample older than the last item that left
   (``late``) or with a stamp its stream already had (``duplicate``) is dropped, counted and described naming
@@ -62,6 +64,7 @@ from fullperc_fusion.pipeline.history import Entry, History, Outbox
 from fullperc_fusion.pipeline.lane import FilterLane
 from fullperc_fusion.pipeline.link_views import LinkViews, View
 from fullperc_fusion.pipeline.ordered import FusedOutput, TargetConfig, TargetPipeline
+from fullperc_fusion.pipeline.partner_hold import PartnerHold
 from fullperc_fusion.pipeline.problems import Problems
 from fullperc_fusion.pipeline.stamp_rules import DUPLICATE, LATE, LATE_SOURCE_SPAN_NS, OK, RESTART, StampRules
 from fullperc_fusion.pipeline.synchronizer import GLOBAL, LOCAL, ApproxSync, Sample, SyncItem
@@ -88,7 +91,7 @@ class ArrivalPipeline(TargetPipeline):
     LANES = ("lane", "side")   # the live lane (rewound: each history entry holds its snapshot) and the side-by-side
     # the rewind's own bookkeeping, kept by it: the stamp rules (the samples taken stay taken; a rewind pairs them
     # again), the history, the outputs not handed out yet, the views of the static links
-    KEPT = (*TargetPipeline.KEPT, "rules", "history", "outbox", "views")
+    KEPT = (*TargetPipeline.KEPT, "rules", "history", "outbox", "views", "hold")   # hold: samples not fused yet
 
     def __init__(self, config: TargetConfig) -> None:
         super().__init__(config)
@@ -102,6 +105,7 @@ class ArrivalPipeline(TargetPipeline):
         self.history = History()
         self.outbox = Outbox()
         self.views = LinkViews([self.chain, *self.extra_chains])
+        self.hold = PartnerHold(config.slop_ns, config.partner_wait_ns)
         self._resolve_ns = 2 * config.slop_ns + config.delay_ns
 
     def lanes(self) -> tuple[FilterLane, ...]:
@@ -163,20 +167,29 @@ class ArrivalPipeline(TargetPipeline):
             self._restart_timeline(what, t)
         rules.admit(stream, t)
         self.counts[f"{rules.names[stream]}_in"] += 1
+        batch = self.hold.offer(stream, t, payload)   # empty: it waits for its partner (partner_hold.py)
+        if batch:
+            self._fuse(batch)
+        return OK
+
+    def _fuse(self, batch: list[tuple[int, int, object]]) -> None:
+        """Fuse the samples ``(stream, t, payload)`` of ``batch``, admitted by the stamp rules: paired again with
+        the history's samples near them, in one re-pairing, and fused from the first item they change on."""
         h = self.history
-        k = h.index(t - 2 * self.config.slop_ns)
-        old = h.entries[k:]
-        if len(rules.names) == 2:   # global + one local source: the samples of the window per stream, directly
+        k = h.index(min(t for _, t, _ in batch) - 2 * self.config.slop_ns)
+        old, names = h.entries[k:], self.rules.names
+        if len(names) == 2:   # global + one local source: the samples of the window per stream, directly
             streams: list[list[Sample]] = [[e.item.glob for e in old if e.item.glob is not None],
                                            [e.item.local for e in old if e.item.local is not None]]
         else:
-            streams = [[] for _ in rules.names]
+            streams = [[] for _ in names]
             for e in old:
                 if e.item.glob is not None:
                     streams[GLOBAL].append(e.item.glob)
                 if e.item.local is not None:
                     streams[_stream(e.item)].append(e.item.local)
-        bisect.insort(streams[stream], Sample(t, payload), key=lambda s: s.t_ns)
+        for stream, t, payload in batch:
+            bisect.insort(streams[stream], Sample(t, payload), key=lambda s: s.t_ns)
         items = ApproxSync.pair(streams[GLOBAL], streams[LOCAL], self.config.slop_ns, streams[2:])
         j = 0
         while j < len(old) and j < len(items) and _key(old[j].item) == _key(items[j]):
@@ -186,13 +199,20 @@ class ArrivalPipeline(TargetPipeline):
         for it in items[j:]:
             self._process_entry(it, views.get(_key(it)))
         self._resolve_and_commit()
-        return OK
+
+    def _release(self, everything: bool = False) -> None:
+        """Fuse the samples whose wait for a partner is over (``everything``: every waiting one)."""
+        batch = self.hold.due(everything)
+        if batch:
+            self._fuse(batch)
 
     def _restart_timeline(self, what: str, t: int) -> None:
         """Samples all behind the history, their stamps spanning more than ``history`` (:mod:`.stamp_rules`): the
         history becomes final, the filters start again, and the samples are fused and output from here on -- the
         node never stalls."""
         self.diag.report("timeline_restart", self.rules.message(RESTART, what, t), t)
+        self._release(everything=True)   # what waits belongs to the old timeline
+        self.hold.restart()
         self._resolve_and_commit(everything=True)
         # the live outputs not yet polled belong to the old timeline: gated against it now and handed out first by
         # the next poll; left in fresh, the hour-ahead one would go out after the new timeline's outputs of the
@@ -295,11 +315,20 @@ class ArrivalPipeline(TargetPipeline):
 
     # ---- output -----------------------------------------------------------------------------------------------
     def poll(self, now_ns: int | None = None) -> list[FusedOutput]:
-        """The live outputs since the last poll (module docstring); ``now_ns`` is not needed (nothing waits)."""
+        """The live outputs since the last poll (module docstring), after fusing the samples whose wait for a
+        partner is over by the host clock (partner_hold.py); ``now_ns`` is not needed."""
+        self._release()
         return self.outbox.poll(self.side.filters)
 
+    @property
+    def waiting(self) -> int:
+        """Samples waiting for their partner (partner_hold.py): the node's timer polls while there are any."""
+        return len(self.hold)
+
     def flush(self) -> list[FusedOutput]:
-        """End of the history: every item in it becomes final (:meth:`take_final`); returns the live outputs."""
+        """End of the history: every item in it, and every sample waiting for its partner, becomes final
+        (:meth:`take_final`); returns the live outputs."""
+        self._release(everything=True)
         self._resolve_and_commit(everything=True)
         return self.poll()
 
@@ -309,8 +338,8 @@ class ArrivalPipeline(TargetPipeline):
 
     @property
     def pending(self) -> int:
-        """Items in the history (fused, not final yet)."""
-        return len(self.history)
+        """Items in the history (fused, not final yet) and samples waiting for their partner."""
+        return len(self.history) + len(self.hold)
 
     def stats(self) -> dict:
         d = super().stats()
@@ -319,6 +348,7 @@ class ArrivalPipeline(TargetPipeline):
         d["history_s"] = self.rules.history_ns * 1e-9
         for k in ("rewinds", "replayed_items"):
             d.setdefault(k, 0)
+        d["partner_waits"] = self.hold.waited
         return d
 
 

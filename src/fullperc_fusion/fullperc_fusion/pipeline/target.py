@@ -20,6 +20,7 @@ from fullperc_fusion.filters.paper_family import FilterParams
 from fullperc_fusion.filters.registry import FILTERS
 from fullperc_fusion.margin.layout import Layout
 from fullperc_fusion.pipeline.frame_chain import ChainConfig
+from fullperc_fusion.pipeline.param_table import NONNEGATIVE, POSITIVE, Param, one_of
 from fullperc_fusion.pipeline.sources import SourceSet
 
 FILTER_NAMES: tuple[str, ...] = tuple(FILTERS)   # ("cbkf", "ckf", "bkf", "kf", "omc", "fullperc"): filters.registry
@@ -38,6 +39,7 @@ class TargetConfig:
     max_future_ns: int = 100_000_000   # a sample stamped further ahead of the caller's clock is rejected
     processing: str = "arrival"     # fusion_node: arrival (arrival.ArrivalPipeline) | ordered (this class)
     history_ns: int = 200_000_000   # arrival: how far back a late sample still rewinds and replays
+    partner_wait_ns: int = 0        # arrival: longest wait of a sample for its partner (partner_hold.py); 0 = none
     orientation_std_local: float = 0.002   # [rad] reported in pose_cov when the OTS orientation is used
     orientation_std_global: float = 0.01   # [rad] when the OMC orientation is used
     monitor: MonitorParams = field(default_factory=MonitorParams)   # link monitoring (link_monitor)
@@ -64,11 +66,39 @@ class TargetConfig:
             raise ValueError(f"target '{self.name}': processing must be arrival or ordered, got {self.processing!r}")
         if not self.history_ns > 0:
             raise ValueError(f"target '{self.name}': history must be > 0, got {self.history_ns * 1e-9} s")
+        if not 0 <= self.partner_wait_ns <= self.history_ns // 2:
+            raise ValueError(f"target '{self.name}': partner_wait must be >= 0 and <= history / 2, got "
+                             f"{self.partner_wait_ns * 1e-9} s")
         if not self.max_future_ns > 0:
             raise ValueError(f"target '{self.name}': max_future must be > 0, got {self.max_future_ns * 1e-9} s")
         for what, v in (("plausibility.max_speed", self.max_speed), ("plausibility.jump", self.max_jump)):
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"target '{self.name}': {what} must be finite and > 0, got {v}")
+
+
+_T = TargetConfig()
+TIMING_PARAMS: tuple[Param, ...] = (
+    Param("slop", _T.slop_ns * 1e-9, "float", *NONNEGATIVE, "s",
+          "pair OMC and OTS samples closer than this"),
+    Param("reorder_delay", _T.delay_ns * 1e-9, "float", *NONNEGATIVE, "s",
+          "wait for late / reordered samples before processing"),
+    Param("clock", "stamps", "str", *one_of(("stamps", "host"), "stamps or host"), "",
+          "what 'now' is for the synchronizer: the newest stamp, or the node clock"),
+    Param("max_future", _T.max_future_ns * 1e-9, "float", *POSITIVE, "s",
+          "a sample stamped more than this ahead of the node clock is rejected (named on /diagnostics)"),
+    Param("idle_flush", 0.5, "float", *POSITIVE, "s",
+          "without target samples for this long: process everything pending (arrival: the history becomes final)"),
+    Param("processing", _T.processing, "str", *one_of(("arrival", "ordered"), "arrival or ordered"), "",
+          "arrival: fuse each sample when it arrives, rewind and replay for late ones | ordered: wait slop + "
+          "reorder_delay, then fuse in stamp order"),
+    Param("history", _T.history_ns * 1e-9, "float", *POSITIVE, "s",
+          "arrival: a sample up to this much older than the newest is still fused in order (rewind and replay); "
+          "older: dropped, named on /diagnostics"),
+    Param("partner_wait", 0.004, "float", *NONNEGATIVE, "s",
+          "arrival: a sample whose approximate-time partner is due waits for it up to this long (host clock) "
+          "instead of being fused and rewound when the partner comes; 0 = never wait"),
+)
+"""fusion_node's parameters of when a target's samples are paired and fused (rows of fusion_config.PARAMS)."""
 
 
 @dataclass
