@@ -115,6 +115,9 @@ class OutputPublisher:
         """Publish ``o`` on this set's topics (those wanted); a refused pose raises ValueError (:func:`fill_pose`)
         before anything is published."""
         fill_pose(self.ps.pose, o.p, o.q)   # checked even when nothing goes out: the refusal is counted as before
+        cov = np.asarray(o.cov, dtype=np.float64)
+        if cov.shape != (6, 6) or not np.isfinite(cov).all():   # a filter fault; pose_cov never carries NaN
+            raise ValueError(f"refusing to publish a non-finite or malformed covariance (shape {cov.shape})")
         pose_on = self._wanted(self.pose_pub)
         cov_on = self.cov_pub is not None and self._wanted(self.cov_pub)
         st_on = self._wanted(self.status_pub) and self._status_due(o)
@@ -129,7 +132,7 @@ class OutputPublisher:
             stamp.sec, stamp.nanosec = sec, nsec
             src, dst = self.ps.pose, pc.pose.pose
             dst.position, dst.orientation = src.position, src.orientation
-            pc.pose.covariance = np.array(o.cov, dtype=np.float64).reshape(36)
+            pc.pose.covariance = cov.reshape(36)
             self.cov_pub.publish(pc)
         if self.vel_pub is not None and self._wanted(self.vel_pub) and (vel := o.velocity()) is not None \
                 and np.isfinite(vel[1]).all() and np.isfinite(vel[0]).all():

@@ -118,6 +118,19 @@ def test_a_refused_pose_publishes_nothing_and_is_reported():
     assert all(p is None or p.sent == [] for v in pubs.values() for p in v)
 
 
+@pytest.mark.parametrize("cov", [np.full((6, 6), np.nan), np.eye(6) * np.inf, np.eye(3)])
+def test_a_non_finite_covariance_publishes_nothing_and_is_reported(cov):
+    """pose_cov never carries NaN: an output whose covariance is not a finite 6x6 is refused whole, as a NaN pose."""
+    pubs, sets = _sets(subs=1)
+    errors = []
+    bad = _out()
+    bad.cov = cov
+    tfs = publish_outputs(sets, "tool", [bad, _out(t_ns=5)], "cbkf", ["kf"], 0, on_primary=lambda o: None,
+                          on_error=lambda o, why: errors.append(why), tf_of=lambda o: o)
+    assert len(errors) == 1 and "covariance" in errors[0] and len(tfs) == 1
+    assert [m.header.stamp.nanosec for m in pubs[("tool", "")][1].sent] == [5]
+
+
 def test_status_rate_caps_status_by_stamp_but_never_drops_a_hop_or_a_bump_change():
     """status_rate 50 Hz over 400 Hz outputs: one status per 20 ms of fused stamps (pose and pose_cov every output);
     hops and link_bumped changes always go out; a restarted (earlier) timeline starts a new period."""
