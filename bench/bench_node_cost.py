@@ -21,6 +21,10 @@ Figures (CPU seconds of the node process while data flowed, per second of data a
                                    fused on arrival, a pair's first sample fused alone and again with its partner:
                                    docs/nodes.md "Processing on arrival"); baseline: the echo floor [pose]; set beside
                                    [pose] it shows what waiting for a due partner saves
+  node_core_cpu_per_target         the node's own work without ROS: fusion_core + fusion_publish in this process on
+                                   the same streams (OMC 240 Hz + OTS 400 Hz, base bodies, a pose reader), stubs for
+                                   the publishers; baseline: node_cpu_per_target[pose], ratio = the share of the
+                                   node's CPU that is its own work (the rest is rclpy's and DDS's per-message path)
   gc_full_collection_ms            one full garbage collection with fusion_node's modules loaded, after
                                    ``node_main.settle_heap`` (what every node does once built); baseline: the same
                                    collection without it (a callback stalls that long when the collector runs one)
@@ -58,6 +62,52 @@ def run(node: str, consumer: str) -> dict:
     return {"share": sum(res.node_cpu_s) / DURATION / len(TARGETS), "lost": sum(res.lost.values()),
             "sent": sum(res.sent.values()), "fused": res.fused_total, "consumed": res.consumed,
             "alive": res.nodes_alive, "load": res.load}
+
+
+def core_cost(seconds: float = 20.0) -> float:
+    """Cores that fusion_core and fusion_publish take for one target at OMC 240 Hz + OTS 400 Hz, in this process
+    (``node_core_cpu_per_target``): what FusionNode._on_input calls per sample, minus rclpy. Process CPU time over
+    the last three quarters of ``seconds`` of samples (the first quarter: links averaged, filters settled)."""
+    import time
+
+    from fullperc_fusion.fusion_config import read_values
+    from fullperc_fusion.fusion_core import FusionCore
+    from fullperc_fusion.fusion_publish import OutputPublisher, publish_outputs
+
+    class Pub:   # a publisher stub: subscribers as given, publish does nothing
+        def __init__(self, subs: int) -> None:
+            self.subs = subs
+
+        def get_subscription_count(self) -> int:
+            return self.subs
+
+        def publish(self, msg) -> None:
+            pass
+
+    over = {"static_links": "average", "init_samples": 20, "targets": TARGETS, "tool.omc_body": "tool",
+            "tool.ots_tool": "tool"}
+    core = FusionCore(read_values(lambda n, d: over.get(n, d)), now=0.0)
+    sets = {("tool", ""): OutputPublisher(Pub(1), Pub(0), Pub(0))}   # the pose consumer only
+    s, t0 = 1_000_000_000, 1_700_000_000_000_000_000
+    events = sorted([(t0 + round(k * s / 240), "omc") for k in range(int(seconds * 240))]
+                    + [(t0 + round(k * s / 400) + 300_000, "ots") for k in range(int(seconds * 400))])
+    q, base = np.array([0.0, 0.0, 0.0, 1.0]), np.array([1.0, 0.5, 0.8])
+
+    def feed(evs) -> None:
+        for t, dev in evs:
+            now = (t - t0) * 1e-9
+            touched = [*core.on_pose(dev, "base", t, base, q, now, t)]   # a copy: on_pose returns the core's list
+            touched += core.on_pose(dev, "tool", t, np.array([0.1 + 0.01 * np.sin(now), 0.2, 0.3]), q, now, t)
+            for tg in set(touched):
+                publish_outputs(sets, tg, core.poll(tg, None), core.primary, core.extra, 0,
+                                on_primary=lambda o, tg=tg, now=now: core.primary_output(tg, now, o),
+                                on_error=lambda o, why: None, tf_of=None)
+
+    k = len(events) // 4
+    feed(events[:k])
+    c = time.process_time()
+    feed(events[k:])
+    return (time.process_time() - c) / (events[-1][0] - events[k][0]) * 1e9 / len(TARGETS)
 
 
 def gc_pause() -> None:
@@ -101,6 +151,7 @@ def main() -> None:
         goal = {"goal_ratio": {"pose": 0.8, "every": 1.1}[c]} if c != "array" else {}
         emit(f"node_cpu_per_target[{c}]", share[("fusion", c)], "cores", baseline=floor, targets=len(TARGETS),
              seconds=DURATION, runs=runs[("fusion", c)], **goal)
+    emit("node_core_cpu_per_target", core_cost(), "cores", baseline=share[("fusion", "pose")], targets=len(TARGETS))
     for v in VARIANTS:
         k = (f"fusion:{v}", "pose")
         emit(f"node_cpu_per_target[pose,{v}]", share[k], "cores", baseline=share[("echo", "pose")],
