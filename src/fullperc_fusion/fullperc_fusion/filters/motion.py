@@ -11,9 +11,10 @@ The presets are physical classes of motion, not fits to any recording (the twin'
 
 * ``arm``: a tool carried by a robot arm. Surgical and collaborative arms move their tool at up to ~0.1-0.25 m/s
   with limited accelerations; the paper's tuning q_a = 0.05 m^2/s^3 (its filters' ``noise.accel``) lets the
-  speed change by ~0.2 m/s within a second, and ``init_vel_std`` 0.1 m/s is that speed range. A turn rate of
-  ~0.2 rad/s changed by ~0.03 rad/s^2: q_alpha ~ w a = 0.005 rad^2/s^3. Its motion is smooth, so a step of the OMC
-  pose is the sensor's (a camera came into or left its view): ``hop_to_bias``.
+  speed change by ~0.2 m/s within a second, and ``init_vel_std`` 0.1 m/s is that speed range. It turns the same
+  way: a reorientation of the tool at up to ~0.25 rad/s, reached within about a second (~0.2 rad/s^2), gives by the
+  same rule as q_a (q = v a, below) q_alpha ~ 0.25 x 0.2 = 0.05 rad^2/s^3. Its motion is smooth, so a step of the
+  OMC pose is the sensor's (a camera came into or left its view): ``hop_to_bias``.
 * ``hand``: an instrument carried by a walking person: ~1 m/s (a careful walk in a crowded room), ~2 m/s^2 of a
   hand starting and stopping: q_a ~ v a = 2 m^2/s^3 (a constant-velocity model lets the velocity change by
   ~sqrt(q T) over T; reaching v from rest at a takes T = v / a, so q = v^2 / T = v a; Bar-Shalom, Li, Kirubarajan
@@ -22,10 +23,18 @@ The presets are physical classes of motion, not fits to any recording (the twin'
   bias.
 * ``static``: a marker fixed to something that barely moves, e.g. a patient reference frame on the table: breathing
   moves it by a few mm at 12-20 per minute, v ~ 2 pi f A ~ 6 mm/s, a ~ (2 pi f)^2 A ~ 13 mm/s^2, q_a ~ 1e-4;
-  ``init_vel_std`` 0.01 m/s. Its orientation keeps the arm's q_alpha: breathing tilts it by only ~1 mrad, but a
-  patient is turned and re-draped by staff, and a class that ruled out turning would, in ``auto``, give any target
-  that stands still while it turns (an arm-held tool) a far too small orientation covariance. Steps of its OMC pose
-  are the sensor's.
+  ``init_vel_std`` 0.01 m/s. Breathing tilts it by only ~1 mrad, but a patient is turned and re-draped by staff:
+  ~0.1 rad/s reached within ~2 s, q_alpha ~ 0.1 x 0.05 = 0.005 -- a class that ruled out turning would, in ``auto``,
+  give any target that stands still while it turns (an arm-held tool) a far too small orientation covariance. Steps
+  of its OMC pose are the sensor's.
+
+Why each class's turn allowance matters in ``auto``: the IMM starts every model from the mixture of all of them at
+every sample (:func:`mix`), so the models' states stay nearly equal and they differ in their process noise; whenever
+the innovations are small the model with the smaller allowance predicts the tighter S and takes the weight. A class
+whose q_alpha is below how its target can turn then carries a hand's turns too, with too small an orientation
+covariance (measured: an arm q_alpha of 0.005, from a turn rate changed by 0.03 rad/s^2, gave the hand-held
+instrument a pose NEES share of 0.58 on ``paper`` G-B-P, 0.64 on ``spec`` P-B-G-P, and twice the orientation error of
+the ``hand`` preset, while the tool's figures did not move).
 
 Why a speed envelope: each class is also defined by how fast its target can move -- an arm's tool at up to
 ``MAX_SPEED`` 0.25 m/s (the speed limit of a collaborative or surgical arm's tool), a breathing patient's marker at
@@ -74,7 +83,7 @@ __all__ = ["HOP_PRIOR", "MAX_SPEED", "MOTIONS", "PRESETS", "SPEED_TOL", "gaussia
 
 # the motion fields of each preset (FilterParams / FullpercParams field names; module docstring for the values)
 PRESETS: dict[str, dict[str, float | bool]] = {
-    "arm": {"accel_noise": 0.05, "ang_accel_noise": 0.005, "init_vel_std": 0.1, "hop_to_bias": True},
+    "arm": {"accel_noise": 0.05, "ang_accel_noise": 0.05, "init_vel_std": 0.1, "hop_to_bias": True},
     "hand": {"accel_noise": 2.0, "ang_accel_noise": 0.5, "init_vel_std": 1.0, "hop_to_bias": False},
     "static": {"accel_noise": 1e-4, "ang_accel_noise": 0.005, "init_vel_std": 0.01, "hop_to_bias": True},
 }
