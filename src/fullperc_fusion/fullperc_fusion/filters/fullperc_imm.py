@@ -13,8 +13,10 @@ alone cannot tell a walk from an arm's motion, :mod:`.motion`).
 
 The mixing works on the filters' error state (:mod:`.fullperc_reference`'s layout): model i's offset from a reference
 state is x_i - x_ref, with the orientation's Log(R_i R_ref^T) in the theta rows (the left perturbation of the
-filter); the mixture's mean is put back as x_ref + dx0, R = Exp(dtheta0) R_ref. The models' own adaptive scales,
-anchors and clocks (lambda, mu, a_r ...) are each model's own and are not mixed.
+filter); the mixture's mean is put back as x_ref + dx0, R = Exp(dtheta0) R_ref. The reference is the most probable
+model, for the interaction and the output alike: each model's offset is taken once per step (the models' states
+are millimetres and milliradians apart, where the tangent spaces of any of them agree to first order). The models'
+own adaptive scales, anchors and clocks (lambda, mu, a_r ...) are each model's own and are not mixed.
 
 The output is the mixture over the models with weights mu: p, v, b + g, the orientation, and the covariance with
 the spread of the models (the ``pose_cov`` of the step). The innovation, NIS and hop flag are the most probable
@@ -109,11 +111,15 @@ class FullpercImm(StepCompat):
         if len(fs) == 1 or t0 is None or t_ns <= t0 or any(f._pend is not None or f._t != t0 for f in fs):
             return
         c, W = mixing(self._mu, transition((t_ns - t0) * 1e-9, len(fs), self.params.motion_dwell))
+        # every model's offset from one reference, the most probable model (the tangent space the output is mixed
+        # in too, _combine): one offset per model, not one per pair of models
+        ref = fs[int(np.argmax(self._mu))]
+        D, Ps, xr = np.array(self._offsets(ref, fs)), np.array([f._P for f in fs]), np.array(ref._x)
         mixed = []
-        for j, fj in enumerate(fs):
-            dx0, P0 = mix(W[:, j], self._offsets(fj, fs), [f._P for f in fs])
-            x = (np.array(fj._x) + dx0).tolist()
-            R = mul9(exp9(*dx0[TH].tolist()), fj._R)
+        for j in range(len(fs)):
+            dx0, P0 = mix(W[:, j], D, Ps)
+            x = (xr + dx0).tolist()
+            R = mul9(exp9(*dx0[TH].tolist()), ref._R)
             x[9] = x[10] = x[11] = 0.0
             mixed.append((x, R, P0))
         for f, (x, R, P) in zip(fs, mixed, strict=True):
