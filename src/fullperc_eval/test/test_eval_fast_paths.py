@@ -4,7 +4,9 @@
 * the bag metadata through libyaml against PyYAML's pure-Python loader, on every committed bag;
 * the MCAP walk's one-unpack message branch against rosbags' reader on a bag with several chunks;
 * the orientation and NEES figures, computed once per distinct (truth rows, quaternions), against computing them for
-  every method (the paper's filters output the same quaternions on the same items).
+  every method (the paper's filters output the same quaternions on the same items);
+* the orientation figures' rotations and products (``orientation._from_matrix`` / ``_compose``) against scipy's
+  ``Rotation.from_matrix`` and ``*``.
 """
 
 from __future__ import annotations
@@ -14,13 +16,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from scipy.spatial.transform import Rotation
 
 from fullperc_eval.bag import metadata
 from fullperc_eval.bag.reader import BagReader, _raw_messages
 from fullperc_eval.evaluation import metrics
 from fullperc_eval.evaluation.consistency import FUSED_ORIENTATION, nees
 from fullperc_eval.evaluation.ground_truth import GroundTruth
-from fullperc_eval.evaluation.orientation import orientation_error_deg, pose_error
+from fullperc_eval.evaluation.orientation import _compose, _from_matrix, orientation_error_deg, pose_error
 from fullperc_eval.evaluation.replay import omc_quality_by_stamp, replay
 from fullperc_fusion.fusion_config import load_fusion_config
 
@@ -110,3 +113,29 @@ def test_shared_rotation_figures_equal_each_methods_own():
         assert got[0][f].tobytes() == want[0][f].tobytes(), f
         for kind in ("position", "pose"):
             assert got[1][f][kind].tobytes() == want[1][f][kind].tobytes(), (f, kind)
+
+
+def _same_rotations(a: Rotation, b: Rotation) -> bool:
+    qa, qb = a.as_quat(), b.as_quat()
+    return qa.shape == qb.shape and qa.tobytes() == qb.tobytes() and len(a) == len(b)
+
+
+def test_rotations_and_products_equal_scipys():
+    """Bit for bit: random rotations, the near-identity products of the figures (an estimate against its truth),
+    the truth's matrices from forward kinematics, and matrices from_matrix has to check and project itself."""
+    rng = np.random.default_rng(21)
+    cal = metrics.load_calibration(SAMPLE)
+    rep = replay(SAMPLE, load_fusion_config(filters=("omc", "kf", "bkf", "ckf", "cbkf"))[0], progress=False)
+    gt = GroundTruth(rep.joint_t_ns, rep.joint_q, cal)
+    T_fk, ok = gt.T_base_tool(gt.t_ns[:800])
+    stacks = [Rotation.random(3000, rng=rng).as_matrix(), T_fk[ok, :3, :3]]
+    rough = Rotation.random(50, rng=rng).as_matrix()
+    rough[::7] *= 1.0 + 1e-9                           # past the fast path's vouching: from_matrix itself
+    stacks.append(rough)
+    for R in stacks:
+        assert _same_rotations(_from_matrix(R), Rotation.from_matrix(R))
+        a = Rotation.from_matrix(R)
+        for b in (Rotation.random(len(R), rng=rng), Rotation.from_rotvec(rng.normal(0, 0.01, (len(R), 3))) * a):
+            assert _same_rotations(_compose(a.inv(), b), a.inv() * b)
+            assert _same_rotations(_compose(a, b.inv()), a * b.inv())
+            assert _compose(a.inv(), b).magnitude().tobytes() == (a.inv() * b).magnitude().tobytes()

@@ -14,7 +14,8 @@ Offline, the whole recording is known at once, so most of that work can be done 
    the pipeline's own stages (``TargetPipeline``'s "Stages": ``push_*`` without the validation done in step 2):
    its static-link estimation and link monitor (``observe_omc`` / ``observe_ots`` with the matrices of step 2 --
    the same code, so the links come from exactly the same samples; once the links are final, OMC base / rig
-   samples change nothing and are skipped, the OTS's base sightings still feed the monitor), its synchronizer
+   samples change nothing and are skipped, the OTS's base sightings still feed the monitor, whose window means are
+   computed together after the loop: ``defer_link_checks`` / ``resolve_link_checks``), its synchronizer
    under its stamp rules (``enqueue``, payload = the sample's index; ``poll_items`` / ``flush_items``) with the
    idle flush, and for each item the links in use when it came out;
 4. mapping into ``base``: one stacked matrix product per link estimate and stream (``inv(T_omc_base) @ T``,
@@ -241,6 +242,7 @@ def batch_replay(prep: Prepared, config: TargetConfig, idle_flush_s: float, t_st
 
     # ---- control flow in bag order: links (the pipeline's own estimation and monitor), synchronizer, idle flush
     pipe = TargetPipeline(config)
+    pipe.defer_link_checks()   # the monitor's window means computed together after the loop (the same checks)
     links = pipe.chain.links
     # what fusing the items would count (TargetPipeline.poll), in the order of the first increment as a
     # Counter keeps it: the per-sample pipeline's key order
@@ -311,11 +313,12 @@ def batch_replay(prep: Prepared, config: TargetConfig, idle_flush_s: float, t_st
             pipe.observe_omc(role[name][1], t, T)
         else:
             pipe.observe_ots(role[name][1], t, T)
-            if pipe.counts["link_bumped_checks"]:
-                raise BatchUnsupported("the link monitor saw a bump of the static link")
         if links.refusals:
             raise BatchUnsupported("a static-link calibration was refused")
     take(pipe.flush_items())
+    pipe.resolve_link_checks()
+    if pipe.counts["link_bumped_checks"]:
+        raise BatchUnsupported("the link monitor saw a bump of the static link")
     if pipe.sync.counts.get("forced_by_overflow"):
         raise BatchUnsupported("synchronizer overflow")
     if pipe.counts:

@@ -43,12 +43,23 @@ def link_T_omc_base(T_omc_base_samples, settings: CalibrationSettings | None = N
     return _check_inliers(est, label, s)
 
 
+def inv_T_stack(Ts: np.ndarray) -> np.ndarray:
+    """``np.stack([inv_T(T) for T in Ts])`` of a stack (N, 4, 4), N >= 1, the same numbers: inv_T's operations on every
+    matrix at once (R^T; -R^T as numpy lays it out, times p in one stacked matmul, which multiplies each matrix by its
+    vector as the single product does). ~3 us per sighting less (a calibration inverts hundreds)."""
+    Rt = Ts[:, :3, :3].swapaxes(1, 2)
+    Ti = np.tile(np.eye(4), (len(Ts), 1, 1))
+    Ti[:, :3, :3] = Rt
+    Ti[:, :3, 3] = (-Rt @ Ts[:, :3, 3:4])[:, :, 0]
+    return Ti
+
+
 def link_T_base_ots(T_ots_base_samples, settings: CalibrationSettings | None = None,
                     label: str = "OTS tool 'base'") -> LinkEstimate:
     """T_base_ots (eq. 2): the robust mean of the inverted OTS sightings inv(T_ots_base_i), as ``StaticLinks``."""
     s = settings or CalibrationSettings()
     Ts = as_pose_stack(T_ots_base_samples, label)
-    inv = np.stack([inv_T(T) for T in Ts]) if len(Ts) else Ts
+    inv = inv_T_stack(Ts) if len(Ts) else Ts
     est = robust_se3_mean(inv, alpha=s.alpha, source=f"inverse of {label} (eq. 2)", what=label)
     return _check_inliers(est, label, s)
 

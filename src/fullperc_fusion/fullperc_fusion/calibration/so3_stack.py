@@ -42,19 +42,28 @@ try:   # scipy's numpy backend of Rotation (scipy >= 1.16)
 except (ImportError, AttributeError):   # pragma: no cover - another scipy: the public calls below
     HAVE_BACKEND = False
 
-__all__ = ["HAVE_BACKEND", "mean_rotation", "quats", "rotvecs"]
+__all__ = ["HAVE_BACKEND", "mean_rotation", "near_quats", "quats", "rotvecs"]
 
 _NEAR = 1e-13   # a matrix this close (entrywise) to its quaternion's rotation passes scipy's tests (module docstring)
 
 
-def quats(R: np.ndarray) -> np.ndarray:
-    """``Rotation.from_matrix(R).as_quat()`` of a stack ``R`` (N, 3, 3), (N, 4) x y z w, bit for bit."""
+def near_quats(R: np.ndarray) -> np.ndarray | None:
+    """:func:`quats` of ``R`` when every matrix is within ``_NEAR`` of its quaternion's rotation (the fast path),
+    else None. Such a stack is a stack of rotations to ~1e-12 (module docstring): it also passes the pose checks'
+    rotation test (:func:`.se3_stats.as_pose_stack`: max|R^T R - I| <= 1e-2, det R >= 0), which the robust mean
+    then need not run."""
     m = np.array(R, dtype=float)   # scipy's own copy (C order)
     if HAVE_BACKEND and m.ndim == 3 and m.shape[1:] == (3, 3) and len(m):
         q = np.asarray(_FROM_ORTHOGONAL(m))
         if np.abs(m - np.asarray(_AS_MATRIX(q))).max() <= _NEAR:   # False for NaN
             return q
-    return Rotation.from_matrix(R).as_quat()
+    return None
+
+
+def quats(R: np.ndarray) -> np.ndarray:
+    """``Rotation.from_matrix(R).as_quat()`` of a stack ``R`` (N, 3, 3), (N, 4) x y z w, bit for bit."""
+    q = near_quats(R)
+    return Rotation.from_matrix(R).as_quat() if q is None else q
 
 
 def rotvecs(R: np.ndarray) -> np.ndarray:

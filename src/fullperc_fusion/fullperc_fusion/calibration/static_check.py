@@ -15,13 +15,13 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import fdtri  # the F quantile: scipy.stats costs a node ~0.6 s of start-up
 
+from fullperc_fusion.calibration.se3_batch import robust_se3_means
 from fullperc_fusion.calibration.se3_stats import (
     COV_FLOOR,
     CalibrationError,
     StaticThresholds,
-    as_pose_stack,
-    robust_se3_mean,
     se3_residuals,
+    stack_and_quats,
 )
 
 
@@ -51,7 +51,7 @@ def check_static(label: str, stamps_ns, poses, thresholds: StaticThresholds | No
     usable: then nothing tells whether the body stayed still.
     """
     th = thresholds or StaticThresholds()
-    Ts = as_pose_stack(poses, label)
+    Ts, _ = stack_and_quats(poses, label)   # as_pose_stack's stack and errors
     t = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
     if t.shape != (len(Ts),):
         raise CalibrationError(f"{label}: {t.shape[0]} stamps for {len(Ts)} poses")
@@ -59,17 +59,23 @@ def check_static(label: str, stamps_ns, poses, thresholds: StaticThresholds | No
     span = int(t.max()) - t0 if len(t) else 0
     nw = int(th.n_windows)
     w = np.minimum((t - t0) * nw // max(span, 1), nw - 1) if span > 0 else np.zeros(len(t), dtype=int)
+    # each window's robust mean (robust_se3_mean of its samples; a window it refuses is not used), the windows of
+    # one size together (se3_batch: the same numbers)
+    sels = [np.flatnonzero(w == k) for k in range(nw)]
+    used = [k for k in range(nw) if len(sels[k]) >= max(th.min_window_samples, 2)]
+    means: dict[int, tuple[np.ndarray, np.ndarray] | None] = {}
+    for n in sorted({len(sels[k]) for k in used}):
+        ks = [k for k in used if len(sels[k]) == n]
+        means.update(zip(ks, robust_se3_means(Ts, np.stack([sels[k] for k in ks]), alpha=alpha), strict=True))
     wins, resid = [], []
-    for k in range(nw):
-        sel = w == k
-        if sel.sum() >= max(th.min_window_samples, 2):
-            try:
-                e = robust_se3_mean(Ts[sel], alpha=alpha, what=label)
-            except CalibrationError:
-                continue
-            r = se3_residuals(e.T, Ts[sel][e.inliers])
-            resid.append(r - r.mean(axis=0))
-            wins.append((k, e))
+    for k in used:
+        m = means[k]
+        if m is None:
+            continue
+        T_k, inliers = m
+        r = se3_residuals(T_k, Ts[sels[k]][inliers])
+        resid.append(r - r.mean(axis=0))
+        wins.append((k, T_k, int(inliers.sum())))
     if len(wins) < 2:
         raise CalibrationError(
             f"{label}: sightings fill only {len(wins)} of {nw} time windows of the {span / 1e9:.1f} s collection "
@@ -81,9 +87,9 @@ def check_static(label: str, stamps_ns, poses, thresholds: StaticThresholds | No
     worst = None
     for i in range(len(wins)):
         for j in range(i + 1, len(wins)):
-            (ka, a), (kb, b) = wins[i], wins[j]
-            d = se3_residuals(a.T, b.T[None])[0]
-            S = C * (1.0 / a.n_inliers + 1.0 / b.n_inliers)
+            (ka, Ta, na), (kb, Tb, nb) = wins[i], wins[j]
+            d = se3_residuals(Ta, Tb[None])[0]
+            S = C * (1.0 / na + 1.0 / nb)
             dt, dr = float(np.linalg.norm(d[:3])), float(np.linalg.norm(d[3:]))
             sig_t = d[:3] @ np.linalg.solve(S[:3, :3], d[:3]) > q
             sig_r = d[3:] @ np.linalg.solve(S[3:, 3:], d[3:]) > q

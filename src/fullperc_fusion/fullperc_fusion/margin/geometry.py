@@ -190,6 +190,15 @@ class Ots:
         return self.frustum.contains(apply_T(inv_T(self.T_omc_ots), points_omc))
 
 
+def segments(origin, points) -> tuple[np.ndarray, np.ndarray]:
+    """(origin, 1 / direction) of the segments origin -> points, as :meth:`Box.blocks` takes them: the part of its
+    slab test that does not depend on the box (a third of it), for a caller testing the same segments against
+    every occluder."""
+    c = np.asarray(origin, dtype=float)
+    d = np.asarray(points, dtype=float) - c
+    return c, 1.0 / (d + 1e-300)  # d == 0 -> a huge finite slope instead of inf/NaN; no effect otherwise
+
+
 @dataclass(frozen=True)
 class Box:
     """A static axis-aligned occluder in ``omc``."""
@@ -198,18 +207,17 @@ class Box:
     lo: np.ndarray
     hi: np.ndarray
 
-    def blocks(self, origin, points) -> np.ndarray:
+    def blocks(self, origin, points, seg: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """Bool: the segment origin -> point passes through the box before reaching the point.
 
         ``origin`` and ``points`` broadcast against each other (e.g. one camera (3,) and points (N, 3), cameras
-        (N, 3) and one point (3,), or (1, N, 3) against (M, 1, 3)).
+        (N, 3) and one point (3,), or (1, N, 3) against (M, 1, 3)). ``seg``: :func:`segments` of the same
+        origin and points, when the caller tests them against several boxes (computed once: the same numbers).
 
         Slab method: the segment meets the box where [tmin, tmax] overlaps [0, SEGMENT_END]. A point lying on the box
         surface is not hidden by it; a point inside the box is.
         """
-        c = np.asarray(origin, dtype=float)
-        d = np.asarray(points, dtype=float) - c
-        inv = 1.0 / (d + 1e-300)  # d == 0 -> a huge finite slope instead of inf/NaN; no effect otherwise
+        c, inv = seg if seg is not None else segments(origin, points)
         t1 = (self.lo - c) * inv
         t2 = (self.hi - c) * inv
         a = np.minimum(t1, t2)

@@ -36,6 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fullperc_fusion.margin.geometry import segments
 from fullperc_fusion.margin.layout import SEGMENT_END, Layout
 
 # Same values as fullperc_msgs/Region (pinned by test_margin.py); the core stays ROS-free.
@@ -73,8 +74,10 @@ def camera_visibility(layout: Layout, points) -> tuple[np.ndarray, np.ndarray]:
     d2 = np.einsum("mnk,mnk->mn", pc, pc)
     see = ((d2 <= layout.range_m ** 2)
            & (np.abs(pc[..., 0]) <= layout.tan_h * z) & (np.abs(pc[..., 1]) <= layout.tan_v * z))
-    for box in layout.occluders:
-        see &= ~box.blocks(layout.cam_pos[None, :, :], p[:, None, :])
+    if layout.occluders:
+        seg = segments(layout.cam_pos[None, :, :], p[:, None, :])
+        for box in layout.occluders:
+            see &= ~box.blocks(None, None, seg)
     # |d| > 0 wherever see is True (the FOV test fails at a camera centre); the floor only avoids 0/0 elsewhere.
     u = d / np.sqrt(np.maximum(d2, 1e-300))[..., None]
     return see, u

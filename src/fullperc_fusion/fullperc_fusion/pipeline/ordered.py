@@ -337,6 +337,17 @@ class TargetPipeline:
                 self.chain.reinitialize("calibrate")
                 self.counts["recalibrations"] += 1
 
+    def defer_link_checks(self) -> None:
+        """The batched evaluator's: the monitor's checks are computed together by :meth:`resolve_link_checks`
+        (LinkMonitor.defer), a bumped one then counted; no re-calibration (that evaluator runs none)."""
+        self.monitor.defer()
+
+    def resolve_link_checks(self) -> None:
+        """The deferred checks, computed; each bumped one counted as :meth:`_watch_link` counts it."""
+        for c in self.monitor.resolve():
+            if c.bumped:
+                self.counts["link_bumped_checks"] += 1
+
     # ---- output -----------------------------------------------------------------------------
     def poll(self, now_ns: int | None = None) -> list[FusedOutput]:
         """Process every synchronizer item that is final at ``now_ns`` (default: newest stamp seen)."""
