@@ -14,7 +14,9 @@ its defaults, primary filter only) and attaches ``py-spy record --native`` to th
 
 py-spy sees only threads that run Python (the main thread here); the node's other threads (Fast DDS) are
 reported from /proc as ``other_threads_cpu_s`` beside ``main_thread_cpu_s``. py-spy pauses the process per
-sample, so the node runs slower while recorded: the shares matter, not the latencies of such a run.
+sample, so the node runs slower while recorded: the shares matter, not the latencies of such a run. With
+``--native`` the samples inside a native call can include time the thread waits there (py-spy's idle test is a
+heuristic), e.g. a DDS write on its lock: read ``cb:publish``'s share as an upper bound of publishing's CPU.
 Not a figure of ``make bench`` (needs py-spy: ``pip install py-spy``).
 
 Run: python bench/profile_node.py [--targets 1] [--executor events|single] [--seconds 20] [--out FILE]
