@@ -57,6 +57,15 @@ __all__ = ["ANGULAR_VAR_UNKNOWN", "OutputPublisher", "PosesPublisher", "fill_pos
 ANGULAR_VAR_UNKNOWN = 1.0e6   # [(rad/s)^2] variance of the angular velocity, which no filter estimates (docstring)
 
 
+def covariance36(cov: Any) -> np.ndarray:
+    """A pose covariance as pose_cov carries it: 36 float64, row-major, a copy (the message keeps what it is given);
+    ValueError unless a finite 6x6."""
+    c = np.array(cov, dtype=np.float64)
+    if c.shape != (6, 6) or not np.isfinite(c).all():   # a filter fault; no covariance topic carries NaN
+        raise ValueError(f"refusing to publish a non-finite or malformed covariance (shape {c.shape})")
+    return c.reshape(36)
+
+
 def fill_pose(pose: Pose, p: Any, q_xyzw: Any) -> None:
     """Write position and normalised quaternion into ``pose``; ValueError on NaN/inf or a non-unit quaternion
     (off by more than 1e-3, as ``pose_msg``), before anything is written."""
@@ -115,9 +124,7 @@ class OutputPublisher:
         """Publish ``o`` on this set's topics (those wanted); a refused pose raises ValueError (:func:`fill_pose`)
         before anything is published."""
         fill_pose(self.ps.pose, o.p, o.q)   # checked even when nothing goes out: the refusal is counted as before
-        cov = np.asarray(o.cov, dtype=np.float64)
-        if cov.shape != (6, 6) or not np.isfinite(cov).all():   # a filter fault; pose_cov never carries NaN
-            raise ValueError(f"refusing to publish a non-finite or malformed covariance (shape {cov.shape})")
+        cov = covariance36(o.cov)
         pose_on = self._wanted(self.pose_pub)
         cov_on = self.cov_pub is not None and self._wanted(self.cov_pub)
         st_on = self._wanted(self.status_pub) and self._status_due(o)
@@ -132,7 +139,7 @@ class OutputPublisher:
             stamp.sec, stamp.nanosec = sec, nsec
             src, dst = self.ps.pose, pc.pose.pose
             dst.position, dst.orientation = src.position, src.orientation
-            pc.pose.covariance = cov.reshape(36)
+            pc.pose.covariance = cov
             self.cov_pub.publish(pc)
         if self.vel_pub is not None and self._wanted(self.vel_pub) and (vel := o.velocity()) is not None \
                 and np.isfinite(vel[1]).all() and np.isfinite(vel[0]).all():
@@ -207,9 +214,7 @@ class PosesPublisher:
                 continue
             try:
                 fill_pose(e.pose.pose, o.p, o.q)
-                cov = np.array(o.cov, dtype=np.float64).reshape(36)   # ValueError on a wrong shape
-                if not np.isfinite(cov).all():
-                    raise ValueError("refusing to publish a non-finite covariance")
+                cov = covariance36(o.cov)
             except ValueError as err:
                 if self.on_error is not None:
                     self.on_error(target, o, f"fullperc/poses: {err}")

@@ -52,14 +52,13 @@ class PartnerHold:
     """The samples waiting for their partner and what predicts the partners; see the module docstring.
     ``wait_ns`` = 0: nothing ever waits (:meth:`offer` hands every sample straight back)."""
 
-    __slots__ = ("clock", "gaps", "held", "newest", "previous", "slop_ns", "wait_ns", "waited")
+    __slots__ = ("clock", "gaps", "held", "newest", "slop_ns", "wait_ns", "waited")
 
     def __init__(self, slop_ns: int, wait_ns: int, clock: Callable[[], int] = time.monotonic_ns) -> None:
         if wait_ns < 0:
             raise ValueError(f"partner_wait must be >= 0, got {wait_ns * 1e-9} s")
         self.slop_ns, self.wait_ns, self.clock = int(slop_ns), int(wait_ns), clock
         self.newest: list[int | None] = [None, None]     # per paired stream: its newest stamp admitted
-        self.previous: list[int | None] = [None, None]   # and the one before
         self.gaps: list[list[int]] = [[], []]            # its last GAPS positive stamp intervals
         self.held: list[Held] = []
         self.waited = 0                                  # samples that waited (for /diagnostics)
@@ -92,7 +91,7 @@ class PartnerHold:
                 g.append(t - last)
                 if len(g) > GAPS:
                     del g[0]
-            self.previous[stream], self.newest[stream] = last, t
+            self.newest[stream] = t
 
     def offer(self, stream: int, t: int, payload: Any) -> list[tuple[int, int, Any]]:
         """A sample the stamp rules admitted: the samples to fuse now, ``(stream, t, payload)`` -- the ones it
@@ -114,7 +113,7 @@ class PartnerHold:
     def restart(self) -> None:
         """A new timeline (the stamps went back for good): the old one predicts nothing. Nothing may be waiting."""
         assert not self.held, "release the waiting samples (due(everything=True)) before a restart"
-        self.newest, self.previous, self.gaps = [None, None], [None, None], [[], []]
+        self.newest, self.gaps = [None, None], [[], []]
 
     def due(self, everything: bool = False) -> list[tuple[int, int, Any]]:
         """The waiting samples whose time is up (``everything``: all of them), removed from the hold."""
