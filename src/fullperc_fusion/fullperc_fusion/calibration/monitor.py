@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fullperc_fusion.calibration.links import link_bump
-from fullperc_fusion.calibration.se3_batch import robust_se3_means
+from fullperc_fusion.calibration.se3_batch import robust_se3_means_of
 from fullperc_fusion.calibration.se3_stats import BumpThresholds, CalibrationError, robust_se3_mean
 
 
@@ -155,16 +155,8 @@ class LinkMonitor:
         if d is None:
             return []
         evals = [e for e in d.events if e is not None]
-        means: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(evals)
-        if evals:
-            Ts = np.stack(d.sightings)
-            by_n: dict[int, list[int]] = {}
-            for i, (_, _, n, _) in enumerate(evals):
-                by_n.setdefault(n, []).append(i)
-            for n, ids in by_n.items():
-                rows = np.array([evals[i][1] for i in ids])[:, None] + np.arange(n)
-                for i, m in zip(ids, robust_se3_means(Ts, rows), strict=True):
-                    means[i] = m
+        means = robust_se3_means_of(np.stack(d.sightings), [np.arange(i0, i0 + n) for _, i0, n, _ in evals]) \
+            if evals else []
         checks = []
         k = 0
         for e in d.events:

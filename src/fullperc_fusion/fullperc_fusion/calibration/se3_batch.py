@@ -38,11 +38,12 @@ from fullperc_fusion.calibration.se3_stats import (
     medoid_indices,
     medoid_medians,
     robust_se3_mean,
+    sorted_middle,
     stack_and_quats,
 )
 from fullperc_fusion.calibration.so3_stack import rotvecs
 
-__all__ = ["robust_se3_means"]
+__all__ = ["robust_se3_means", "robust_se3_means_of"]
 
 
 class _NaN(Exception):
@@ -69,6 +70,20 @@ def robust_se3_means(Ts: np.ndarray, rows: np.ndarray, *, alpha: float = 1e-3,
     return [_one(Ts, r, alpha, max_iter) for r in rows]
 
 
+def robust_se3_means_of(Ts: np.ndarray, windows: list[np.ndarray], *,
+                        alpha: float = 1e-3) -> list[tuple[np.ndarray, np.ndarray] | None]:
+    """:func:`robust_se3_means` of windows of any sizes (``windows``: each an index array into ``Ts``), in their
+    order: the windows of one size go through one stacked call."""
+    out: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(windows)
+    by_n: dict[int, list[int]] = {}
+    for i, w in enumerate(windows):
+        by_n.setdefault(len(w), []).append(i)
+    for ids in by_n.values():
+        for i, m in zip(ids, robust_se3_means(Ts, np.stack([windows[i] for i in ids]), alpha=alpha), strict=True):
+            out[i] = m
+    return out
+
+
 def _one(Ts, row: np.ndarray, alpha: float, max_iter: int) -> tuple[np.ndarray, np.ndarray] | None:
     try:
         est = robust_se3_mean(np.asarray(Ts)[row], alpha=alpha, max_iter=max_iter)
@@ -82,11 +97,9 @@ def _median1(x: np.ndarray) -> np.ndarray:
     """``_median0`` of each window (axis 1 of a stacked array): the middle element of each sorted column, or the mean
     of the two middle ones."""
     s = np.sort(x, axis=1)
-    n = s.shape[1]
     if np.isnan(s[:, -1]).any():
         raise _NaN
-    h = n // 2
-    return s[:, h] if n % 2 else (s[:, h - 1] + s[:, h]) / 2
+    return sorted_middle(s, 1)
 
 
 def _residuals(T_ref: np.ndarray, S: np.ndarray) -> np.ndarray:

@@ -231,11 +231,20 @@ def _median0(x: np.ndarray) -> np.ndarray:
     come out as either sign in both); NaN columns through np.median itself. Why: np.median's wrapper cost ~15 us per
     call, four calls per robust mean, whose columns hold a few dozen values."""
     s = np.sort(x, axis=0)
-    n = len(s)
-    if not n or np.isnan(s[-1]).any():
+    if not len(s) or np.isnan(s[-1]).any():
         return np.median(x, axis=0)
+    return sorted_middle(s, 0)
+
+
+def sorted_middle(s: np.ndarray, axis: int) -> np.ndarray:
+    """The median along ``axis`` of ``s``, already sorted along it: its middle element, or the mean (a + b) / 2 of
+    the two middle ones (np.median's values; the medians of :func:`_median0`, :func:`medoid_medians` and the
+    windows of :mod:`.se3_batch`)."""
+    n = s.shape[axis]
     h = n // 2
-    return s[h] if n % 2 else (s[h - 1] + s[h]) / 2
+    if n % 2:
+        return np.take(s, h, axis=axis)
+    return (np.take(s, h - 1, axis=axis) + np.take(s, h, axis=axis)) / 2
 
 
 def medoid_indices(n: int) -> np.ndarray:
@@ -263,9 +272,7 @@ def medoid_medians(q: np.ndarray) -> np.ndarray | None:
     s.sort(axis=-1)
     if np.isnan(s[..., -1]).any():
         return None
-    m = s.shape[-1]
-    h = m // 2
-    return s[..., h] if m % 2 else (s[..., h - 1] + s[..., h]) / 2
+    return sorted_middle(s, -1)
 
 
 def _rotation_medoid(Rs: np.ndarray, q_all: np.ndarray | None = None) -> np.ndarray:

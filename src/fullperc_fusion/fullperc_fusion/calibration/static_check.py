@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import fdtri  # the F quantile: scipy.stats costs a node ~0.6 s of start-up
 
-from fullperc_fusion.calibration.se3_batch import robust_se3_means
+from fullperc_fusion.calibration.se3_batch import robust_se3_means_of
 from fullperc_fusion.calibration.se3_stats import (
     COV_FLOOR,
     CalibrationError,
@@ -63,13 +63,8 @@ def check_static(label: str, stamps_ns, poses, thresholds: StaticThresholds | No
     # one size together (se3_batch: the same numbers)
     sels = [np.flatnonzero(w == k) for k in range(nw)]
     used = [k for k in range(nw) if len(sels[k]) >= max(th.min_window_samples, 2)]
-    means: dict[int, tuple[np.ndarray, np.ndarray] | None] = {}
-    for n in sorted({len(sels[k]) for k in used}):
-        ks = [k for k in used if len(sels[k]) == n]
-        means.update(zip(ks, robust_se3_means(Ts, np.stack([sels[k] for k in ks]), alpha=alpha), strict=True))
     wins, resid = [], []
-    for k in used:
-        m = means[k]
+    for k, m in zip(used, robust_se3_means_of(Ts, [sels[k] for k in used], alpha=alpha), strict=True):
         if m is None:
             continue
         T_k, inliers = m
