@@ -465,3 +465,54 @@ def test_express_in_moves_the_estimate_with_its_frame_and_keeps_the_global_predi
     assert f.express_in(new.copy(), local=True) is None and np.array_equal(_st(f).p, s1.p)   # an equal one too
     f.reset()
     assert _st(f).frame is None and f.express_in(old, local=False) is None   # a reset forgets the frame
+
+
+@pytest.mark.parametrize("motion", ["arm", "hand"])
+def test_the_global_source_alone_does_not_move_its_bias(motion):
+    """Before the local source ever sees the target, and again after a gap re-initialises it from the global
+    source, nothing observes b: p starts at z - b - g with the matching correlation (fullperc_reference's
+    "(re-)initialisation"), so a target that accelerates under the OMC alone leaves b where it was (measured before:
+    the first samples' innovation split between p and b in proportion to their priors, and b kept ~0.1-1 mm of the
+    motion: up to 0.56 mm here for arm, 0.41 mm for hand). The output then follows the raw samples to the noise
+    level."""
+    from fullperc_fusion.filters.motion import with_preset
+    f = FullpercFilter(with_preset(FullpercParams(), motion))
+    rng = np.random.default_rng(3)
+    errs, b_max = [], 0.0
+    for k in range(1500):                         # 240 Hz, 6.25 s, no samples from 2.5 s to 3.5 s (> max_gap)
+        t_s = k / 240
+        if 2.5 <= t_s < 3.5:
+            continue
+        p = np.array([0.3 + 0.1 * math.sin(3.0 * t_s), 0.2 * math.cos(2.0 * t_s), 1.0 + 0.05 * t_s * t_s])
+        t = round(t_s * 1e9)
+        f.predict(t)
+        st = f.update(_m(t, SOURCE_GLOBAL, p + rng.normal(0.0, 5e-5, 3)))
+        errs.append(np.linalg.norm(st.p - p))
+        b_max = max(b_max, float(np.abs(f.state.b).max()))
+    assert b_max < 1e-5
+    np.testing.assert_allclose(f.state.P[6:9, 0:3], -f.state.P[6:9, 6:9], atol=1e-9)   # still minus b's own
+    assert np.mean(errs[-200:]) < 2e-4
+
+
+def test_initialisation_from_the_global_source_correlates_p_with_its_bias_parts():
+    """The prior of a start from a global sample, on the reference: P_pp = init_pos_std^2 + P_bb + P_gg,
+    P_pb = -P_bb, P_pg = -P_gg; from a local sample p is independent of both."""
+    pr = FullpercParams()
+    for with_local in (False, True):
+        r = FullpercReference(pr)
+        ml = _m(0, SOURCE_LOCAL, [0.1, 0.2, 0.3]) if with_local else None
+        r.update(*[m for m in (_m(0, SOURCE_GLOBAL, [0.1, 0.2, 0.3]), ml) if m is not None])
+        P = r.s.P
+        Pbb, Pgg = P[6:9, 6:9], P[18:21, 18:21]
+        np.testing.assert_allclose(np.diag(Pbb), pr.init_bias_std**2)
+        if with_local:
+            np.testing.assert_allclose(P[0:3, 0:3], pr.init_pos_std**2 * np.eye(3))
+            assert not P[0:3, 6:9].any() and not P[0:3, 18:21].any()
+        else:
+            np.testing.assert_allclose(P[0:3, 0:3], pr.init_pos_std**2 * np.eye(3) + Pbb + Pgg)
+            np.testing.assert_allclose(P[0:3, 6:9], -Pbb)
+            np.testing.assert_allclose(P[0:3, 18:21], -Pgg)
+        H = np.zeros((3, N))
+        H[:, 0:3] = H[:, 6:9] = H[:, 18:21] = np.eye(3)
+        if not with_local:
+            np.testing.assert_allclose(P[6:9] @ H.T, 0.0, atol=1e-18)   # the OMC's sum tells nothing about b
