@@ -162,7 +162,8 @@ class FusionCore:
             extra_tools = "".join(f", {x.name} tool '{ch.cfg.ots_target}'" for x, ch in
                                   zip(pipe.config.sources.extras, pipe.extra_chains, strict=True))
             self.health[t] = TargetHealth(t, {GLOBAL: f"OMC body '{c.omc_target}'",
-                                              LOCAL: f"OTS tool '{c.ots_target}'{extra_tools}"}, health)
+                                              LOCAL: f"OTS tool '{c.ots_target}'{extra_tools}"}, health,
+                                             background=True)   # the stamp-offset estimate off the input thread
             self.verdicts[t] = TargetVerdict(t, vals["stale_timeout"], vals["problem_hold"])
             self._skipped_seen[t] = 0
             self._link_state[t] = (None, 0)
@@ -434,7 +435,7 @@ class FusionCore:
         links = links_needed(c)
         self._cal = CalibrationRun(links, CalibrationBodies.from_chain_config(c), self.cal_duration,
                                    self.cal_settings, now=now, timeout_s=self.cal_timeout,
-                                   source="fusion_node ~/calibrate")
+                                   source="fusion_node ~/calibrate", background=True)
         return True, (f"~/calibrate: collecting {self.cal_duration:g} s of sightings for {list(links)}; keep the "
                       "OTS and the reference marker still")
 

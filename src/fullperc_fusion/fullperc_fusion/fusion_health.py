@@ -31,8 +31,9 @@ The rules (thresholds are :class:`HealthParams`, node parameters ``alarm.*`` in 
   :func:`~fullperc_fusion.calibration.time_offset.align_tracks` (the speed of the target seen by each device,
   cross-correlated: frame-free, so no link is needed); an offset ``|d| > offset_warn_s`` (half of ``slop``: pairs
   then form with the wrong partner, and a moving target is ``speed x d`` off) that is also more than 3 sigma is a
-  WARN naming it and ``time_align`` (docs/time_alignment.md). Windows without enough motion are skipped. Run in
-  :meth:`TargetHealth.alarms` (the diagnostics timer), never on the input path: one estimate costs ~50 ms.
+  WARN naming it and ``time_align`` (docs/time_alignment.md). Windows without enough motion are skipped. Started
+  from :meth:`TargetHealth.alarms` (the diagnostics timer), never on the input path: one estimate costs ~20-35 ms,
+  in fusion_node on a worker thread (``background``; its result at the next call).
 * every alarm stays raised ``hold_s`` seconds after its condition last held (a burst between two /diagnostics
   publications is not lost; as the node's other problems, ``problem_hold``), with "(cleared N s ago)". The
   conditions are evaluated at every input and again at every :meth:`TargetHealth.alarms` call; the bias rule
@@ -50,6 +51,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from fullperc_common.background import Job
 from fullperc_common.latency import LatencyHistogram
 from fullperc_fusion.filters.api import Role
 
@@ -118,7 +120,7 @@ class StampOffsetWatch:
     MIN_STEP_NS = 4_000_000   # a sample closer than this to the ring's newest is skipped: <= 250 Hz per source,
     # so one estimate costs ~25 ms whatever the devices' rates (1 kHz streams: 54 ms without it)
 
-    def __init__(self, window_s: float, period_s: float) -> None:
+    def __init__(self, window_s: float, period_s: float, background: bool = False) -> None:
         # imported here, at the node's start: scipy's signal/interpolate/optimize take ~0.7 s to import, a stall
         # the first estimate would otherwise make mid-stream (fusion_health is imported by offline tools too)
         from fullperc_fusion.calibration import time_offset
@@ -129,6 +131,7 @@ class StampOffsetWatch:
         self.newest_ns: int | None = None
         self.due_ns: int | None = None
         self.last = None          # the newest Alignment (time_offset), None before one succeeded
+        self._job = Job(self._fit, background)   # fusion_node: on the worker thread (fullperc_common.background)
 
     def add(self, source: str, t_ns: int, p) -> None:
         ring = self.rings[source]
@@ -147,27 +150,34 @@ class StampOffsetWatch:
 
     def estimate(self):
         """A new :class:`~fullperc_fusion.calibration.time_offset.Alignment` when one is due and the window allows
-        one (enough motion seen by both), else None."""
-        if self.newest_ns is None or self.due_ns is None or self.newest_ns < self.due_ns:
+        one (enough motion seen by both), else None; in the background, one call after the one that started it."""
+        done, a = self._job.poll()
+        if done:
+            self.last = a if a is not None else self.last
+            return a
+        if self.newest_ns is None or self.due_ns is None or self.newest_ns < self.due_ns or self._job.running:
             return None
         self.due_ns = self.newest_ns + self.period_ns
         g, loc = self.rings[GLOBAL], self.rings[LOCAL]
         if len(g) < 20 or len(loc) < 20:
             return None
         t0 = g[0][0]
+        self._job.start(np.array([t - t0 for t, _ in g]) * 1e-9, np.array([p for _, p in g], float),
+                        np.array([t - t0 for t, _ in loc]) * 1e-9, np.array([p for _, p in loc], float))
+        return self.estimate() if not self._job.background else None
+
+    def _fit(self, tg, pg, tl, pl):
         try:
-            self.last = self._align(np.array([t - t0 for t, _ in g]) * 1e-9, np.array([p for _, p in g], float),
-                                     np.array([t - t0 for t, _ in loc]) * 1e-9, np.array([p for _, p in loc], float),
-                                     max_lag_s=0.2)
+            return self._align(tg, pg, tl, pl, max_lag_s=0.2)
         except (self._error, ValueError):
             return None
-        return self.last
 
 
 class TargetHealth:
     """The alarm state of one target; ``sources`` names the two sources, e.g. {"global": "OMC body 'tool'"}."""
 
-    def __init__(self, target: str, sources: dict[str, str], params: HealthParams | None = None) -> None:
+    def __init__(self, target: str, sources: dict[str, str], params: HealthParams | None = None,
+                 background: bool = False) -> None:
         self.target = target
         self.names = {GLOBAL: sources.get(GLOBAL, "global source"), LOCAL: sources.get(LOCAL, "local source")}
         self.params = (params or HealthParams()).validate()
@@ -182,7 +192,7 @@ class TargetHealth:
         self._last_accept: dict[str, float | None] = {GLOBAL: None, LOCAL: None}
         self._held = {("hop_rate", GLOBAL): _Held(), ("bias", GLOBAL): _Held(),
                       ("rejected", GLOBAL): _Held(), ("rejected", LOCAL): _Held(), ("stamp_offset", LOCAL): _Held()}
-        self.offset = StampOffsetWatch(self.params.offset_window_s, self.params.offset_period_s)
+        self.offset = StampOffsetWatch(self.params.offset_window_s, self.params.offset_period_s, background)
 
     # ---- input --------------------------------------------------------------------------------------------
     def accepted(self, source: str, now: float, t_ns: int | None = None, p=None) -> None:

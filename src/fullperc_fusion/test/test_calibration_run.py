@@ -60,3 +60,36 @@ def test_bad_arguments():
         CalibrationRun(("T_omc_base",), CalibrationBodies(), 1.0, now=0.0, timeout_s=0.0)
     with pytest.raises(ValueError, match="links"):
         CalibrationRun(("T_x",), CalibrationBodies(), 1.0, now=0.0)
+
+
+def test_in_the_background_the_result_comes_at_a_later_poll_equal_and_later_sightings_are_not_collected():
+    """fusion_node's form (background=True): the poll that finds the collection complete starts the robust means
+    on the worker and returns False at once; a poll after it finished gives the same calibration the synchronous
+    form gives; sightings in between are ignored (the worker reads the collection)."""
+    import time
+    runs = [CalibrationRun(("T_omc_base", "T_base_ots"), CalibrationBodies(), 2.0, now=0.0, background=bg)
+            for bg in (False, True)]
+    for r in runs:
+        feed(r, 2.5, np.random.default_rng(4))
+    sync, bg = runs
+    assert sync.poll(1.0) and sync.result is not None
+    assert not bg.poll(1.0) and not bg.done
+    assert not bg.add("omc", "base", T0 + S, T_OMC_BASE)          # inside the window, but the means are running
+    end = time.monotonic() + 60.0                                  # a guard against a hang, not a time limit
+    while not bg.poll(1.1):
+        assert time.monotonic() < end, "the background calibration never finished"
+        time.sleep(0.01)
+    assert bg.error is None and summary(bg.result) == summary(sync.result)
+    for name, e in sync.result.links.items():
+        np.testing.assert_array_equal(bg.result.links[name].position, e.position)
+
+
+def test_a_refusal_in_the_background_is_a_refusal():
+    import time
+    run = CalibrationRun(("T_omc_base", "T_base_ots"), CalibrationBodies(), 2.0, now=0.0, background=True)
+    feed(run, 2.2, np.random.default_rng(2), move_at=1.0)
+    end = time.monotonic() + 60.0
+    while not run.poll(1.0):
+        assert time.monotonic() < end
+        time.sleep(0.01)
+    assert run.result is None and run.error.startswith("OMC body 'base' moved during the collection")

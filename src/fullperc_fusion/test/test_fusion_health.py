@@ -8,7 +8,7 @@ import re
 import numpy as np
 import pytest
 
-from fullperc_fusion.fusion_health import ERROR, GLOBAL, LOCAL, WARN, HealthParams, TargetHealth
+from fullperc_fusion.fusion_health import ERROR, GLOBAL, LOCAL, WARN, HealthParams, StampOffsetWatch, TargetHealth
 
 SOURCES = {GLOBAL: "OMC body 'tool'", LOCAL: "OTS tool 'tool'"}
 Z = np.zeros(3)
@@ -356,3 +356,43 @@ def test_a_late_sample_is_skipped_and_a_restarted_timeline_starts_the_window_ane
     w.add(LOCAL, 95_000_000, np.zeros(3))
     w.add(GLOBAL, 100_000_000 - 20_000_000_000, np.zeros(3))   # 20 s back: a new timeline
     assert [t for t, _ in w.rings[GLOBAL]] == [-19_900_000_000] and not w.rings[LOCAL]
+
+
+def _wait_for(job, timeout_s: float = 60.0) -> None:
+    """Until ``job``'s worker call has finished (a guard against a hang, not a time limit on the work)."""
+    import time
+    end = time.monotonic() + timeout_s
+    while job._future is not None and not job._future.done():
+        assert time.monotonic() < end, "the background estimate never finished"
+        time.sleep(0.01)
+
+
+def test_in_the_background_the_estimate_comes_at_a_later_call_and_equals_the_one_made_at_once():
+    """fusion_node's form (background=True): the call that starts the estimate returns None at once (the input
+    path is not held for it); a call after the worker finished gives the same Alignment the synchronous form
+    gives, once; a TargetHealth made with background raises the same alarm from it."""
+    rng = np.random.default_rng(0)
+    t = np.arange(0, 10.5, 1 / 120)
+    p = _waving(t) + rng.normal(0, 2e-4, (t.size, 3))
+    watches = [StampOffsetWatch(10.0, 10.0), StampOffsetWatch(10.0, 10.0, background=True)]
+    for w in watches:
+        for tk, pk in zip(t, p, strict=True):
+            w.add(GLOBAL, int(round(tk * 1e9)), pk)
+            w.add(LOCAL, int(round((tk + 0.01) * 1e9)), pk + 1.0)
+    sync, bg = watches
+    a = sync.estimate()
+    assert a is not None and abs(a.offset_s - 0.01) < 5e-4
+    assert bg.estimate() is None and bg._job.running
+    _wait_for(bg._job)
+    b = bg.estimate()
+    assert b is not None and b.offset_s == a.offset_s and bg.last is b
+    assert bg.estimate() is None and not bg._job.running      # given once; the next is due 10 s of stamps later
+
+    h = TargetHealth("tool", SOURCES, HealthParams(offset_warn_s=0.002, offset_window_s=10.0,
+                                                    offset_period_s=10.0), background=True)
+    assert h.offset._job.background
+    _feed(h, 0.010)
+    _wait_for(h.offset._job)
+    [al] = [x for x in h.alarms(12.0) if x.rule == "stamp_offset"]
+    m = re.search(r"late by ([0-9.]+) ms", al.message)
+    assert al.level == WARN and m and abs(float(m[1]) - 10.0) < 0.5, al.message

@@ -1,6 +1,9 @@
 """One live calibration of the static links, as the ``calibrate`` executable and ``fusion_node``'s ``~/calibrate``
 run it: a :class:`~.collector.Collector` plus a bound on host time, then the result or the reason
 it was refused, and a one-line summary. ROS-free; the caller passes ``now`` (a monotonic clock [s]).
+``background``: the robust means at the end (~70-100 ms) run on the worker thread
+(:mod:`fullperc_common.background`; ``fusion_node``, whose executor thread meanwhile fuses), and :meth:`poll` is
+True at a later call; sightings that come meanwhile are not collected.
 
 The collection ends by the sensor stamps (``duration_s`` after the first sighting, :attr:`Collector.complete`), or
 at the latest ``timeout_s`` seconds of host time after ``duration_s`` has passed since :meth:`CalibrationRun.__init__`
@@ -12,6 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+from fullperc_common.background import Job
 from fullperc_fusion.calibration.collector import Collector
 from fullperc_fusion.calibration.se3_stats import (
     Calibration,
@@ -30,7 +34,7 @@ class CalibrationRun:
 
     def __init__(self, links: Sequence[str], bodies: CalibrationBodies, duration_s: float,
                  settings: CalibrationSettings | None = None, *, now: float, timeout_s: float = 10.0,
-                 source: str = "") -> None:
+                 source: str = "", background: bool = False) -> None:
         if not timeout_s > 0:
             raise ValueError(f"timeout_s must be > 0, got {timeout_s}")
         self.collector = Collector(links, bodies, duration_s, settings)
@@ -40,6 +44,7 @@ class CalibrationRun:
         self.source = source
         self.result: Calibration | None = None
         self.error: str | None = None
+        self._job = Job(self._finish, background)
 
     @property
     def done(self) -> bool:
@@ -47,12 +52,20 @@ class CalibrationRun:
 
     def add(self, device: str, body: str, stamp_ns: int, position, quat_xyzw=None) -> bool:
         """One sighting (see :meth:`Collector.add`); ignored once the run is done."""
-        return False if self.done else self.collector.add(device, body, stamp_ns, position, quat_xyzw)
+        if self.done or self._job.running:
+            return False
+        return self.collector.add(device, body, stamp_ns, position, quat_xyzw)
 
     def poll(self, now: float) -> bool:
         """Finish the run when the collection is complete or the host-time bound passed; True when done."""
         if self.done:
             return True
+        finished, out = self._job.poll()
+        if finished:
+            self.result, self.error = out
+            return True
+        if self._job.running:
+            return False
         col = self.collector
         if not col.complete:
             if now < self.deadline:
@@ -62,11 +75,14 @@ class CalibrationRun:
             self.error = (f"too few sightings: they span {span:.1f} s of the {self.duration_s:g} s needed after "
                           f"{self.duration_s + self.timeout_s:g} s of host time ({counts}); is every body seen?")
             return True
+        self._job.start()
+        return self.poll(now) if not self._job.background else False
+
+    def _finish(self) -> tuple[Calibration | None, str | None]:
         try:
-            self.result = col.finish(source=self.source)
+            return self.collector.finish(source=self.source), None
         except CalibrationError as e:
-            self.error = " ".join(str(e).split()).removeprefix("calibration refused: ")
-        return True
+            return None, " ".join(str(e).split()).removeprefix("calibration refused: ")
 
 
 def summary(cal: Calibration) -> str:
