@@ -116,6 +116,7 @@ class FullpercFilter(StepCompat):
         self._ref = FullpercReference(params)   # re-initialisation and the non-finite reset are delegated to it
         self.params = self._ref.params
         self.hop_counts = self._ref.hop_counts    # one dict: counts made by either are counted once
+        self.hop_allowed = True   # False: a flagged position hop stays out of the bias (fullperc_imm: a minority model)
         self._fcache: dict = {}
         self._qcache: dict = {}
         self._hcache: dict = {}
@@ -400,7 +401,7 @@ class FullpercFilter(StepCompat):
             lam_next = noise_scale_step(self._lam, self._tg, mg.t_ns, nis_g, pr)
             self.hop_counts["position"] += hop_p
             self.hop_counts["rotation"] += hop_r
-            if hop_p and pr.hop_to_bias:
+            if hop_p and pr.hop_to_bias and self.hop_allowed:
                 P = P.copy()
                 k = 18 if pr.hop_into == "g" else 6      # g or b (the reference's hop rule)
                 P[k, k] += y[0] * y[0]
