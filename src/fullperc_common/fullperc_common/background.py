@@ -44,6 +44,11 @@ class Job:
         """A call started and its result not yet taken by :meth:`poll`."""
         return self._future is not None
 
+    @property
+    def ready(self) -> bool:
+        """The started call has finished; its result waits for :meth:`poll`."""
+        return self._future is not None and self._future.done()
+
     def start(self, *args: Any) -> bool:
         """Start ``fn(*args)``; False (nothing started) while the previous call's result has not been taken."""
         if self._future is not None:
@@ -61,7 +66,7 @@ class Job:
     def poll(self) -> tuple[bool, Any]:
         """(True, the result) once the call has finished -- its exception raised here, on the caller's thread --,
         else (False, None). A result is given once."""
-        if self._future is None or not self._future.done():
+        if not self.ready:
             return False, None
         fut, self._future = self._future, None
         return True, fut.result()

@@ -4,19 +4,16 @@ caller's thread, its exception too."""
 from __future__ import annotations
 
 import threading
-import time
 
 import pytest
 
 from fullperc_common.background import Job
+from fullperc_common.testing import wait_for
 
 
 def _wait(job: Job) -> tuple[bool, object]:
-    end = time.monotonic() + 60.0          # a guard against a hang, not a time limit on the work
-    while not (out := job.poll())[0]:
-        assert time.monotonic() < end, "the worker never finished"
-        time.sleep(0.005)
-    return out
+    wait_for(lambda: job.ready, 60.0, 0.005, what="the worker's call")   # a liveness bound, not a time limit
+    return job.poll()
 
 
 def test_at_once_the_result_is_ready_at_the_first_poll_and_given_once():

@@ -151,20 +151,20 @@ class StampOffsetWatch:
     def estimate(self):
         """A new :class:`~fullperc_fusion.calibration.time_offset.Alignment` when one is due and the window allows
         one (enough motion seen by both), else None; in the background, one call after the one that started it."""
-        done, a = self._job.poll()
-        if done:
-            self.last = a if a is not None else self.last
-            return a
-        if self.newest_ns is None or self.due_ns is None or self.newest_ns < self.due_ns or self._job.running:
-            return None
-        self.due_ns = self.newest_ns + self.period_ns
-        g, loc = self.rings[GLOBAL], self.rings[LOCAL]
-        if len(g) < 20 or len(loc) < 20:
-            return None
-        t0 = g[0][0]
-        self._job.start(np.array([t - t0 for t, _ in g]) * 1e-9, np.array([p for _, p in g], float),
-                        np.array([t - t0 for t, _ in loc]) * 1e-9, np.array([p for _, p in loc], float))
-        return self.estimate() if not self._job.background else None
+        if not self._job.running:
+            if self.newest_ns is None or self.due_ns is None or self.newest_ns < self.due_ns:
+                return None
+            self.due_ns = self.newest_ns + self.period_ns
+            g, loc = self.rings[GLOBAL], self.rings[LOCAL]
+            if len(g) < 20 or len(loc) < 20:
+                return None
+            t0 = g[0][0]
+            self._job.start(np.array([t - t0 for t, _ in g]) * 1e-9, np.array([p for _, p in g], float),
+                            np.array([t - t0 for t, _ in loc]) * 1e-9, np.array([p for _, p in loc], float))
+        done, a = self._job.poll()   # at once unless in the background
+        if done and a is not None:
+            self.last = a
+        return a
 
     def _fit(self, tg, pg, tl, pl):
         try:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fullperc_common.testing import wait_for
 from fullperc_common.transforms import T_to_pq, make_T
 from fullperc_fusion.calibration.run import CalibrationRun, summary
 from fullperc_fusion.calibration.se3_stats import CalibrationBodies, se3_retract
@@ -66,7 +67,6 @@ def test_in_the_background_the_result_comes_at_a_later_poll_equal_and_later_sigh
     """fusion_node's form (background=True): the poll that finds the collection complete starts the robust means
     on the worker and returns False at once; a poll after it finished gives the same calibration the synchronous
     form gives; sightings in between are ignored (the worker reads the collection)."""
-    import time
     runs = [CalibrationRun(("T_omc_base", "T_base_ots"), CalibrationBodies(), 2.0, now=0.0, background=bg)
             for bg in (False, True)]
     for r in runs:
@@ -75,21 +75,14 @@ def test_in_the_background_the_result_comes_at_a_later_poll_equal_and_later_sigh
     assert sync.poll(1.0) and sync.result is not None
     assert not bg.poll(1.0) and not bg.done
     assert not bg.add("omc", "base", T0 + S, T_OMC_BASE)          # inside the window, but the means are running
-    end = time.monotonic() + 60.0                                  # a guard against a hang, not a time limit
-    while not bg.poll(1.1):
-        assert time.monotonic() < end, "the background calibration never finished"
-        time.sleep(0.01)
+    wait_for(lambda: bg.poll(1.1), 60.0, 0.01, what="the background calibration")   # a liveness bound
     assert bg.error is None and summary(bg.result) == summary(sync.result)
     for name, e in sync.result.links.items():
         np.testing.assert_array_equal(bg.result.links[name].position, e.position)
 
 
 def test_a_refusal_in_the_background_is_a_refusal():
-    import time
     run = CalibrationRun(("T_omc_base", "T_base_ots"), CalibrationBodies(), 2.0, now=0.0, background=True)
     feed(run, 2.2, np.random.default_rng(2), move_at=1.0)
-    end = time.monotonic() + 60.0
-    while not run.poll(1.0):
-        assert time.monotonic() < end
-        time.sleep(0.01)
+    wait_for(lambda: run.poll(1.0), 60.0, 0.01, what="the background calibration")
     assert run.result is None and run.error.startswith("OMC body 'base' moved during the collection")

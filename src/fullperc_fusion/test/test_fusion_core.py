@@ -7,12 +7,12 @@ from __future__ import annotations
 
 import subprocess
 import sys
-import time
 from dataclasses import replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation as Rot
 
+from fullperc_common.testing import wait_for
 from fullperc_common.transforms import T_to_pq, inv_T, make_T
 from fullperc_fusion.fusion_config import read_values
 from fullperc_fusion.fusion_core import DIAG_EVAL_PERIOD_S, FusionCore
@@ -213,12 +213,8 @@ def test_primary_outputs_feed_the_health_and_publish_errors_the_pipeline():
 
 # ---- calibration ----------------------------------------------------------------------------------------------------
 def _until(fn):
-    """fn() until not None (a worker thread's result: fullperc_common.background); the deadline guards a hang."""
-    end = time.monotonic() + 60.0
-    while (out := fn()) is None:
-        assert time.monotonic() < end, "the worker never finished"
-        time.sleep(0.01)
-    return out
+    """fn() until truthy (a worker thread's result: fullperc_common.background); a liveness bound."""
+    return wait_for(fn, 60.0, 0.01, what="the worker")
 
 
 def test_calibrate_collects_then_swaps_the_links_of_every_target_and_writes_the_file(tmp_path):
@@ -594,7 +590,7 @@ def test_vega_stamps_late_by_more_than_half_the_slop_warn_on_the_targets_status(
         if k % int(HZ) == 0:
             status(c, now)   # the diagnostics timer: starts the estimate once 10 s of stamps are in
     job = c.health["tool"].offset._job   # the estimate runs on the worker thread: its result at a later status
-    _until(lambda: job._future is None or job._future.done() or None)
+    _until(lambda: not job.running or job.ready or None)
     level, msg, values = status(c, now)
     assert level == WARN and "stamps are late by" in msg, msg
     assert abs(values["stamp_offset_ms"] - 8.0) < 0.5, values

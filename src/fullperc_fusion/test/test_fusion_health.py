@@ -8,6 +8,7 @@ import re
 import numpy as np
 import pytest
 
+from fullperc_common.testing import wait_for
 from fullperc_fusion.fusion_health import ERROR, GLOBAL, LOCAL, WARN, HealthParams, StampOffsetWatch, TargetHealth
 
 SOURCES = {GLOBAL: "OMC body 'tool'", LOCAL: "OTS tool 'tool'"}
@@ -358,13 +359,9 @@ def test_a_late_sample_is_skipped_and_a_restarted_timeline_starts_the_window_ane
     assert [t for t, _ in w.rings[GLOBAL]] == [-19_900_000_000] and not w.rings[LOCAL]
 
 
-def _wait_for(job, timeout_s: float = 60.0) -> None:
-    """Until ``job``'s worker call has finished (a guard against a hang, not a time limit on the work)."""
-    import time
-    end = time.monotonic() + timeout_s
-    while job._future is not None and not job._future.done():
-        assert time.monotonic() < end, "the background estimate never finished"
-        time.sleep(0.01)
+def _wait_for(job) -> None:
+    """Until ``job``'s worker call has finished (a liveness bound, not a time limit on the work)."""
+    wait_for(lambda: not job.running or job.ready, 60.0, 0.01, what="the background estimate")
 
 
 def test_in_the_background_the_estimate_comes_at_a_later_call_and_equals_the_one_made_at_once():

@@ -60,23 +60,22 @@ class CalibrationRun:
         """Finish the run when the collection is complete or the host-time bound passed; True when done."""
         if self.done:
             return True
-        finished, out = self._job.poll()
+        col = self.collector
+        if not self._job.running:
+            if not col.complete:
+                if now < self.deadline:
+                    return False
+                span = 0.0 if col.start_ns is None or col.last_ns is None else (col.last_ns - col.start_ns) / 1e9
+                counts = ", ".join(f"{Collector.label(*k.split(':', 1))}: {n}" for k, n in col.counts().items())
+                self.error = (f"too few sightings: they span {span:.1f} s of the {self.duration_s:g} s needed "
+                              f"after {self.duration_s + self.timeout_s:g} s of host time ({counts}); is every "
+                              "body seen?")
+                return True
+            self._job.start()
+        finished, out = self._job.poll()   # at once unless in the background
         if finished:
             self.result, self.error = out
-            return True
-        if self._job.running:
-            return False
-        col = self.collector
-        if not col.complete:
-            if now < self.deadline:
-                return False
-            span = 0.0 if col.start_ns is None or col.last_ns is None else (col.last_ns - col.start_ns) / 1e9
-            counts = ", ".join(f"{Collector.label(*k.split(':', 1))}: {n}" for k, n in col.counts().items())
-            self.error = (f"too few sightings: they span {span:.1f} s of the {self.duration_s:g} s needed after "
-                          f"{self.duration_s + self.timeout_s:g} s of host time ({counts}); is every body seen?")
-            return True
-        self._job.start()
-        return self.poll(now) if not self._job.background else False
+        return finished
 
     def _finish(self) -> tuple[Calibration | None, str | None]:
         try:
