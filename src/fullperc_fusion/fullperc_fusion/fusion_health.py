@@ -161,7 +161,9 @@ class StampOffsetWatch:
             t0 = g[0][0]
             self._job.start(np.array([t - t0 for t, _ in g]) * 1e-9, np.array([p for _, p in g], float),
                             np.array([t - t0 for t, _ in loc]) * 1e-9, np.array([p for _, p in loc], float))
-        done, a = self._job.poll()   # at once unless in the background
+            if self._job.background:
+                return None   # its result at a later call, never at the one that started it
+        done, a = self._job.poll()
         if done and a is not None:
             self.last = a
         return a

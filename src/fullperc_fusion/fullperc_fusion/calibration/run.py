@@ -72,7 +72,9 @@ class CalibrationRun:
                               "body seen?")
                 return True
             self._job.start()
-        finished, out = self._job.poll()   # at once unless in the background
+            if self._job.background:
+                return False   # its result at a later poll, never at the one that started it
+        finished, out = self._job.poll()
         if finished:
             self.result, self.error = out
         return finished
