@@ -10,6 +10,7 @@ import fcntl
 import itertools
 import os
 import signal
+import socket
 import subprocess
 import tempfile
 import time
@@ -296,6 +297,24 @@ def side_by_side_fixture(*bodies: Callable, **named: Callable | tuple[Callable, 
         yield sbs
         sbs.join()
     return scenarios
+
+
+def udp_socket_off_dds_ports(host: str = "127.0.0.1") -> socket.socket:
+    """A UDP socket bound to an ephemeral port of ``host`` that no Fast DDS participant of a test domain sends to.
+
+    The RTPS default port mapping puts domain d's ports at 7400 + 250 d + offset (multicast 0 and 1, unicast
+    10 + 2 i and 11 + 2 i for participant i), and with ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` every participant
+    sends discovery to its peers' unicast ports. A test socket that the OS happened to give such a port received
+    another test's RTPS packets (a CI run: "bad Diana magic b'RTPS'"); ports at offsets below 60 (participants
+    0-24) are not used.
+    """
+    while True:
+        s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        s.bind((host, 0))
+        port = s.getsockname()[1]
+        if port < 7400 or (port - 7400) % 250 >= 60:
+            return s
+        s.close()
 
 
 def wait_for(pred, timeout: float = 20.0, interval: float = 0.05, what: str = "condition",

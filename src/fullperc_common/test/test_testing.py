@@ -52,3 +52,17 @@ def test_a_child_of_the_suite_stops_on_sigint_even_when_the_suite_was_started_in
                          capture_output=True, text=True, check=True).stdout.strip()
     assert signal.getsignal(signal.SIGINT) != signal.SIG_IGN
     assert out == "default_int_handler"
+
+
+def test_udp_sockets_for_tests_stay_off_the_ports_dds_discovery_sends_to():
+    """Each returned socket's port is below 7400 or at an offset >= 60 in its domain's 250-port block (RTPS default
+    mapping); a quarter of the ephemeral ports are in such blocks, so 200 draws would meet one without the rule."""
+    from fullperc_common.testing import udp_socket_off_dds_ports
+    socks = [udp_socket_off_dds_ports() for _ in range(200)]
+    try:
+        for s in socks:
+            port = s.getsockname()[1]
+            assert port < 7400 or (port - 7400) % 250 >= 60, port
+    finally:
+        for s in socks:
+            s.close()

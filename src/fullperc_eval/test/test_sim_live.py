@@ -12,7 +12,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 
-from fullperc_common.testing import installed_exe, wait_for
+from fullperc_common.testing import installed_exe, udp_socket_off_dds_ports, wait_for
 from fullperc_drivers.ndi.protocol import encode_command
 from fullperc_drivers.streams import decode_diana, decode_omc
 from fullperc_eval.sim.live import LiveServer
@@ -38,9 +38,8 @@ def offline(offline_future):
 
 
 def _udp() -> socket.socket:
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s = udp_socket_off_dds_ports()   # not a port another test's DDS discovery sends to
     s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
-    s.bind(("127.0.0.1", 0))
     s.settimeout(0.2)
     return s
 
