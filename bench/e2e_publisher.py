@@ -4,6 +4,10 @@ OMC (frame ``omc``) at ``--omc-hz``: bodies ``base`` and every ``--tools`` name;
 ``--ots-hz``: tools ``base`` and the same names. Every message is stamped with the host time just before it is
 published (acquisition time == publish time for this stand-in), so the subscriber's receive time minus the fused
 pose's stamp is the end-to-end latency from a driver's publish to the fused pose.
+With ``--frames`` each device frame is also published as one ``/omc/bodies`` / ``/ots/bodies`` (TrackedBodies,
+what fullperc's drivers publish beside the per-body topics; fusion_node ``inputs: frames``), every body of a frame
+then stamped alike (the frame's stamp), and the data waits for those topics' subscribers instead of the per-body ones
+(``/omc/<first tool>/pose`` still needs one: the bench's raw DDS baseline).
 Prints one JSON line at the end: frames published per source and the achieved frame rates (a stand-in that
 cannot keep up with many tools shows it here, rather than as a loss of the node).
 """
@@ -43,6 +47,7 @@ def main() -> int:
     ap.add_argument("--wait-base", type=int, default=1,
                     help="subscribers /omc/base/pose and /ots/base/pose must have (one per fusion process)")
     ap.add_argument("--tools", default="tool", help="comma-separated target names (default: tool)")
+    ap.add_argument("--frames", action="store_true", help="also publish /omc/bodies and /ots/bodies (TrackedBodies)")
     ap.add_argument("--stamps", help="write the target samples' stamps here (JSON: {omc|ots: {tool: [ns]}})")
     a = ap.parse_args()
     rclpy.init()
@@ -52,6 +57,21 @@ def main() -> int:
     pubs = {f"/{d}/{b}/pose": node.create_publisher(PoseStamped, f"/{d}/{b}/pose", qos)
             for d in ("omc", "ots") for b in ("base", *tools)}
     need = {f"/omc/{tools[0]}/pose": a.wait_subscribers, "/omc/base/pose": a.wait_base, "/ots/base/pose": a.wait_base}
+    if a.frames:
+        from fullperc_msgs.msg import TrackedBodies, TrackedBody
+
+        pubs |= {f"/{d}/bodies": node.create_publisher(TrackedBodies, f"/{d}/bodies", qos) for d in ("omc", "ots")}
+        need = {t: 0 for t in pubs} | {f"/omc/{tools[0]}/pose": a.wait_subscribers, "/omc/bodies": a.wait_base,
+                                       "/ots/bodies": a.wait_base}
+
+    def frame(dev: str, ns: int, bodies: list[tuple[str, object, object]]) -> None:
+        """--frames: the device frame's bodies (name, p, q) as one TrackedBodies."""
+        m = TrackedBodies(latency=0.0)
+        m.header = pose_stamped(ns, dev, bodies[0][1], bodies[0][2]).header
+        m.bodies = [TrackedBody(name=n, visible=True, pose=pose_stamped(ns, dev, p, q).pose, frame_number=counts[dev])
+                    for n, p, q in bodies]
+        pubs[f"/{dev}/bodies"].publish(m)
+
     while any(p.get_subscription_count() < need.get(topic, 1) for topic, p in pubs.items()):
         rclpy.spin_once(node, timeout_sec=0.05)
     time.sleep(1.0)  # discovery runs both ways; let the node match before data flows
@@ -66,19 +86,27 @@ def main() -> int:
     while (now := time.monotonic()) - t0 < a.duration:
         t = now - t0
         if now >= next_omc:
-            pubs["/omc/base/pose"].publish(pose_stamped(time.time_ns(), "omc", p_base_omc, q_base_omc))
             p = tool_in_omc(t)
-            for tool in tools:
+            if a.frames:
                 ns = time.time_ns()
+                frame("omc", ns, [("base", p_base_omc, q_base_omc), *((tool, p, Q_ID) for tool in tools)])
+            pubs["/omc/base/pose"].publish(pose_stamped(ns if a.frames else time.time_ns(), "omc", p_base_omc,
+                                                        q_base_omc))
+            for tool in tools:
+                ns = ns if a.frames else time.time_ns()
                 pubs[f"/omc/{tool}/pose"].publish(pose_stamped(ns, "omc", p, Q_ID))
                 stamps["omc"][tool].append(ns)
             counts["omc"] += 1
             next_omc += 1.0 / a.omc_hz
         if now >= next_ots:
-            pubs["/ots/base/pose"].publish(pose_stamped(time.time_ns(), "ots", p_base_ots, q_base_ots))
             p_ots = apply_T(T_ots_omc, tool_in_omc(t))
-            for tool in tools:
+            if a.frames:
                 ns = time.time_ns()
+                frame("ots", ns, [("base", p_base_ots, q_base_ots), *((tool, p_ots, T_ots_omc_q) for tool in tools)])
+            pubs["/ots/base/pose"].publish(pose_stamped(ns if a.frames else time.time_ns(), "ots", p_base_ots,
+                                                        q_base_ots))
+            for tool in tools:
+                ns = ns if a.frames else time.time_ns()
                 pubs[f"/ots/{tool}/pose"].publish(pose_stamped(ns, "ots", p_ots, T_ots_omc_q))
                 stamps["ots"][tool].append(ns)
             counts["ots"] += 1

@@ -105,7 +105,8 @@ def target_params(targets: list[str]) -> list[str]:
 
 def run_live(nodes: list[list[str]], targets: list[str], domain: int | None, duration: float,
              omc_hz: float = 240.0, ots_hz: float = 400.0, executor: str | None = None,
-             command: list[str] | None = None, consumers: tuple[str, ...] = (), array: bool = False) -> LiveResult:
+             command: list[str] | None = None, consumers: tuple[str, ...] = (), array: bool = False,
+             frames: bool = False) -> LiveResult:
     """Run ``len(nodes)`` fusion_node processes (each with the given extra ``--ros-args``) against the publisher.
 
     ``domain`` None: a domain id no test or other bench on this machine holds (fullperc_common.testing.claim_domain),
@@ -116,13 +117,15 @@ def run_live(nodes: list[list[str]], targets: list[str], domain: int | None, dur
     counted only (fusion_node publishes a topic only while it has a reader). ``array``: the fused poses are read from
     ``/fullperc/poses`` (fullperc_msgs/FusedPoseArray, one entry per target per wake-up) instead of each target's
     pose topic, which is then not subscribed: a consumer of the array only. Latency is then per entry; a sample
-    folded into a newer entry of the same wake-up counts as lost by :func:`uncovered`."""
+    folded into a newer entry of the same wake-up counts as lost by :func:`uncovered`. ``frames``: the publisher also
+    sends every device frame as one TrackedBodies (``e2e_publisher.py --frames``), for nodes with ``inputs: frames``
+    (given in ``nodes``), and waits for those readers instead of the per-body ones."""
     if domain is None:
         from fullperc_common.testing import claim_domain
 
         with claim_domain() as lease:
             return run_live(nodes, targets, lease.domain, duration, omc_hz, ots_hz, executor, command, consumers,
-                            array)
+                            array, frames)
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseStamped
@@ -187,8 +190,9 @@ def run_live(nodes: list[list[str]], targets: list[str], domain: int | None, dur
     cpu0 = [cpu_seconds(p.pid) for p in procs]
     try:
         pub = subprocess.run([sys.executable, str(HERE / "e2e_publisher.py"), "--duration", str(duration),
-                              "--wait-subscribers", "2", "--wait-base", str(len(nodes)), "--tools", ",".join(targets),
-                              "--omc-hz", str(omc_hz), "--ots-hz", str(ots_hz), "--stamps", str(stamps_file)],
+                              "--wait-subscribers", "1" if frames else "2", "--wait-base", str(len(nodes)),
+                              "--tools", ",".join(targets), "--omc-hz", str(omc_hz), "--ots-hz", str(ots_hz),
+                              "--stamps", str(stamps_file), *(["--frames"] if frames else [])],
                              env=env, capture_output=True, text=True, timeout=duration + 180)
         # CPU while data flowed (the publisher's discovery wait and 1 s pauses add idle spinning only)
         cpu = [cpu_seconds(p.pid) - c for p, c in zip(procs, cpu0, strict=True)]

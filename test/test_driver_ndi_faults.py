@@ -5,7 +5,8 @@ command by command and can: freeze BX replies (the same reply, same frame number
 body garbage behind a valid CRC, put NaN into every transform, slow every reply down, and answer ``ERROR0D`` to
 the PINIT of one tool's ROM (what a Vega says to a ROM it refuses). The tests check what an operator sees: the
 ``/diagnostics`` level and message (leaving OK, saying why, coming back to OK only when poses flow), the console
-lines, the exit status -- with liveness bounds only (``wait_for``), never a wall-clock assertion.
+lines, the exit status -- with liveness bounds only (``wait_for``), never a wall-clock assertion. Without faults,
+``/ots/bodies`` is checked against the per-tool topics frame by frame (a tool the emulator hides included).
 """
 
 from __future__ import annotations
@@ -358,6 +359,86 @@ def _max_attempts(seconds: float) -> int:
     return n + 1
 
 
+class FrameListener(SpunNode):
+    """``/ots/bodies`` and every ``/ots/<tool>/{pose,quality}`` message, in arrival order per topic."""
+
+    def __init__(self, context, tools=("tool", "base")) -> None:
+        from geometry_msgs.msg import PoseStamped
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+        from fullperc_msgs.msg import TrackedBodies, TrackingQuality
+
+        super().__init__(context, "ndi_bodies_listener")
+        qos = QoSProfile(depth=2000, reliability=ReliabilityPolicy.RELIABLE)
+        self.got: dict[str, list] = {"/ots/bodies": []}
+        self.node.create_subscription(TrackedBodies, "/ots/bodies", lambda m: self._add("/ots/bodies", m), qos)
+        for t in tools:
+            for what, typ in (("pose", PoseStamped), ("quality", TrackingQuality)):
+                topic = f"/ots/{t}/{what}"
+                self.got[topic] = []
+                self.node.create_subscription(typ, topic, lambda m, topic=topic: self._add(topic, m), qos)
+        self.start()
+
+    def _add(self, topic: str, msg) -> None:
+        with self.lock:
+            self.got[topic].append(msg)
+
+    def stamps(self) -> dict[str, list[int]]:
+        with self.lock:
+            return {k: [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in v] for k, v in self.got.items()}
+
+
+def _bodies_carries_every_frame_as_the_per_tool_topics_do(procs, tmp_path, rclpy_context):
+    """``/ots/bodies``: one TrackedBodies per device frame, whose stamp and frame_id are those of the frame's per-tool
+    messages (matched by stamp), one body per tool in the ``tools`` order, each with its quality's fields and its
+    pose message's pose; ``base``, which the emulator hides, ``visible: false`` with an all-zero pose and no pose
+    message. Compared over the frames every topic has (the listener joins a running stream: its topics match one
+    after another)."""
+    from geometry_msgs.msg import Pose
+
+    drv = start_driver(procs, start_emulator(procs, tmp_path, "--hidden", "base", "--circle", "30"))
+    wait_for_first_line(procs, drv)
+    lis = FrameListener(rclpy_context)
+    watched = ("/ots/bodies", "/ots/tool/pose", "/ots/tool/quality", "/ots/base/quality")
+
+    def window() -> tuple[int, int, int]:   # (first, last) stamp every watched topic got, frames in between
+        st = lis.stamps()
+        if not all(st[k] for k in watched):
+            return 0, -1, 0
+        lo, hi = max(st[k][0] for k in watched), min(st[k][-1] for k in watched)
+        return lo, hi, sum(lo <= t <= hi for t in st["/ots/bodies"])
+
+    try:
+        wait_for(lambda: window()[2] >= 120, timeout=60, what="120 frames on /ots/bodies and the per-tool topics",
+                 detail=lambda: {k: len(v) for k, v in lis.stamps().items()})
+    finally:
+        lis.close()
+    assert drv.poll() is None, procs.log(drv)
+    lo, hi, _ = window()
+    got = {k: [m for m in v if lo <= m.header.stamp.sec * 10**9 + m.header.stamp.nanosec <= hi]
+           for k, v in lis.got.items()}
+    by_stamp = {k: {(m.header.stamp.sec, m.header.stamp.nanosec): m for m in v} for k, v in got.items()}
+    frames = got["/ots/bodies"]
+    assert len(by_stamp["/ots/bodies"]) == len(frames) >= 120   # one message per frame
+    assert set(by_stamp["/ots/bodies"]) == set(by_stamp["/ots/tool/quality"]) == set(by_stamp["/ots/base/quality"])
+    assert by_stamp["/ots/base/pose"] == {}   # hidden
+    for f in frames:
+        key = (f.header.stamp.sec, f.header.stamp.nanosec)
+        assert [b.name for b in f.bodies] == ["tool", "base"]
+        for b in f.bodies:
+            q = by_stamp[f"/ots/{b.name}/quality"][key]
+            assert f.header == q.header and f.header.frame_id == "ots" and f.latency == q.latency
+            assert (b.visible, b.fit_error, b.frame_number, b.markers_used, b.port_status) == \
+                (q.visible, q.fit_error, q.frame_number, q.markers_used, q.port_status), b.name
+            if b.visible:
+                pose = by_stamp[f"/ots/{b.name}/pose"][key]
+                assert pose.header == f.header and b.pose == pose.pose
+            else:
+                assert key not in by_stamp[f"/ots/{b.name}/pose"] and b.pose == Pose()
+        assert f.bodies[0].visible and not f.bodies[1].visible   # tool tracked, base hidden
+    assert len({f.bodies[0].pose.position.x for f in frames}) > 1   # on its circle: the poses are the frames' own
+
+
 def _ctrl_c_over_a_slow_link_exits_0_without_a_traceback(procs, tmp_path, rclpy_context):
     proxy = FaultProxy(start_emulator(procs, tmp_path), delay_s=0.02)
     try:
@@ -387,6 +468,7 @@ scenarios = side_by_side_fixture(
     _a_rom_the_device_refuses_is_named_and_the_other_tool_keeps_tracking,
     _an_unreachable_device_is_explained_on_the_console,
     _ctrl_c_over_a_slow_link_exits_0_without_a_traceback,
+    _bodies_carries_every_frame_as_the_per_tool_topics_do,
     **{f"test_a_garbage_rom_file_stops_the_driver_naming_the_file[{k}]":
        (_a_garbage_rom_file_stops_the_driver_naming_the_file, {"content": content})
        for k, content in GARBAGE_ROMS.items()})
@@ -410,4 +492,8 @@ def test_an_unreachable_device_is_explained_on_the_console(scenarios, request):
 
 
 def test_ctrl_c_over_a_slow_link_exits_0_without_a_traceback(scenarios, request):
+    scenarios.result(request.node.name)
+
+
+def test_bodies_carries_every_frame_as_the_per_tool_topics_do(scenarios, request):
     scenarios.result(request.node.name)

@@ -5,9 +5,11 @@ A thin node around the ROS-free :class:`fullperc_drivers.ndi.driver.NdiDriver`: 
 drains it, publishes, logs and feeds the health ladder (:class:`fullperc_common.health.Health`). For every
 device frame and configured tool it publishes ``<topic_prefix>/<tool>/quality`` (fullperc_msgs/TrackingQuality)
 and, only when the tool is tracked, ``<topic_prefix>/<tool>/pose`` (PoseStamped, frame ``ots``, metres,
-quaternion x y z w). ``header.stamp`` is the frame's acquisition time: the device frame number mapped to the
-host clock (see ``FrameClock``), minus ``device_latency_s``. A missing tool gets ``visible: false`` and no pose
-— never a stale or NaN one.
+quaternion x y z w), and then ``<topic_prefix>/bodies`` (fullperc_msgs/TrackedBodies): every tool of that frame
+in one message, with the stamp, pose and quality fields of its per-tool messages, in the same order. ``header.stamp``
+is the frame's acquisition time: the device frame number mapped to the host clock (see ``FrameClock``), minus
+``device_latency_s``. A missing tool gets ``visible: false`` and no pose — never a stale or NaN one (all zeros in
+``bodies``).
 
 Health (``/diagnostics``, status ``ndi_driver: link``; the rule is in :mod:`fullperc_common.health`): ERROR when
 no new frame arrived for ``health.stale_after_s`` (not connected / reconnecting / frame number frozen), or when
@@ -36,7 +38,7 @@ import os
 import sys
 from pathlib import Path
 
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import Pose, PoseStamped
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
@@ -47,7 +49,7 @@ from fullperc_common.node_main import run_node
 from fullperc_common.params import ParameterError, declare_fixed
 from fullperc_common.share import share_path
 from fullperc_common.subscribers import SubscriberLog
-from fullperc_msgs.msg import TrackingQuality
+from fullperc_msgs.msg import TrackedBodies, TrackedBody, TrackingQuality
 
 from .handoff import Handoff
 from .ndi.driver import DriverConfig, DriverEvent, FrameResult, NdiDriver, ToolConfig
@@ -84,10 +86,15 @@ def tool_topic(prefix: str, tool: str, what: str) -> str:
 
     An empty prefix gives the relative ``<tool>/<what>`` and ``/`` the absolute ``/<tool>/<what>``.
     """
+    return prefix_topic(prefix, f"{tool}/{what}")
+
+
+def prefix_topic(prefix: str, name: str) -> str:
+    """``<prefix>/<name>`` by the rules of :func:`tool_topic` (``bodies``: ``ots/bodies``, ``/bodies`` for ``/``)."""
     head = prefix.rstrip("/")
     if head:
-        return f"{head}/{tool}/{what}"
-    return f"/{tool}/{what}" if prefix.startswith("/") else f"{tool}/{what}"
+        return f"{head}/{name}"
+    return f"/{name}" if prefix.startswith("/") else name
 
 
 class NdiDriverNode(Node):
@@ -141,6 +148,7 @@ class NdiDriverNode(Node):
         self.pose_pubs = {n: self.create_publisher(PoseStamped, tool_topic(prefix, n, "pose"), qos) for n in names}
         self.qual_pubs = {n: self.create_publisher(TrackingQuality, tool_topic(prefix, n, "quality"), qos)
                           for n in names}
+        self.bodies_pub = self.create_publisher(TrackedBodies, prefix_topic(prefix, "bodies"), qos)
         self.where = f"{host}:{port}" if transport == "tcp" else f"{serial_device}@{baud}"
         self.diag = Diagnostics(self, hardware_id=f"ndi {self.where}")
         self.health = Health(names, health_cfg, item_kind="tool", output="pose", frame="frame",
@@ -201,6 +209,9 @@ class NdiDriverNode(Node):
         self.health.frame(fr.frame_number)
         stamp = ros_conv.ns_to_stamp(fr.stamp_ns)
         latency = max(0.0, (fr.recv_ns - fr.stamp_ns) / 1e9)
+        out = TrackedBodies(latency=latency)  # the frame in one message: each tool as its quality (and pose) says
+        out.header.stamp = stamp
+        out.header.frame_id = self.frame_id
         for name, s in fr.tools.items():
             q = TrackingQuality()
             q.header.stamp = stamp
@@ -212,6 +223,7 @@ class NdiDriverNode(Node):
             q.markers_used = s.markers
             q.fit_error = -1.0
             visible = s.visible
+            pose = Pose()  # all zeros unless visible
             if visible:
                 try:
                     msg = ros_conv.pose_stamped(fr.stamp_ns, self.frame_id, s.position_m, s.quat_xyzw)
@@ -221,6 +233,7 @@ class NdiDriverNode(Node):
                     self.health.refused(name, str(e))
                 else:
                     self.pose_pubs[name].publish(msg)
+                    pose = msg.pose
                     self.published += 1
                     self.health.good(name)
                     q.fit_error = float(s.fit_error_m)
@@ -229,6 +242,11 @@ class NdiDriverNode(Node):
                 self.health.refused(name, s.refused)
             q.visible = visible
             self.qual_pubs[name].publish(q)
+            out.bodies.append(TrackedBody(name=name, visible=visible, pose=pose, fit_error=q.fit_error,
+                                          frame_number=q.frame_number, markers_used=q.markers_used,
+                                          port_status=q.port_status))
+        if out.bodies:
+            self.bodies_pub.publish(out)
 
     def _update_diag(self) -> None:
         d = self.driver

@@ -1,5 +1,9 @@
 """``omc_driver``: NOKOV rigid bodies -> ``/omc/<body>/pose`` (PoseStamped, frame ``omc``) + ``/omc/<body>/quality``.
 
+Also ``/omc/bodies`` (fullperc_msgs/TrackedBodies): every body of one device frame in one message -- the stamp, pose
+and quality fields of that frame's per-body messages, in the same order; sent for every frame with at least one
+published body.
+
 Thin ROS layer around the ROS-free core (:mod:`fullperc_drivers.nokov`): a backend thread (SDK callback or
 UDP reader) puts :class:`RawFrame` into a :class:`~fullperc_drivers.handoff.Handoff` and triggers a guard
 condition; the executor drains it, runs :class:`FramePipeline` (dedupe, gaps, mm -> m, capture stamp on the
@@ -18,7 +22,7 @@ from __future__ import annotations
 import sys
 import time
 
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import Pose, PoseStamped
 from rclpy.node import Node
 
 from fullperc_common.diagnostics import Diagnostics
@@ -27,7 +31,7 @@ from fullperc_common.node_main import run_node
 from fullperc_common.params import ParameterError, declare_fixed
 from fullperc_common.ros_conv import ns_to_stamp, pose_stamped
 from fullperc_common.subscribers import SubscriberLog
-from fullperc_msgs.msg import TrackingQuality
+from fullperc_msgs.msg import TrackedBodies, TrackedBody, TrackingQuality
 
 from .clock_sync import ClockSync
 from .handoff import Handoff
@@ -80,6 +84,7 @@ class OmcDriverNode(Node):
         self.handoff: Handoff[RawFrame] = Handoff(maxlen=256, notify=self._gc.trigger)
         self._pose_pubs: dict[str, object] = {}
         self._quality_pubs: dict[str, object] = {}
+        self._bodies_pub = self.create_publisher(TrackedBodies, "omc/bodies", self.qos)
         self.unnamed = 0
         self.publish_errors = 0
         self.refused = 0
@@ -122,6 +127,10 @@ class OmcDriverNode(Node):
     def _publish(self, frame: MocapFrame) -> None:
         self._last_frame_mono = time.monotonic()
         latency = max(0.0, (frame.recv_ns - frame.stamp_ns) * 1e-9)
+        out = TrackedBodies()  # the frame in one message: each body as its quality (and pose) message says
+        out.header.stamp = ns_to_stamp(frame.stamp_ns)
+        out.header.frame_id = self.frame_id
+        out.latency = float(latency)
         for b in frame.bodies:
             if not b.name:
                 self.unnamed += 1
@@ -138,20 +147,28 @@ class OmcDriverNode(Node):
             q.frame_number = int(frame.frame_number) & 0xFFFFFFFF
             q.markers_used = max(0, min(int(b.markers), 65535))
             q.latency = float(latency)
+            pose = Pose()  # all zeros unless visible
             if b.tracked:
                 try:
-                    pose_pub.publish(pose_stamped(frame.stamp_ns, self.frame_id, b.position_m, b.quat_xyzw))
+                    msg = pose_stamped(frame.stamp_ns, self.frame_id, b.position_m, b.quat_xyzw)
                 except ValueError as e:  # refused non-finite pose: report, publish as not visible
                     self.publish_errors += 1
                     q.visible = False
                     self.health.refused(b.name, str(e))
                     self.console(f"refused:{b.name}", f"body {b.name}: {e}")
                 else:
+                    pose_pub.publish(msg)
+                    pose = msg.pose
                     self.health.good(b.name)
             elif b.reason in REFUSED_REASONS:
                 self.refused += 1
                 self.health.refused(b.name, b.reason)
             q_pub.publish(q)
+            out.bodies.append(TrackedBody(name=q.body, visible=q.visible, pose=pose, fit_error=q.fit_error,
+                                          frame_number=q.frame_number, markers_used=q.markers_used,
+                                          port_status=q.port_status))
+        if out.bodies:
+            self._bodies_pub.publish(out)
 
     def _update_diagnostics(self) -> None:
         now = time.monotonic()

@@ -5,7 +5,8 @@ device clock deliberately offset from the host clock, a reported latency, a fram
 lost (tracking flag cleared, then sentinel coordinates), a body not in the ``bodies`` filter, and garbage
 datagrams; it writes the truth (frame number -> capture time on the host clock) to a file, then stops, so
 the test also sees the "stream stopped" diagnosis. A second test runs the node on the SDK backend with the
-compiled C double, and a third checks the clear error for a wrong library path.
+compiled C double, and a third checks the clear error for a wrong library path. Another sender run checks
+``/omc/bodies`` against the per-body topics, frame by frame.
 """
 
 from __future__ import annotations
@@ -90,7 +91,7 @@ def free_udp_port() -> int:
 class Listener:
     """In-test subscriber node collecting the driver's output."""
 
-    def __init__(self, ctx, bodies=("base", "tool")):
+    def __init__(self, ctx, bodies=("base", "tool"), frames: bool = False):
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PoseStamped
         from rclpy.executors import SingleThreadedExecutor
@@ -106,9 +107,14 @@ class Listener:
         self.poses: dict[str, list] = {b: [] for b in bodies}
         self.quality: dict[str, list] = {b: [] for b in bodies}
         self.diag: list = []
+        self.frames: list = []   # /omc/bodies (TrackedBodies), when ``frames``
         for b in bodies:
             self.node.create_subscription(PoseStamped, f"/omc/{b}/pose", self.poses[b].append, qos)
             self.node.create_subscription(TrackingQuality, f"/omc/{b}/quality", self.quality[b].append, qos)
+        if frames:
+            from fullperc_msgs.msg import TrackedBodies
+
+            self.node.create_subscription(TrackedBodies, "/omc/bodies", self.frames.append, qos)
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self.diag.append, 100)
 
     def spin(self, seconds: float = 0.05) -> None:
@@ -259,6 +265,56 @@ def _sdk_backend_across_processes_with_c_double(procs, rclpy_context, tmp_path):
     assert max(abs(m.pose.position.x - 0.5) for m in lis.poses["tool"]) < 1e-6  # 500 mm -> 0.5 m
 
 
+def _bodies_carries_every_frame_as_the_per_body_topics_do(procs, rclpy_context, tmp_path, python_exe):
+    """``/omc/bodies``: one TrackedBodies per device frame, whose stamp and frame_id are those of the frame's per-body
+    messages (matched by stamp), one body per quality message of the frame in the order of the ``bodies`` filter
+    (``ots_rig``, sent but filtered out, absent), each with its quality's fields and its pose message's pose; a lost
+    body (tracking flag cleared, sentinel coordinates) ``visible: false`` with an all-zero pose and no pose message."""
+    from geometry_msgs.msg import Pose
+
+    from fullperc_common.testing import installed_exe, wait_for
+
+    port = free_udp_port()
+    frames = SENTINEL_LOST[1] + 10   # both lost spells of "tool"
+    node = procs.start([installed_exe("fullperc_drivers", "omc_driver"), "--ros-args", "-p", "backend:=stream",
+                        "-p", f"stream_port:={port}", "-p", "bodies:=[base, tool]", "-p", "qos_depth:=1000"])
+    lis = Listener(rclpy_context, frames=True)
+    try:
+        wait_for(lambda: (lis.spin(), lis.node.count_publishers("/omc/bodies") >= 1)[1], timeout=30,
+                 what="omc_driver's /omc/bodies")
+        wait_matched(lis, procs, node)
+        sender = procs.start([python_exe, __file__, "--port", str(port), "--frames", str(frames),
+                              "--rate", "100", "--truth", str(tmp_path / "truth.txt")], name="sender")
+        wait_for(lambda: (lis.spin(), sender.poll() is not None)[1], timeout=60, what="sender to finish")
+        assert sender.returncode == 0, procs.log(sender)
+        wait_for(lambda: (lis.spin(), len(lis.frames) >= frames and len(lis.quality["tool"]) >= frames)[1],
+                 timeout=30, what=f"{frames} frames on /omc/bodies and the quality topics",
+                 detail=lambda: (len(lis.frames), len(lis.quality["tool"])))
+        lis.spin(0.2)   # nothing more may come
+    finally:
+        lis.close()
+    assert len(lis.frames) == frames   # reliable, deep queues: every frame once
+    quality = {b: {_stamp_ns(q): q for q in lis.quality[b]} for b in ("base", "tool")}
+    poses = {b: {_stamp_ns(m): m for m in lis.poses[b]} for b in ("base", "tool")}
+    lost = []
+    for f in lis.frames:
+        t = _stamp_ns(f)
+        assert [b.name for b in f.bodies] == ["base", "tool"], [b.name for b in f.bodies]
+        for b in f.bodies:
+            q = quality[b.name][t]   # the quality message of this body with the frame's stamp
+            assert f.header == q.header and f.header.frame_id == "omc" and f.latency == q.latency
+            assert (b.visible, b.fit_error, b.frame_number, b.markers_used, b.port_status) == \
+                (q.visible, q.fit_error, q.frame_number, q.markers_used, q.port_status), b.name
+            if b.visible:
+                assert poses[b.name][t].header == f.header and b.pose == poses[b.name][t].pose, b.name
+            else:
+                assert t not in poses[b.name] and b.pose == Pose(), b.name
+                lost.append((b.name, q.frame_number))
+    assert [f.bodies[0].frame_number for f in lis.frames] == [frame_number(k) for k in range(frames)]
+    assert lost == [("tool", frame_number(k)) for k in range(frames)
+                    if FLAG_LOST[0] <= k < FLAG_LOST[1] or SENTINEL_LOST[0] <= k < SENTINEL_LOST[1]]
+
+
 def _wrong_sdk_library_path_exits_with_clear_error(procs, tmp_path):
     from fullperc_common.testing import installed_exe, wait_for
 
@@ -299,6 +355,7 @@ if __name__ == "__main__":
 scenarios = side_by_side_fixture(
     _stream_backend_across_processes,
     _sdk_backend_across_processes_with_c_double,
+    _bodies_carries_every_frame_as_the_per_body_topics_do,
     _wrong_sdk_library_path_exits_with_clear_error,
     _shipped_params_file_starts_the_node)
 
@@ -308,6 +365,10 @@ def test_stream_backend_across_processes(scenarios, request):
 
 
 def test_sdk_backend_across_processes_with_c_double(scenarios, request):
+    scenarios.result(request.node.name)
+
+
+def test_bodies_carries_every_frame_as_the_per_body_topics_do(scenarios, request):
     scenarios.result(request.node.name)
 
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from fullperc_drivers.ndi_driver import tool_topic
+from fullperc_drivers.ndi_driver import prefix_topic, tool_topic
 
 PKG = Path(__file__).resolve().parents[1] / "fullperc_drivers"
 NODES = ["omc_driver.py", "ndi_driver.py", "diana_state.py", "node_common.py"]
@@ -30,10 +30,11 @@ def test_topic_names_are_relative(module):
 def test_every_node_makes_its_topics_with_a_literal_or_tool_topic():
     """The scan above sees each node's topics (a name built elsewhere would escape it)."""
     found = {m: NAME_ARG.findall((PKG / m).read_text()) for m in NODES[:3]}
-    assert found["omc_driver.py"] == ['f"omc/{tok}/pose"', 'f"omc/{tok}/quality"']
+    assert found["omc_driver.py"] == ['"omc/bodies"', 'f"omc/{tok}/pose"', 'f"omc/{tok}/quality"']
     assert found["diana_state.py"] == ['"diana/joint_states"', '"diana/flange_pose"', '"diana/tool_pose"']
-    assert found["ndi_driver.py"] == []   # tool_topic(prefix, ...), tested below
+    assert found["ndi_driver.py"] == []   # tool_topic(prefix, ...) and prefix_topic(prefix, ...), tested below
     assert "tool_topic(prefix, n, \"pose\")" in (PKG / "ndi_driver.py").read_text()
+    assert "prefix_topic(prefix, \"bodies\")" in (PKG / "ndi_driver.py").read_text()
 
 
 @pytest.mark.parametrize("module", NODES)
@@ -53,6 +54,7 @@ def test_every_parameter_is_read_only(module):
 ])
 def test_ndi_tool_topic(prefix, topic):
     assert tool_topic(prefix, "tool", "pose") == topic
+    assert prefix_topic(prefix, "bodies") == topic.replace("tool/pose", "bodies")   # the frame's TrackedBodies
 
 
 @pytest.mark.parametrize("config", ["omc.yaml", "diana.yaml", "ndi_vega.yaml", "ndi_spectra.yaml"])

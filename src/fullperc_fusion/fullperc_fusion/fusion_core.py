@@ -70,7 +70,7 @@ from fullperc_fusion.fusion_config import (
     target_config,
 )
 from fullperc_fusion.fusion_health import GLOBAL, LOCAL, TargetHealth
-from fullperc_fusion.fusion_interface import frames_of
+from fullperc_fusion.fusion_interface import frames_of, input_topic
 from fullperc_fusion.fusion_verdict import InputBook, Key, TargetVerdict
 from fullperc_fusion.input_guard import InputGuard, Publisher
 from fullperc_fusion.pipeline.arrival import ArrivalPipeline, make_pipeline
@@ -111,7 +111,6 @@ def check_live(vals: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]:
 
 class CalibrationAnswer(NamedTuple):
     """How a ``~/calibrate`` run ended: the service's answer and the line to log at ``level``."""
-
     ok: bool
     message: str
     level: str
@@ -136,7 +135,7 @@ class FusionCore:
         self.cal_output: str = vals["calibration.output"]
         self.cal_timeout: float = vals["calibration.timeout"]
         self.cal_settings = calibration_settings(vals)
-        self._vals = {k: vals[k] for k in ("local_chain", "init_samples", "static_links")}
+        self._vals = {k: vals[k] for k in ("local_chain", "init_samples", "static_links", "inputs")}
         d = vals["tf.diana_base"]
         self.T_base_diana = None if d is None else pose_to_T((np.asarray(d[:3]), np.asarray(d[3:])))
         health = health_params(vals)
@@ -158,6 +157,7 @@ class FusionCore:
         quality: dict[Key, str] = {}                        # (device tag, target body) -> its quality topic
         for t in self.targets:
             pipe = self.pipes[t] = make_pipeline(target_config(vals, t, self.filters))
+            pipe.defer_side = True   # the side-by-side filters' work after the live outputs (side_outputs)
             c = pipe.config.chain
             extra_tools = "".join(f", {x.name} tool '{ch.cfg.ots_target}'" for x, ch in
                                   zip(pipe.config.sources.extras, pipe.extra_chains, strict=True))
@@ -173,7 +173,8 @@ class FusionCore:
                 self.local_k[r.tag] = r.k
                 for b in r.bodies:
                     routed.setdefault(r.tag, {}).setdefault(b, []).append(t)
-                quality.setdefault((r.tag, r.target), resolve(f"{r.prefix.rstrip('/')}/{r.target}/quality"))
+                quality.setdefault((r.tag, r.target),
+                                   resolve(input_topic(r.prefix, r.target, "quality", vals["inputs"])))
             self.last_rx[t] = {r.tag: None for r in rts}
         self.targets_of = {d: {b: list(dict.fromkeys(ts)) for b, ts in r.items()} for d, r in routed.items()}
         self.quality_topics: dict[Key, str] = quality
@@ -190,8 +191,9 @@ class FusionCore:
 
     # ---- wiring -------------------------------------------------------------------------------------------------
     def pose_topics(self) -> list[tuple[str, str, str]]:
-        """(device tag, body, resolved topic) of every pose stream a target uses, one per topic."""
-        return [(dev, b, self._resolve(f"{self.prefix[dev].rstrip('/')}/{b}/pose"))
+        """(device tag, body, resolved topic) of every pose stream a target uses: one per topic, or with ``inputs:
+        frames`` each source's bodies topic for each of its bodies."""
+        return [(dev, b, self._resolve(input_topic(self.prefix[dev], b, "pose", self._vals["inputs"])))
                 for dev, rt in self.targets_of.items() for b in rt]
 
     def startup_message(self) -> str:
@@ -319,6 +321,10 @@ class FusionCore:
         """The outputs of ``target`` due after an input; ``clock_ns``: the node clock (used with ``clock: host``)."""
         return self.pipes[target].poll(clock_ns if self.needs_clock else None)
 
+    def side_outputs(self, target: str) -> list[FusedOutput]:
+        """The side-by-side outputs whose work waited for the live ones to go out (ArrivalPipeline.side_outputs)."""
+        return self.pipes[target].side_outputs()
+
     def due_outputs(self, now: float, clock_ns: int | None) -> Iterator[tuple[str, list[FusedOutput]]]:
         """The timer's flush policy (module docstring): (target, outputs) of every target with something due."""
         idle = now - self.last_target_rx > self.idle_flush
@@ -327,7 +333,7 @@ class FusionCore:
                 if idle and pipe.pending:
                     yield t, pipe.flush()
                 elif pipe.waiting:   # a sample waiting for its partner: fused once its wait is over
-                    yield t, pipe.poll()
+                    yield t, pipe.poll() + pipe.side_outputs()
                 continue
             if pipe.sync.pending == 0:
                 continue

@@ -26,10 +26,11 @@ from __future__ import annotations
 
 import copy
 import inspect
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from functools import partial
 from typing import Any
 
+import numpy as np
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.parameter import Parameter
@@ -41,7 +42,7 @@ from fullperc_common.executor_choice import adapt_subscription
 from fullperc_common.params import ParameterError, declare
 from fullperc_fusion.fusion_config import BY_NAME, spec
 from fullperc_fusion.fusion_core import LIVE_PARAMS, FusionCore
-from fullperc_fusion.input_cdr import pose_from_cdr
+from fullperc_fusion.input_cdr import bodies_from_cdr, pose_from_cdr, quality_from_cdr
 
 
 def input_qos(vals: dict[str, Any]) -> QoSProfile:
@@ -177,6 +178,88 @@ def input_sample(dev: str, body: str, data: bytes) -> tuple:
     of fusion_node's input batch (``FusionCore.batch_key``), read by :mod:`.input_cdr`."""
     t_ns, p, q = pose_from_cdr(data)
     return t_ns, dev, body, p, q
+
+
+class FrameReader:
+    """Reads the TrackedBodies messages of ``inputs: frames`` (:mod:`.input_cdr`) into what the per-body topics give:
+    a call returns the frame's input-batch items (as :func:`input_sample`'s) of the visible bodies a target uses
+    (``pose_keys``: FusionCore.topic_of's), and keeps the quality records of the bodies whose TrackingQuality the core
+    reads (``quality_keys``: FusionCore.quality_topics') for :meth:`take_qualities` -- the node hands them to the core
+    before the batch's poses, after the publisher check. Other bodies of the frame are skipped."""
+
+    def __init__(self, pose_keys: Iterable[tuple[str, str]], quality_keys: Iterable[tuple[str, str]]) -> None:
+        self.pose_keys, self.quality_keys = set(pose_keys), set(quality_keys)
+        self._qualities: list[tuple] = []
+
+    def __call__(self, dev: str, _body: str, data: bytes) -> list[tuple]:
+        t_ns, bodies = bodies_from_cdr(data)
+        out = []
+        for name, visible, v, fit, number, markers in bodies:
+            if (dev, name) in self.quality_keys:   # the arguments of FusionCore.quality
+                self._qualities.append(((dev, name), number, t_ns, visible, fit, float(markers)))
+            if visible and (dev, name) in self.pose_keys:
+                out.append((t_ns, dev, name, np.array(v[:3]), np.array(v[3:])))
+        return out
+
+    def take_qualities(self) -> list[tuple]:
+        """The quality records read since the last call, in the order read."""
+        got, self._qualities = self._qualities, []
+        return got
+
+
+class Inputs:
+    """fusion_node's input subscriptions (made ``raw``: serialized messages, read by :mod:`.input_cdr`) and their
+    reading. ``per_body`` (``inputs``): a PoseStamped subscription per pose topic of the core and a TrackingQuality one
+    per quality topic (``quality``: key -> subscription, the node's ``on_quality``); ``frames``: one TrackedBodies
+    subscription per source, whose frames give both (:class:`FrameReader`). ``subs``: (device, body -- '' for a
+    frames topic --, subscription) of the inputs that call ``on_input(device, body, data, info)``; ``sub_of``: every
+    input topic -> its subscription."""
+
+    def __init__(self, ep: Endpoints, core: FusionCore, inputs: str, on_input: Callable, on_quality: Callable) -> None:
+        from geometry_msgs.msg import PoseStamped
+
+        from fullperc_msgs.msg import TrackedBodies, TrackingQuality
+
+        frames = inputs == "frames"
+        self.frames = FrameReader(core.topic_of, core.quality_topics) if frames else None
+        self._qualities: list[tuple] = []
+        self.quality_topic = core.quality_topics
+        self.quality = {} if frames else {
+            k: ep.subscription(TrackingQuality, t, partial(on_quality, k), raw=True)
+            for k, t in core.quality_topics.items()}
+        topics = {t: (d, "" if frames else b) for d, b, t in core.pose_topics()}   # topic -> (device, body)
+        self.topic = {v: t for t, v in topics.items()}
+        self.subs = [(d, b, ep.subscription(TrackedBodies if frames else PoseStamped, t, partial(on_input, d, b),
+                                            raw=True)) for t, (d, b) in topics.items()]
+        self.sub_of = {t: s for (*_, s), t in zip(self.subs, topics, strict=True)} | {
+            core.quality_topics[k]: s for k, s in self.quality.items()}
+
+    def read(self, dev: str, body: str, data: bytes) -> list[tuple]:
+        """The input-batch items of one message of ``(dev, body)``'s subscription."""
+        return self.frames(dev, body, data) if self.frames is not None else [input_sample(dev, body, data)]
+
+    def take(self, dev: str, body: str, data: bytes, most: int) -> tuple[list[tuple], set[str]]:
+        """The items of ``data`` (a message of ``(dev, body)``) and of everything queued on every input (at most
+        ``most`` per subscription), unsorted, and the topics they came from. Per body, the quality topics' queues
+        are taken too (:meth:`take_qualities`): a node behind its inputs holds a frame's quality record beside
+        its pose, and fusing the pose first would leave the record to a later callback -- too late once the item
+        has left the history (the sample then fused without its model covariance)."""
+        batch, topics = self.read(dev, body, data), {self.topic[(dev, body)]}
+        for d, b, sub in self.subs:
+            if msgs := take_queued(sub, most):
+                topics.add(self.topic[(d, b)])
+                batch.extend(x for m in msgs for x in self.read(d, b, m))
+        for key, sub in self.quality.items():
+            if msgs := take_queued(sub, most):
+                topics.add(self.quality_topic[key])
+                self._qualities.extend((key, n, t, v, f, float(mk)) for t, v, f, n, mk in map(quality_from_cdr, msgs))
+        return batch, topics
+
+    def take_qualities(self) -> list[tuple]:
+        """The quality records taken since the last call, in the order taken (FusionCore.quality's arguments): the
+        frames' (``frames``), or those :meth:`take` took from the quality topics' queues (``per_body``)."""
+        got, self._qualities = self._qualities, []
+        return got + self.frames.take_qualities() if self.frames is not None else got
 
 
 # ROS type of a parameter declared without a default value (optional ones, empty lists)

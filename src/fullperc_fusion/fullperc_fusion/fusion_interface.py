@@ -31,6 +31,7 @@ from dataclasses import dataclass
 from fullperc_fusion.pipeline.param_table import COUNT, NONEMPTY, NONNEGATIVE, Param, one_of
 
 RELIABILITIES = ("auto", "best_effort", "reliable")
+INPUTS = ("per_body", "frames")
 
 INTERFACE_PARAMS: tuple[Param, ...] = (
     Param("publish_final", True, "bool", None, "", "",
@@ -43,6 +44,10 @@ INTERFACE_PARAMS: tuple[Param, ...] = (
     Param("status_rate", 0.0, "float", *NONNEGATIVE, "Hz",
           "most FusionStatus messages per second per target and filter, by fused stamp (0 = one per fused output); "
           "an output flagged as a hop, or whose link_bumped changed, always goes out"),
+    Param("inputs", "per_body", "str", *one_of(INPUTS), "",
+          "what the node subscribes of each source: per_body = <prefix>/<body>/pose and /quality (any driver); "
+          "frames = <prefix>/bodies (TrackedBodies: every body of one device frame in one message, as fullperc's "
+          "drivers publish it), one message per device frame instead of two per body: less CPU"),
     Param("qos_reliability", "auto", "str", *one_of(RELIABILITIES, "auto, best_effort or reliable"), "",
           "reliability of the input subscriptions: auto = reliable, remade best effort (WARN) when a best-effort "
           "publisher appears on the topic; best_effort matches every publisher but misses are not repaired; reliable "
@@ -92,6 +97,12 @@ def frames_of(vals: dict) -> Frames:
 
 POSES_TOPIC = "fullperc/poses"
 """The relative name of the poses array (``publish_poses``): every target's newest fused pose per wake-up."""
+
+
+def input_topic(prefix: str, body: str, what: str, inputs: str = "per_body") -> str:
+    """The relative name of the input topic of a source (``prefix``) for ``body``'s ``what`` (pose | quality):
+    ``<prefix>/<body>/<what>``, or with ``inputs: frames`` the source's one ``<prefix>/bodies`` (TrackedBodies)."""
+    return f"{prefix.rstrip('/')}/bodies" if inputs == "frames" else f"{prefix.rstrip('/')}/{body}/{what}"
 
 
 def output_topic(target: str, what: str, filter: str = "") -> str:

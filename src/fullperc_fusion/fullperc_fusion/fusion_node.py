@@ -11,6 +11,8 @@ from ``sources``, :mod:`sources`):
   ots/<tool>/pose  for the target's OTS tool and the base tool (PoseStamped, ``ots``)
   <prefix>/<tool>/pose  of every further local source: the target's tool and its base tool
   fullperc/<target>/region (fullperc_msgs/Region, optional: fills FusionStatus.region)
+  with ``inputs: frames`` instead of the per-body pose and quality topics: <prefix>/bodies (TrackedBodies,
+  one message per device frame with every body's pose and quality, as fullperc's drivers publish it)
 Publishes:
   fullperc/<target>/pose      PoseStamped, frame ``base``, stamp = acquisition stamp of the newest sample
   fullperc/<target>/pose_cov  PoseWithCovarianceStamped (same stamp/frame)
@@ -79,14 +81,14 @@ from fullperc_common.params import ParameterError
 from fullperc_common.tf import Broadcaster, StaticBroadcaster, transform_stamped
 from fullperc_fusion.fusion_config import read_values
 from fullperc_fusion.fusion_core import DIAG_EVAL_PERIOD_S, FusionCore, Log
-from fullperc_fusion.fusion_endpoints import Endpoints, declare_row, input_sample, live_parameters
+from fullperc_fusion.fusion_endpoints import Endpoints, Inputs, declare_row, live_parameters
 from fullperc_fusion.fusion_interface import POSES_TOPIC, output_topic
 from fullperc_fusion.fusion_publish import OutputPublisher, PosesPublisher, publish_final, publish_outputs
 from fullperc_fusion.input_cdr import quality_from_cdr
 from fullperc_fusion.input_guard import CHECK_PERIOD_S, gid_hex, node_fqn, service_callers_line
 from fullperc_fusion.pipeline.arrival import ArrivalPipeline
 from fullperc_fusion.pipeline.ordered import FusedOutput
-from fullperc_msgs.msg import FusedPoseArray, FusionStatus, Region, TrackingQuality
+from fullperc_msgs.msg import FusedPoseArray, FusionStatus, Region
 
 
 class FusionNode(Node):
@@ -121,13 +123,7 @@ class FusionNode(Node):
                           for k, v in pubs.items()}
         self._poses = PosesPublisher(ep.publisher(FusedPoseArray, POSES_TOPIC) if vals["publish_poses"] else None,
                                      core.frames.base, core.targets, core.publish_error)
-        self._quality_subs = {key: ep.subscription(TrackingQuality, topic, partial(self._on_quality, key), raw=True)
-                              for key, topic in core.quality_topics.items()}
-        self._input_subs: list[tuple[str, str, object]] = [
-            (dev, b, ep.subscription(PoseStamped, topic, partial(self._on_input, dev, b), raw=True))
-            for dev, b, topic in core.pose_topics()]
-        self._sub_of = {core.topic_of[(d, b)]: s for d, b, s in self._input_subs} | {
-            core.quality_topics[k]: s for k, s in self._quality_subs.items()}   # input topic -> its subscription
+        self._in = Inputs(ep, core, vals["inputs"], self._on_input, self._on_quality)   # subscriptions, reading
         self._pub_counts: dict[str, int] = {}   # input topic -> its publisher count at the last check
         self.create_service(Trigger, "~/initialize", self._on_initialize)
         # own (reentrant) group: the answer waits for the collection, and the default group's callbacks (the data)
@@ -168,20 +164,26 @@ class FusionNode(Node):
     def _on_input(self, dev: str, body: str, data: bytes, info) -> None:
         """One executor callback: this message plus everything queued on every input, in stamp order (a link
         body's sample before a target sample of the same stamp: the same device frame, mapped with it), taken
-        serialized and read by input_cdr (no Python message per sample). ``info``: rclpy's message info (a required
-        argument, so rclpy passes it), for the callback delay."""
+        serialized and read by input_cdr (no Python message per sample); with ``inputs: frames`` each message is a
+        source's TrackedBodies. The quality records taken with it (the frames', or the queued ones of the quality
+        topics) go to the core first. ``info``: rclpy's message info (a required argument, so rclpy passes it),
+        for the callback delay."""
         wall = time.time_ns()
-        batch = [input_sample(dev, body, data)]
-        for d, b, sub in self._input_subs:
-            batch.extend(input_sample(d, b, m) for m in take_queued(sub, self._take_max))
+        batch, topics = self._in.take(dev, body, data, self._take_max)   # this message and everything queued
         batch.sort(key=self.core.batch_key)
-        changed = self._guard_inputs({self.core.topic_of[(d, b)] for _, d, b, *_ in batch})   # before fusing any
+        changed = self._guard_inputs(topics)   # before fusing any
         touched: set[str] = set()
         now, clock_ns = time.monotonic(), self.get_clock().now().nanoseconds   # time guard: 0 = sim time not started
+        for args in self._in.take_qualities():   # the quality records taken with the batch, before its poses
+            self.core.quality_rx(args[0], now)
+            self.core.quality(*args)
         for t_ns, d, b, p, q in batch:
             touched.update(self.core.on_pose(d, b, t_ns, p, q, now, clock_ns))
-        for t in touched:
+        for t in touched:   # the live outputs first, then the side-by-side filters' deferred work and outputs
             self._publish(t, self.core.poll(t, self._host_ns()))
+        self._flush_wakeup()
+        for t in touched:
+            self._publish(t, self.core.side_outputs(t))
             self._publish_final(t)
             self._log(self.core.watch_links(t, time.monotonic()))
         self._flush_wakeup()
@@ -194,11 +196,10 @@ class FusionNode(Node):
         self._diag.publish_if_overdue()
 
     def _on_quality(self, key: tuple[str, str], data: bytes) -> None:
-        """This quality message and every one queued behind it (one executor round each would fall behind), taken
-        serialized and read by input_cdr."""
+        """This quality message and every one queued behind it, taken serialized and read by input_cdr."""
         self.core.quality_rx(key, time.monotonic())
         changed = self._guard_inputs([self.core.quality_topics[key]])
-        for m in [data, *take_queued(self._quality_subs[key], self._take_max)]:
+        for m in [data, *take_queued(self._in.quality[key], self._take_max)]:
             t_ns, visible, fit_error, number, markers = quality_from_cdr(m)
             self.core.quality(key, number, t_ns, visible, fit_error, float(markers))
         self._settle_inputs(changed)
@@ -207,7 +208,7 @@ class FusionNode(Node):
         """Publishers of ``topics`` (a callback's: read if their count changed or a name is unknown; None: all) to the
         guard; a topic acceptable again loses its queue (received while closed). True: one closed (or reopened)."""
         now, guard, logs = time.monotonic(), self.core.guard, []
-        for topic in self._sub_of if topics is None else topics:
+        for topic in self._in.sub_of if topics is None else topics:
             n = self.count_publishers(topic)
             if topics is not None and n == self._pub_counts.get(topic) and not guard.unresolved(topic):
                 guard.touch(topic, now)
@@ -216,7 +217,7 @@ class FusionNode(Node):
             logs += self.core.publishers_seen(topic, [(node_fqn(i.node_namespace, i.node_name), gid_hex(
                 i.endpoint_gid)) for i in self.get_publishers_info_by_topic(topic)], now)
         for topic in guard.draining():
-            guard.drop(topic, len(take_queued(self._sub_of[topic], 1_000_000)))
+            guard.drop(topic, len(take_queued(self._in.sub_of[topic], 1_000_000)))
         self._log(logs)
         return any(level != "info" for level, _ in logs)
 
@@ -231,13 +232,13 @@ class FusionNode(Node):
         """Shutdown (run_node, before it waits for the readers' acks): fuse and publish what the inputs still queue
         -- a node behind its inputs at SIGINT dropped that tail --, flush every history as final, and publish the
         final /diagnostics (lost samples settled)."""
-        while first := next(((d, b, m[0]) for d, b, s in self._input_subs if (m := take_queued(s, 1))), None):
+        while first := next(((d, b, m[0]) for d, b, s in self._in.subs if (m := take_queued(s, 1))), None):
             self._on_input(*first, None)
         for t, outs in self.core.flush_all():
             self._publish(t, outs)
             self._publish_final(t)
         self._flush_wakeup()
-        for key, sub in self._quality_subs.items():
+        for key, sub in self._in.quality.items():
             while m := take_queued(sub, 1):
                 self._on_quality(key, m[0])
         self.core.end_of_streams()   # nothing more comes: the last /diagnostics settles every count

@@ -142,9 +142,10 @@ class InputBook:
                  work_ns: int | None = None) -> None:
         """One input callback took ``batch`` ((stamp_ns, device, body, ...) in stamp order); ``delay_ns``: from the
         reception of its first sample to the callback; ``clock_ns``: the node clock after fusing (0: not started);
-        ``work_ns``: from the callback's start until its outputs were published."""
-        lag = clock_ns - batch[-1][0] if clock_ns else None
-        self.load.callback(len(batch) - 1, delay_ns, lag, work_ns)
+        ``work_ns``: from the callback's start until its outputs were published. An empty batch (``inputs: frames``:
+        frames without a visible body the node uses) knows no lag."""
+        lag = clock_ns - batch[-1][0] if clock_ns and batch else None
+        self.load.callback(max(0, len(batch) - 1), delay_ns, lag, work_ns)
         self.behind_ns = lag or 0
         self.callback_at = now
         for t_ns, dev, body, *_ in batch:

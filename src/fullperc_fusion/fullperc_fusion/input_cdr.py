@@ -16,10 +16,15 @@ TrackingQuality: the same header, then ``body`` (uint32 length aligned to 4, the
 (one byte, 0 or 1), ``fit_error`` (float32, aligned to 4), ``frame_number`` (uint32), ``markers_used`` (uint16),
 ``latency`` (float32, aligned to 4), ``port_status`` (uint32), the record ending there.
 
+TrackedBodies (``inputs: frames``): the same header, ``latency`` (float32, aligned to 4), the number of bodies
+(uint32), then per body: ``name`` (uint32 length aligned to 4, the bytes with their NUL), ``visible`` (one byte),
+``pose`` (7 float64, aligned to 8), ``fit_error`` (float32), ``frame_number`` (uint32), ``markers_used`` (uint16),
+``port_status`` (uint32, aligned to 4); the record ends after the last body.
+
 A record off its layout (big-endian CDR, encapsulation options, a length that does not add up, a string without its
-NUL, a bool byte other than 0 or 1) is not guessed at: :func:`pose_from_cdr` and :func:`quality_from_cdr` give it to
-rclpy's deserializer, which accepts or rejects it as before. The values are the deserializer's bit for bit
-(``test_input_cdr.py`` compares them over random messages).
+NUL, a bool byte other than 0 or 1) is not guessed at: :func:`pose_from_cdr`, :func:`quality_from_cdr` and
+:func:`bodies_from_cdr` give it to rclpy's deserializer, which accepts or rejects it as before. The values are the
+deserializer's bit for bit (``test_input_cdr.py``, ``test_input_cdr_bodies.py`` compare them over random messages).
 """
 
 from __future__ import annotations
@@ -34,6 +39,9 @@ _POSE = struct.Struct("<7d")      # position xyz, orientation xyzw
 POSE_BYTES = _POSE.size
 _U32 = struct.Struct("<I")
 _QUALITY = struct.Struct("<fIH")  # fit_error, frame_number, markers_used (at the aligned fit_error)
+_BODY_TAIL = struct.Struct("<7dfIH")   # pose, fit_error, frame_number, markers_used (at the aligned pose)
+BodySample = tuple[str, bool, tuple[float, ...], float, int, int]   # name, visible, pose (p xyz, q xyzw), fit_error,
+#                                                                     frame_number, markers_used
 
 
 def cdr_align(off: int, a: int) -> int:
@@ -115,3 +123,52 @@ def quality_from_cdr(data: bytes) -> tuple[int, bool, float, int, int]:
 
     m = deserialize_message(data, TrackingQuality)
     return stamp_to_ns(m.header.stamp), bool(m.visible), float(m.fit_error), int(m.frame_number), int(m.markers_used)
+
+
+def bodies_fields(data: bytes) -> tuple[int, list[BodySample]] | None:
+    """(stamp [ns], one :data:`BodySample` per body) of a TrackedBodies in the fixed little-endian layout (module
+    docstring); None for any other record."""
+    if len(data) < 25 or data[:4] != CDR_LE:
+        return None
+    sec, nsec, n = _HEAD.unpack_from(data, 4)
+    off = cdr_align(16 + n, 4) + 4   # after the string and latency: the number of bodies
+    if n < 1 or off + 4 > len(data) or data[15 + n] != 0:
+        return None
+    (count,) = _U32.unpack_from(data, off)
+    off += 4
+    bodies: list[BodySample] = []
+    for _ in range(count):
+        off = cdr_align(off, 4)
+        if off + 4 > len(data):
+            return None
+        (b,) = _U32.unpack_from(data, off)
+        vis = off + 4 + b
+        pose = cdr_align(vis + 1, 8)
+        end = pose + _BODY_TAIL.size
+        if b < 1 or end > len(data) or data[vis - 1] != 0 or data[vis] > 1:
+            return None
+        name = data[off + 4:vis - 1].decode("utf-8", "replace")
+        *p, fit, number, markers = _BODY_TAIL.unpack_from(data, pose)
+        bodies.append((name, data[vis] == 1, tuple(p), fit, number, markers))
+        off = cdr_align(end, 4) + 4   # port_status
+    if off != len(data):
+        return None
+    return sec * 1_000_000_000 + nsec, bodies
+
+
+def bodies_from_cdr(data: bytes) -> tuple[int, list[BodySample]]:
+    """:func:`bodies_fields` of a serialized TrackedBodies, a record off the layout through rclpy's deserializer
+    (whose error, for a record it cannot read, propagates as before)."""
+    got = bodies_fields(data)
+    if got is not None:
+        return got
+    from rclpy.serialization import deserialize_message
+
+    from fullperc_common.ros_conv import stamp_to_ns
+    from fullperc_msgs.msg import TrackedBodies
+
+    m = deserialize_message(data, TrackedBodies)
+    return stamp_to_ns(m.header.stamp), [
+        (b.name, bool(b.visible), (b.pose.position.x, b.pose.position.y, b.pose.position.z, b.pose.orientation.x,
+                                   b.pose.orientation.y, b.pose.orientation.z, b.pose.orientation.w),
+         float(b.fit_error), int(b.frame_number), int(b.markers_used)) for b in m.bodies]

@@ -30,6 +30,12 @@ Namespaces and QoS (issue 39):
   --shift DX              the target's path DX m further along base x (two namespaces, two different poses)
   --best-effort           publish best effort (the sensor-data profile's reliability), not reliable
 
+Frames (fusion_node ``inputs: frames``):
+  --frames                also publish every device frame as one omc/bodies / ots/bodies (TrackedBodies: the
+                          frame's bodies in publishing order, fit_error 2e-4 m (OMC) / 1e-4 m (OTS), markers 4,
+                          frame number the frame's index) and the tool's omc/tool/quality and ots/tool/quality
+                          (TrackingQuality, the same values): a per-body node and a frames node get the same input
+
 Run: python synthetic_driver_pub.py --log out.jsonl [--duration 4] [--bad] [--extra-bodies probe,broken]
      [--omc-jump tool:2.0:1.0] [--omc-nan broken:1.0]
 """
@@ -88,6 +94,27 @@ def msg(stamp_ns: int, frame: str, p, q) -> PoseStamped:
     return m
 
 
+def flush_frames(pubs: dict, frames: dict, number: int) -> None:
+    """--frames: one TrackedBodies per device frame gathered (and emptied from ``frames``), and its tool's
+    TrackingQuality (the same values as the frame's entry for the tool)."""
+    from fullperc_msgs.msg import TrackedBodies, TrackedBody, TrackingQuality
+
+    for (dev, ns), bodies in sorted(frames.items(), key=lambda kv: kv[0][1]):
+        fit = 2e-4 if dev == "omc" else 1e-4
+        m = TrackedBodies(latency=0.002)
+        m.header = msg(ns, dev, (0, 0, 0), (0, 0, 0, 1)).header
+        for body, p, q in bodies:
+            b = TrackedBody(name=body, visible=True, fit_error=fit, frame_number=number, markers_used=4)
+            b.pose = msg(ns, dev, p, q).pose
+            m.bodies.append(b)
+            if body == "tool":
+                qm = TrackingQuality(header=m.header, body=body, visible=True, fit_error=fit, frame_number=number,
+                                     markers_used=4, latency=0.002)
+                pubs[f"{dev}/tool/quality"].publish(qm)
+        pubs[f"{dev}/bodies"].publish(m)
+    frames.clear()
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--log", required=True)
@@ -108,6 +135,7 @@ def main() -> int:
     ap.add_argument("--ns", default="")
     ap.add_argument("--shift", type=float, default=0.0)
     ap.add_argument("--best-effort", action="store_true")
+    ap.add_argument("--frames", action="store_true")
     a = ap.parse_args()
     future = tuple(float(x) for x in a.future.split(":")) if a.future else None
     pause = tuple(float(x) for x in a.pause.split(":")) if a.pause else None
@@ -125,6 +153,11 @@ def main() -> int:
         ("omc/base/pose", "omc/ots_rig/pose", "omc/tool/pose", "ots/base/pose", "ots/tool/pose",
          *(f"omc/{b}/pose" for b in extra))
     pubs = {k: node.create_publisher(PoseStamped, k, qos) for k in topics}
+    if a.frames:
+        from fullperc_msgs.msg import TrackedBodies, TrackingQuality
+        pubs |= {f"{d}/bodies": node.create_publisher(TrackedBodies, f"{d}/bodies", qos) for d in ("omc", "ots")}
+        pubs |= {f"{d}/tool/quality": node.create_publisher(TrackingQuality, f"{d}/tool/quality", qos)
+                 for d in ("omc", "ots")}
     end = time.monotonic() + a.wait
     while time.monotonic() < end and any(p.get_subscription_count() == 0 for p in pubs.values()):
         rclpy.spin_once(node, timeout_sec=0.05)
@@ -137,10 +170,14 @@ def main() -> int:
     link_rng = np.random.default_rng(1)   # its own stream: without --link-noise the other samples are unchanged
     log = open(a.log, "w")  # noqa: SIM115 - closed below
 
+    frames: dict[tuple[str, int], list] = {}   # --frames: (device, stamp) -> the bodies published, in order
+
     def pub(topic, kind, body, ns, frame, p, q, **flags):
         if topic not in pubs:
             return
         pubs[topic].publish(msg(ns, frame, p, q))
+        if a.frames:
+            frames.setdefault((frame, ns), []).append((body, p, q))
         log.write(json.dumps({"kind": kind, "body": body, "t_ns": ns, "p": [float(v) for v in p], **flags}) + "\n")
 
     def seen(T, sig_p, sig_r):
@@ -217,6 +254,7 @@ def main() -> int:
                     pub("ots/tool/pose", "ots", "tool", ns_l, "ots", pl, 1.5 * ql, bad="nonunit")
                 else:
                     pub("ots/tool/pose", "ots", "tool", ns_l, "ots", pl, ql)
+        flush_frames(pubs, frames, k)
         rclpy.spin_once(node, timeout_sec=0)
         last_ns, last_p, last_q = ns, p, q
         k += 1
@@ -227,6 +265,7 @@ def main() -> int:
             rclpy.spin_once(node, timeout_sec=0.05)
         pub("omc/tool/pose", "omc", "tool", back_ns, "omc", last_p, last_q, bad="backwards",
             node_final_ns=final_max[0])
+        flush_frames(pubs, frames, k)
     log.write(json.dumps({"kind": "meta", "t0_ns": t0_ns}) + "\n")
     log.close()
     time.sleep(1.0)   # keep the publishers alive until reliable delivery completed

@@ -37,7 +37,11 @@ Filters: two lanes (:class:`~.lane.FilterLane`). Only the primary filter (``filt
 is fused on arrival and replayed. The side-by-side filters (the others, for comparison; the lane ``side``) are
 fused when an item leaves the history, in stamp order like ordered processing -- no replay, so they cost what they
 cost in ordered processing (replaying every filter would nearly double the node's CPU with the paper's four beside
-the primary) -- and their outputs are final, ``history`` behind; their counters and problems are not kept.
+the primary) -- and their outputs are final, ``history`` behind; their counters and problems are not kept. With
+``defer_side`` (fusion_node) that work waits until :meth:`ArrivalPipeline.side_outputs` asks for it, which the node
+does once the wake-up's live outputs are published, or until the next fusion, whichever comes first: with every
+filter side by side the primary's latency no longer includes them (``bench/bench_e2e_latency.py``), and the results
+are the same bit for bit (``test_arrival_defer.py``); only when they are computed moves.
 
 Outputs. :meth:`poll` returns, in stamp order, the primary filter's outputs of every item (re)processed since the
 last poll whose stamp is newer than the last one returned: the live estimate, stamps strictly increasing (what
@@ -87,11 +91,12 @@ def _stream(item: SyncItem) -> int:
 class ArrivalPipeline(TargetPipeline):
     """:class:`TargetPipeline` with processing on arrival; see the module docstring. Same input API."""
 
-    CONSTANT = (*TargetPipeline.CONSTANT, "_resolve_ns")
+    CONSTANT = (*TargetPipeline.CONSTANT, "_resolve_ns", "defer_side")   # defer_side: set once, before any input
     LANES = ("lane", "side")   # the live lane (rewound: each history entry holds its snapshot) and the side-by-side
     # the rewind's own bookkeeping, kept by it: the stamp rules (the samples taken stay taken; a rewind pairs them
     # again), the history, the outputs not handed out yet, the views of the static links
-    KEPT = (*TargetPipeline.KEPT, "rules", "history", "outbox", "views", "hold")   # hold: samples not fused yet
+    # hold: samples not fused yet; _side_due: items out of the history whose side-by-side work waits (defer_side)
+    KEPT = (*TargetPipeline.KEPT, "rules", "history", "outbox", "views", "hold", "_side_due")
 
     def __init__(self, config: TargetConfig) -> None:
         super().__init__(config)
@@ -107,6 +112,8 @@ class ArrivalPipeline(TargetPipeline):
         self.views = LinkViews([self.chain, *self.extra_chains])
         self.hold = PartnerHold(config.slop_ns, config.partner_wait_ns)
         self._resolve_ns = 2 * config.slop_ns + config.delay_ns
+        self.defer_side = False   # fusion_node: the side-by-side lane's work waits for side_outputs (docstring)
+        self._side_due: list[Entry] = []
 
     def lanes(self) -> tuple[FilterLane, ...]:
         return self.lane, self.side
@@ -174,7 +181,9 @@ class ArrivalPipeline(TargetPipeline):
 
     def _fuse(self, batch: list[tuple[int, int, object]]) -> None:
         """Fuse the samples ``(stream, t, payload)`` of ``batch``, admitted by the stamp rules: paired again with
-        the history's samples near them, in one re-pairing, and fused from the first item they change on."""
+        the history's samples near them, in one re-pairing, and fused from the first item they change on. Deferred
+        side-by-side work comes first: it never waits past the next fusion, so it sees the state it saw undeferred."""
+        self._commit_due()
         h = self.history
         k = h.index(min(t for _, t, _ in batch) - 2 * self.config.slop_ns)
         old, names = h.entries[k:], self.rules.names
@@ -214,6 +223,7 @@ class ArrivalPipeline(TargetPipeline):
         self._release(everything=True)   # what waits belongs to the old timeline
         self.hold.restart()
         self._resolve_and_commit(everything=True)
+        self._commit_due()   # the old timeline's side-by-side work, before the reset
         # the live outputs not yet polled belong to the old timeline: gated against it now and handed out first by
         # the next poll; left in fresh, the hour-ahead one would go out after the new timeline's outputs of the
         # same poll and hold back every later output (stamps an hour older) for good
@@ -293,15 +303,37 @@ class ArrivalPipeline(TargetPipeline):
         n = 0
         while n < len(h) and (everything or h.entries[n].te < newest - self.rules.history_ns):
             e = h.entries[n]
-            if self.side.filters:
-                side = self._side_by_side(e)
-                e.outs = e.outs + side
-                self.outbox.committed.extend(side)
-            self.outbox.final.extend(e.outs)
+            if self.defer_side and self.side.filters:
+                if e.view is None:   # the links it would have been fused with now
+                    e.view = self.views.current
+                self._side_due.append(e)
+            else:
+                self._commit(e)
             self.rules.release(e.item)
             n += 1
         if n:
             h.drop_front(n)
+
+    def _commit(self, e: Entry) -> None:
+        """An item that left the history: the side-by-side lane on it; its outputs final."""
+        if self.side.filters:
+            side = self._side_by_side(e)
+            e.outs = e.outs + side
+            self.outbox.committed.extend(side)
+        self.outbox.final.extend(e.outs)
+
+    def side_outputs(self) -> list[FusedOutput]:
+        """With ``defer_side``: the side-by-side lane on the items that left the history since the last call, in
+        stamp order, and its outputs (what :meth:`poll` would have returned with the live ones). Their final outputs
+        are :meth:`take_final`'s from then on. Without: nothing (the work was done as the items left)."""
+        self._commit_due()
+        out, self.outbox.committed = self.outbox.committed, []
+        return out
+
+    def _commit_due(self) -> None:
+        due, self._side_due = self._side_due, []
+        for e in due:
+            self._commit(e)
 
     def _side_by_side(self, e: Entry) -> list[FusedOutput]:
         """The side-by-side lane on a final item, in stamp order as ordered processing does, mapped with the links
@@ -330,6 +362,7 @@ class ArrivalPipeline(TargetPipeline):
         (:meth:`take_final`); returns the live outputs."""
         self._release(everything=True)
         self._resolve_and_commit(everything=True)
+        self._commit_due()
         return self.poll()
 
     def take_final(self) -> list[FusedOutput]:
@@ -338,8 +371,9 @@ class ArrivalPipeline(TargetPipeline):
 
     @property
     def pending(self) -> int:
-        """Items in the history (fused, not final yet) and samples waiting for their partner."""
-        return len(self.history) + len(self.hold)
+        """Items in the history (fused, not final yet or their side-by-side work deferred) and samples waiting for
+        their partner."""
+        return len(self.history) + len(self.hold) + len(self._side_due)
 
     def stats(self) -> dict:
         d = super().stats()

@@ -349,6 +349,10 @@ class TargetPipeline:
                 self.counts["link_bumped_checks"] += 1
 
     # ---- output -----------------------------------------------------------------------------
+    def side_outputs(self) -> list[FusedOutput]:
+        """Deferred side-by-side outputs (:meth:`.arrival.ArrivalPipeline.side_outputs`): none in ordered processing."""
+        return []
+
     def poll(self, now_ns: int | None = None) -> list[FusedOutput]:
         """Process every synchronizer item that is final at ``now_ns`` (default: newest stamp seen)."""
         return self._process(self.poll_items(now_ns))
