@@ -167,7 +167,7 @@ class NdiDriverNode(Node):
         logging.getLogger("fullperc.ndi").addHandler(logging.NullHandler())
         self.driver = NdiDriver(self.cfg, on_frame=self.handoff.put, on_event=self.handoff.put)
         self._health_timer = self.create_timer(HEALTH_PERIOD_S, self._update_diag)
-        self.subscribers = SubscriberLog(self, lambda: self.pose_pubs)
+        self.subscribers = SubscriberLog(self, lambda: {**self.pose_pubs, "": self.bodies_pub})   # bodies too
         self._update_diag()
         self.driver.start()
         self.get_logger().info(f"NDI driver: {transport} {self.where}, tools {names}, {mode} {option:04X}")

@@ -103,7 +103,7 @@ class OmcDriverNode(Node):
         for name in sorted(self.bodies or ()):
             self._pubs_for(name)  # explicit bodies: topics exist before the first frame
         self._diag_timer = self.create_timer(min(diag_period, HEALTH_PERIOD_S), self._update_diagnostics)
-        self.subscribers = SubscriberLog(self, lambda: self._pose_pubs)
+        self.subscribers = SubscriberLog(self, lambda: {**self._pose_pubs, "": self._bodies_pub})   # bodies too
         self._update_diagnostics()
 
     # ---- executor side ----------------------------------------------------------------------------

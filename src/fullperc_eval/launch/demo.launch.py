@@ -48,7 +48,7 @@ def generate_launch_description():
                   parameters=[{"filter": "cbkf", "filters": ["ckf", "bkf", "kf", "omc"],
                                "calibration_file": C("calibration_file"), "targets": ["tool", "instrument"],
                                "instrument.motion": "hand", "qos_depth": 10000, "history": 3.0,
-                               "reorder_delay": 2.5}],   # demo_graph.yaml says why
+                               "reorder_delay": 2.5, "inputs": "frames"}],   # demo_graph.yaml says why
                   # at SIGINT it fuses what its input queues still hold (demo_graph.yaml's grace)
                   sigterm_timeout="30")
     margin = Node(package="fullperc_fusion", executable="margin_node", name="margin_node",

@@ -203,3 +203,18 @@ def test_the_bringup_graph_offers_no_rom_and_loads_only_with_every_device_named(
         assert "{diana_library}" in str(e)
     else:
         raise AssertionError("diana_state started without its library")
+
+
+def test_fusion_node_reads_the_drivers_frames_in_graph_and_launch_file():
+    """The demo's fusion_node reads /omc/bodies and /ots/bodies (``inputs: frames``) in both descriptions, and the
+    graph starts the task only once the drivers see it matched on them."""
+    assert _graph_fusion_params()["inputs"] == "frames"
+    tree = ast.parse((PKG / "launch" / "demo.launch.py").read_text())
+    fusion = next(n for n in ast.walk(tree) if isinstance(n, ast.Call) and getattr(n.func, "id", "") == "Node"
+                  and any(k.arg == "executable" and k.value.value == "fusion_node" for k in n.keywords))
+    params = next(k.value for k in fusion.keywords if k.arg == "parameters").elts[0]
+    launch = {k.value: v for k, v in zip(params.keys, params.values, strict=True) if isinstance(k, ast.Constant)}
+    assert launch["inputs"].value == "frames"
+    procs = {p["name"]: p for p in yaml.safe_load((PKG / "config" / "demo_graph.yaml").read_text())["processes"]}
+    assert "subscribers on /omc/bodies: [1-9]" in procs["omc"]["ready"]["log"]
+    assert "subscribers on /ots/bodies: [1-9]" in procs["ndi"]["ready"]["log"]

@@ -195,11 +195,10 @@ def test_every_recorded_topic_has_a_publishing_enclave(generated: dict[str, Node
 
 @pytest.mark.system
 def test_each_node_may_read_its_inputs(generated: dict[str, NodeAccess]) -> None:
-    fusion = generated["/fullperc/fusion_node"].subscribe
-    for t in ("tool", "instrument"):
-        assert {f"/omc/{t}/pose", f"/ots/{t}/pose", f"/omc/{t}/quality", f"/ots/{t}/quality",
-                f"/fullperc/{t}/region"} <= fusion, sorted(fusion)
-    assert {"/omc/base/pose", "/ots/base/pose"} <= fusion
+    fusion = generated["/fullperc/fusion_node"].subscribe   # the demo's fusion_node reads the frames (inputs: frames)
+    assert {"/omc/bodies", "/ots/bodies", "/fullperc/tool/region", "/fullperc/instrument/region"} <= fusion, \
+        sorted(fusion)
+    assert not {t for t in fusion if t.endswith(("/pose", "/quality"))}, sorted(fusion)
     margin = generated["/fullperc/margin_node"].subscribe
     assert {"/fullperc/tool/pose", "/fullperc/instrument/pose", "/omc/base/pose"} <= margin, sorted(margin)
     assert {"/fusion_node/calibrate", "/fusion_node/initialize"} <= generated["/fullperc/fusion_node"].reply
@@ -220,6 +219,7 @@ def test_a_pose_topic_has_one_publishing_enclave(generated: dict[str, NodeAccess
             assert len(paths) == 1, (topic, paths)
     assert owners["/omc/tool/pose"] == {"/fullperc/omc_driver"}
     assert owners["/ots/tool/pose"] == {"/fullperc/ndi_driver"}
+    assert owners["/omc/bodies"] == {"/fullperc/omc_driver"} and owners["/ots/bodies"] == {"/fullperc/ndi_driver"}
     assert owners["/fullperc/tool/pose"] == {"/fullperc/fusion_node"}
     # every topic some node reads has a publishing enclave in the graph (no permission for a topic nobody sends)
     read = set().union(*(a.subscribe for a in generated.values())) - {"/parameter_events"}
