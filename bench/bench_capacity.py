@@ -16,6 +16,9 @@ Raw baseline (same run): ``raw_dds_p99_ms``, the p99 of the publisher's /omc/t0/
 median over the steps) -- a count has no ratio to a latency, so it is a field, not ``baseline``.
 each with the per-step results (lost, p99, publisher's achieved rates, the node's drop counters) in ``steps``.
 
+Input dimension: ``capacity_targets[inputs=frames]`` (and ``_2proc``) the same searches with the nodes on
+``inputs: frames`` and the publisher sending each device frame as one TrackedBodies besides (``e2e_publisher.py
+--frames``: one OMC message carries the base and every target), events executor only.
 Executor dimension: each figure is printed once per executor of the nodes (``executor``: ``events`` = the
 EventsExecutor, fusion_node's default; ``single`` = rclpy's SingleThreadedExecutor, the baseline;
 fullperc_common.executor_choice). The searches run REPEATS times, the executors alternating within a repeat
@@ -23,7 +26,7 @@ fullperc_common.executor_choice). The searches run REPEATS times, the executors 
 repeats' capacities, ``runs`` lists each, every step carries the load averages of its run.
 Run: python bench/bench_capacity.py   (FULLPERC_BENCH_CAP_S: seconds per step, default 6;
 FULLPERC_BENCH_CAP_STEPS: e.g. "1,2,4,8,12,16"; FULLPERC_BENCH_EXECUTORS: default "events,single";
-FULLPERC_BENCH_REPEATS: default 3)
+FULLPERC_BENCH_REPEATS: default 3; FULLPERC_BENCH_CAP_FRAMES=0: no frames searches)
 """
 
 from __future__ import annotations
@@ -45,13 +48,16 @@ P99_MAX_MS = 5.0
 MIN_RATE = 0.95      # the publisher must reach this share of the device rates, else the step says so
 EXECUTORS = [e for e in os.environ.get("FULLPERC_BENCH_EXECUTORS", "events,single").split(",") if e]
 REPEATS = int(os.environ.get("FULLPERC_BENCH_REPEATS", "3"))
+FRAMES = int(os.environ.get("FULLPERC_BENCH_CAP_FRAMES", "1"))   # 0: no frames searches
 
 
-def step(n: int, procs: int, executor: str) -> dict:
+def step(n: int, procs: int, executor: str, frames: bool = False) -> dict:
     targets = [f"t{k}" for k in range(n)]
     parts = [targets[i::procs] for i in range(procs) if targets[i::procs]]
+    extra = ["-p", "inputs:=frames"] if frames else []
     try:
-        res = run_live([target_params(p) for p in parts], targets, None, DURATION, executor=executor)
+        res = run_live([target_params(p) + extra for p in parts], targets, None, DURATION, executor=executor,
+                       frames=frames)
     except (RuntimeError, subprocess.TimeoutExpired) as e:     # e.g. nodes never subscribed: the step failed
         return {"targets": n, "processes": len(parts), "ok": False, "error": f"{type(e).__name__}: {e}"[:300],
                 "lost": None, "samples": None, "p99_ms": None, "raw_p99_ms": None, "publisher_ok": True,
@@ -72,12 +78,12 @@ def step(n: int, procs: int, executor: str) -> dict:
             "load": res.load, "ok": lost == 0 and p99 <= P99_MAX_MS and res.nodes_alive}
 
 
-def search(procs: int, executor: str) -> tuple[int, list[dict]]:
+def search(procs: int, executor: str, frames: bool = False) -> tuple[int, list[dict]]:
     best, steps = 0, []
     for n in [n for n in STEPS if n >= procs]:   # two processes need two targets
-        s = step(n, procs, executor)
+        s = step(n, procs, executor, frames)
         steps.append(s)
-        print(f"# capacity procs={procs} executor={executor} {s}", file=sys.stderr, flush=True)
+        print(f"# capacity procs={procs} executor={executor} frames={frames} {s}", file=sys.stderr, flush=True)
         if not s["ok"]:
             break
         best = n
@@ -99,25 +105,27 @@ def why_failed(steps: list[dict]) -> str | None:
 
 def main() -> None:
     for name, procs in (("capacity_targets", 1), ("capacity_targets_2proc", 2)):
-        runs: dict[str, list[tuple[int, list[dict]]]] = {e: [] for e in EXECUTORS}
+        # the per-body inputs with each executor; the frames (inputs: frames) with the node's default executor
+        keys = [(ex, False) for ex in EXECUTORS] + [("events", True)] * FRAMES
+        runs: dict[tuple[str, bool], list[tuple[int, list[dict]]]] = {k: [] for k in keys}
         for r in range(REPEATS):
-            order = EXECUTORS if r % 2 == 0 else EXECUTORS[::-1]
-            for ex in order:
-                runs[ex].append(search(procs, ex))
-        for ex in EXECUTORS:
-            steps = [s for _, st in runs[ex] for s in st]
+            for k in keys[r % len(keys):] + keys[:r % len(keys)]:
+                runs[k].append(search(procs, *k))
+        for k in keys:
+            ex = k[0]
+            steps = [s for _, st in runs[k] for s in st]
             raw = [s["raw_p99_ms"] for s in steps if s["raw_p99_ms"] is not None]
             # CPU a target costs one process (CPU time, not wall time: less sensitive to other load than latency)
             shares = [sum(s["node_cpu_s"]) / s["seconds"] / s["targets"] for s in steps if s.get("node_cpu_s")]
             share = float(np.median(shares)) if shares else None
             per_pose = [s["cpu_us_per_fused_pose"] for s in steps if s.get("cpu_us_per_fused_pose")]
-            emit(name, float(np.median([b for b, _ in runs[ex]])), "targets", executor=ex,
-                 runs=[b for b, _ in runs[ex]], raw_dds_p99_ms=float(np.median(raw)) if raw else None,
+            emit(name + ("[inputs=frames]" if k[1] else ""), float(np.median([b for b, _ in runs[k]])), "targets",
+                 executor=ex, runs=[b for b, _ in runs[k]], raw_dds_p99_ms=float(np.median(raw)) if raw else None,
                  cpu_share_per_target=round(share, 3) if share else None,
                  targets_per_core_by_cpu=int(1 / share) if share else None,
                  cpu_us_per_fused_pose=float(np.median(per_pose)) if per_pose else None,
                  criterion=f"0 lost and p99 <= {P99_MAX_MS} ms at 240 + 400 Hz per target",
-                 first_failure=[why_failed(st) for _, st in runs[ex]], steps=steps)
+                 first_failure=[why_failed(st) for _, st in runs[k]], steps=steps)
 
 
 if __name__ == "__main__":
