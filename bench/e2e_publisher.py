@@ -23,7 +23,7 @@ import rclpy
 from geometry_msgs.msg import PoseStamped
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-from fullperc_common.ros_conv import pose_stamped
+from fullperc_common.ros_conv import ns_to_stamp, pose_stamped
 from fullperc_common.transforms import T_to_pq, apply_T, inv_T, make_T
 
 T_OMC_BASE = make_T([1.0, 0.5, 0.8], [0, 0, 0.2588190451, 0.9659258263])
@@ -67,10 +67,23 @@ def main() -> int:
     def frame(dev: str, ns: int, bodies: list[tuple[str, object, object]]) -> None:
         """--frames: the device frame's bodies (name, p, q) as one TrackedBodies."""
         m = TrackedBodies(latency=0.0)
-        m.header = pose_stamped(ns, dev, bodies[0][1], bodies[0][2]).header
+        m.header.stamp, m.header.frame_id = ns_to_stamp(ns), dev
         m.bodies = [TrackedBody(name=n, visible=True, pose=pose_stamped(ns, dev, p, q).pose, frame_number=counts[dev])
                     for n, p, q in bodies]
         pubs[f"/{dev}/bodies"].publish(m)
+
+    def device_frame(dev: str, bodies: list[tuple[str, object, object]]) -> None:
+        """One device frame, the base first: each body's pose stamped just before its publish (with --frames every
+        body with the frame's one stamp, and the frame's TrackedBodies first); the tools' stamps recorded."""
+        ns = time.time_ns()
+        if a.frames:
+            frame(dev, ns, bodies)
+        for name, p, q in bodies:
+            t_ns = ns if a.frames else time.time_ns()
+            pubs[f"/{dev}/{name}/pose"].publish(pose_stamped(t_ns, dev, p, q))
+            if name != "base":
+                stamps[dev][name].append(t_ns)
+        counts[dev] += 1
 
     while any(p.get_subscription_count() < need.get(topic, 1) for topic, p in pubs.items()):
         rclpy.spin_once(node, timeout_sec=0.05)
@@ -87,29 +100,11 @@ def main() -> int:
         t = now - t0
         if now >= next_omc:
             p = tool_in_omc(t)
-            if a.frames:
-                ns = time.time_ns()
-                frame("omc", ns, [("base", p_base_omc, q_base_omc), *((tool, p, Q_ID) for tool in tools)])
-            pubs["/omc/base/pose"].publish(pose_stamped(ns if a.frames else time.time_ns(), "omc", p_base_omc,
-                                                        q_base_omc))
-            for tool in tools:
-                ns = ns if a.frames else time.time_ns()
-                pubs[f"/omc/{tool}/pose"].publish(pose_stamped(ns, "omc", p, Q_ID))
-                stamps["omc"][tool].append(ns)
-            counts["omc"] += 1
+            device_frame("omc", [("base", p_base_omc, q_base_omc), *((tool, p, Q_ID) for tool in tools)])
             next_omc += 1.0 / a.omc_hz
         if now >= next_ots:
             p_ots = apply_T(T_ots_omc, tool_in_omc(t))
-            if a.frames:
-                ns = time.time_ns()
-                frame("ots", ns, [("base", p_base_ots, q_base_ots), *((tool, p_ots, T_ots_omc_q) for tool in tools)])
-            pubs["/ots/base/pose"].publish(pose_stamped(ns if a.frames else time.time_ns(), "ots", p_base_ots,
-                                                        q_base_ots))
-            for tool in tools:
-                ns = ns if a.frames else time.time_ns()
-                pubs[f"/ots/{tool}/pose"].publish(pose_stamped(ns, "ots", p_ots, T_ots_omc_q))
-                stamps["ots"][tool].append(ns)
-            counts["ots"] += 1
+            device_frame("ots", [("base", p_base_ots, q_base_ots), *((tool, p_ots, T_ots_omc_q) for tool in tools)])
             next_ots += 1.0 / a.ots_hz
         time.sleep(max(0.0, min(next_omc, next_ots) - time.monotonic()))
     elapsed = time.monotonic() - t0

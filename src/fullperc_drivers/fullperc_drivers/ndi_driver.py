@@ -49,12 +49,12 @@ from fullperc_common.node_main import run_node
 from fullperc_common.params import ParameterError, declare_fixed
 from fullperc_common.share import share_path
 from fullperc_common.subscribers import SubscriberLog
-from fullperc_msgs.msg import TrackedBodies, TrackedBody, TrackingQuality
+from fullperc_msgs.msg import TrackedBodies, TrackingQuality
 
 from .handoff import Handoff
 from .ndi.driver import DriverConfig, DriverEvent, FrameResult, NdiDriver, ToolConfig
 from .ndi.rom import EMULATOR_ROM_DIR, RomFileError
-from .node_common import HEALTH_PERIOD_S, ConsoleThrottle, HealthReport, declare_health
+from .node_common import HEALTH_PERIOD_S, ConsoleThrottle, HealthReport, declare_health, tracked_body
 
 FATAL = (ParameterError, RomFileError)
 
@@ -242,9 +242,7 @@ class NdiDriverNode(Node):
                 self.health.refused(name, s.refused)
             q.visible = visible
             self.qual_pubs[name].publish(q)
-            out.bodies.append(TrackedBody(name=name, visible=visible, pose=pose, fit_error=q.fit_error,
-                                          frame_number=q.frame_number, markers_used=q.markers_used,
-                                          port_status=q.port_status))
+            out.bodies.append(tracked_body(q, pose))
         if out.bodies:
             self.bodies_pub.publish(out)
 

@@ -1,4 +1,5 @@
-"""What the three driver nodes share above their cores: QoS, topic tokens, the health parameters, console throttle.
+"""What the three driver nodes share above their cores: QoS, topic tokens, the health parameters, console throttle,
+the frame-in-one-message record of the two trackers.
 
 Every driver node has the same shape: a ROS-free core/backend whose thread only puts items into a
 :class:`~fullperc_drivers.handoff.Handoff`; the executor drains it, publishes, and feeds one
@@ -33,6 +34,15 @@ def topic_name(name: str) -> str:
     """A device body/tool name as a ROS topic token: other characters become ``_``, no leading digit."""
     s = re.sub(r"[^A-Za-z0-9_]", "_", name.strip())
     return s if s and not s[0].isdigit() else f"b_{s}"
+
+
+def tracked_body(q, pose):
+    """The TrackedBody of one body of a device frame (``<prefix>/bodies``): its TrackingQuality ``q``'s fields, as
+    published, and ``pose`` (geometry_msgs/Pose: the published pose, all zeros when none was)."""
+    from fullperc_msgs.msg import TrackedBody
+
+    return TrackedBody(name=q.body, visible=q.visible, pose=pose, fit_error=q.fit_error, frame_number=q.frame_number,
+                       markers_used=q.markers_used, port_status=q.port_status)
 
 
 def make_qos(kind: str, depth: int) -> QoSProfile:

@@ -31,11 +31,19 @@ from fullperc_common.node_main import run_node
 from fullperc_common.params import ParameterError, declare_fixed
 from fullperc_common.ros_conv import ns_to_stamp, pose_stamped
 from fullperc_common.subscribers import SubscriberLog
-from fullperc_msgs.msg import TrackedBodies, TrackedBody, TrackingQuality
+from fullperc_msgs.msg import TrackedBodies, TrackingQuality
 
 from .clock_sync import ClockSync
 from .handoff import Handoff
-from .node_common import HEALTH_PERIOD_S, ConsoleThrottle, HealthReport, declare_health, make_qos, topic_name
+from .node_common import (
+    HEALTH_PERIOD_S,
+    ConsoleThrottle,
+    HealthReport,
+    declare_health,
+    make_qos,
+    topic_name,
+    tracked_body,
+)
 from .nokov.frames import REFUSED_REASONS, FramePipeline, MocapFrame, RawFrame
 from .nokov.sdk import NokovSdkBackend, NokovSdkError
 from .nokov.stream import OmcStreamBackend
@@ -164,9 +172,7 @@ class OmcDriverNode(Node):
                 self.refused += 1
                 self.health.refused(b.name, b.reason)
             q_pub.publish(q)
-            out.bodies.append(TrackedBody(name=q.body, visible=q.visible, pose=pose, fit_error=q.fit_error,
-                                          frame_number=q.frame_number, markers_used=q.markers_used,
-                                          port_status=q.port_status))
+            out.bodies.append(tracked_body(q, pose))
         if out.bodies:
             self._bodies_pub.publish(out)
 

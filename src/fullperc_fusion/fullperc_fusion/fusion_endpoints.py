@@ -180,6 +180,13 @@ def input_sample(dev: str, body: str, data: bytes) -> tuple:
     return t_ns, dev, body, p, q
 
 
+def quality_record(key: tuple[str, str], data: bytes) -> tuple:
+    """FusionCore.quality's arguments for one serialized TrackingQuality of ``key`` (device tag, body), read by
+    :mod:`.input_cdr`: (key, frame_number, stamp_ns, visible, fit_error, markers_used)."""
+    t_ns, visible, fit_error, number, markers = quality_from_cdr(data)
+    return key, number, t_ns, visible, fit_error, float(markers)
+
+
 class FrameReader:
     """Reads the TrackedBodies messages of ``inputs: frames`` (:mod:`.input_cdr`) into what the per-body topics give:
     a call returns the frame's input-batch items (as :func:`input_sample`'s) of the visible bodies a target uses
@@ -252,7 +259,7 @@ class Inputs:
         for key, sub in self.quality.items():
             if msgs := take_queued(sub, most):
                 topics.add(self.quality_topic[key])
-                self._qualities.extend((key, n, t, v, f, float(mk)) for t, v, f, n, mk in map(quality_from_cdr, msgs))
+                self._qualities.extend(quality_record(key, m) for m in msgs)
         return batch, topics
 
     def take_qualities(self) -> list[tuple]:

@@ -81,10 +81,9 @@ from fullperc_common.params import ParameterError
 from fullperc_common.tf import Broadcaster, StaticBroadcaster, transform_stamped
 from fullperc_fusion.fusion_config import read_values
 from fullperc_fusion.fusion_core import DIAG_EVAL_PERIOD_S, FusionCore, Log
-from fullperc_fusion.fusion_endpoints import Endpoints, Inputs, declare_row, live_parameters
+from fullperc_fusion.fusion_endpoints import Endpoints, Inputs, declare_row, live_parameters, quality_record
 from fullperc_fusion.fusion_interface import POSES_TOPIC, output_topic
 from fullperc_fusion.fusion_publish import OutputPublisher, PosesPublisher, publish_final, publish_outputs
-from fullperc_fusion.input_cdr import quality_from_cdr
 from fullperc_fusion.input_guard import CHECK_PERIOD_S, gid_hex, node_fqn, service_callers_line
 from fullperc_fusion.pipeline.arrival import ArrivalPipeline
 from fullperc_fusion.pipeline.ordered import FusedOutput
@@ -200,8 +199,7 @@ class FusionNode(Node):
         self.core.quality_rx(key, time.monotonic())
         changed = self._guard_inputs([self.core.quality_topics[key]])
         for m in [data, *take_queued(self._in.quality[key], self._take_max)]:
-            t_ns, visible, fit_error, number, markers = quality_from_cdr(m)
-            self.core.quality(key, number, t_ns, visible, fit_error, float(markers))
+            self.core.quality(*quality_record(key, m))
         self._settle_inputs(changed)
 
     def _guard_inputs(self, topics=None) -> bool:

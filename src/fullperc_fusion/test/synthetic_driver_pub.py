@@ -102,7 +102,7 @@ def flush_frames(pubs: dict, frames: dict, number: int) -> None:
     for (dev, ns), bodies in sorted(frames.items(), key=lambda kv: kv[0][1]):
         fit = 2e-4 if dev == "omc" else 1e-4
         m = TrackedBodies(latency=0.002)
-        m.header = msg(ns, dev, (0, 0, 0), (0, 0, 0, 1)).header
+        m.header.stamp, m.header.frame_id = ns_to_stamp(ns), dev
         for body, p, q in bodies:
             b = TrackedBody(name=body, visible=True, fit_error=fit, frame_number=number, markers_used=4)
             b.pose = msg(ns, dev, p, q).pose

@@ -9,12 +9,11 @@ result bit for bit for the same messages is ``test_fusion_inputs.py``'s (no DDS,
 from __future__ import annotations
 
 import sys
-import threading
 from pathlib import Path
 
 import pytest
 
-from fullperc_common.testing import RosSession, installed_exe, load_by_path, wait_for, wait_for_first_line
+from fullperc_common.testing import RosSession, SpunNode, installed_exe, load_by_path, wait_for, wait_for_first_line
 
 HERE = Path(__file__).resolve().parent
 PUB = HERE / "synthetic_driver_pub.py"
@@ -28,28 +27,21 @@ def _ns(stamp) -> int:
     return stamp.sec * 1_000_000_000 + stamp.nanosec
 
 
-def _listen(ctx, topics: list[str]):
-    """Subscribes ``topics`` in this process (own context, spun in a thread): (node, got, stop)."""
-    import rclpy
+def _listen(ctx, topics: list[str]) -> tuple[SpunNode, dict[str, list]]:
+    """Subscribes ``topics`` in this process (a :class:`SpunNode`); the messages of each, in arrival order."""
     from geometry_msgs.msg import PoseStamped
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
 
     from fullperc_msgs.msg import FusionStatus
 
-    node = rclpy.create_node("frames_test_listener", context=ctx)
+    lis = SpunNode(ctx, "frames_test_listener")
     got: dict[str, list] = {t: [] for t in topics}
+    qos = QoSProfile(depth=2000, reliability=ReliabilityPolicy.RELIABLE)
     for t in topics:
-        node.create_subscription(FusionStatus if t.endswith("status") else PoseStamped, t,
-                                 lambda m, t=t: got[t].append(m), QoSProfile(depth=2000,
-                                                                            reliability=ReliabilityPolicy.RELIABLE))
-    ex = SingleThreadedExecutor(context=ctx)
-    ex.add_node(node)
-    stop = threading.Event()
-    th = threading.Thread(target=lambda: [ex.spin_once(timeout_sec=0.05) for _ in iter(stop.is_set, True)],
-                          daemon=True)
-    th.start()
-    return node, got, lambda: (stop.set(), th.join(2), node.destroy_node())
+        lis.node.create_subscription(FusionStatus if t.endswith("status") else PoseStamped, t,
+                                     lambda m, t=t: got[t].append(m), qos)
+    lis.start()
+    return lis, got
 
 
 def test_frames_input_gives_the_per_body_result(tmp_path):
@@ -65,7 +57,8 @@ def test_frames_input_gives_the_per_body_result(tmp_path):
                                         *frames_args], name="frames")}
         for n in nodes.values():
             wait_for_first_line(procs, n)
-        node, got, stop = _listen(s.context, topics)
+        lis, got = _listen(s.context, topics)
+        node = lis.node
         try:
             wait_for(lambda: all(node.count_publishers(t) > 0 for t in topics), 60, what="both nodes' outputs")
             pub = procs.start([sys.executable, str(PUB), "--log", str(tmp_path / "pub.jsonl"), "--frames",
@@ -82,7 +75,7 @@ def test_frames_input_gives_the_per_body_result(tmp_path):
             assert pub.returncode == 0, procs.log(pub)
             assert all(n.poll() is None for n in nodes.values()), procs.log(nodes["frames"])
         finally:
-            stop()
+            lis.close()
 
     def rows_of(topic: str) -> list[tuple]:
         return [(_ns(m.header.stamp), m.header.frame_id, m.pose.position.x, m.pose.position.y, m.pose.position.z,

@@ -325,7 +325,8 @@ class ArrivalPipeline(TargetPipeline):
     def side_outputs(self) -> list[FusedOutput]:
         """With ``defer_side``: the side-by-side lane on the items that left the history since the last call, in
         stamp order, and its outputs (what :meth:`poll` would have returned with the live ones). Their final outputs
-        are :meth:`take_final`'s from then on. Without: nothing (the work was done as the items left)."""
+        are :meth:`take_final`'s from then on. Without: the side-by-side outputs committed since the last poll (the
+        work was done as the items left)."""
         self._commit_due()
         out, self.outbox.committed = self.outbox.committed, []
         return out
