@@ -88,10 +88,31 @@ def test_unknown_kind_is_refused():
 
 
 def test_both_forms_step_through_the_one_kernel():
-    """The per-sample and the batched closed form call the same functions: no second copy of the arithmetic."""
-    for name in ("axis_form", "initial_axes", "predict_axes", "init_axes", "update_axes"):
+    """The per-sample and the batched closed form call the same functions: no second copy of the arithmetic (the
+    batched replay predicts inside update_axes; the per-sample predict_axes is update_axes without a sample)."""
+    for name in ("axis_form", "initial_axes", "init_axes", "update_axes"):
         kernel_fn = getattr(paper_kernel, name)
         assert getattr(paper_batch, name) is kernel_fn and getattr(paper_fast, name) is kernel_fn, name
+    assert paper_fast.predict_axes is paper_kernel.predict_axes
+
+
+def test_the_first_failure_item_by_item_is_the_one_raised():
+    """Each filter runs over the items in turn, but what is raised is what stepping them item by item meets first:
+    the earliest item, and on it the first filter of ``kinds``."""
+    items = _items(4, 200)
+    t_item = [i[0] for i in items]
+    t_item[120] = t_item[119] - 1
+    t_item[60] = t_item[59] - 1
+    for kinds in (["kf", "cbkf"], ["ckf", "bkf", "kf"]):
+        with pytest.raises(BatchUnsupported, match=f"filter {kinds[0]}: time went backwards at item 60$"):
+            run_closed_form(kinds, FilterParams(), t_item, [i[1] for i in items], [i[2] for i in items],
+                            [i[3] for i in items], [i[4] for i in items])
+
+
+def test_an_item_without_a_sample_is_refused():
+    with pytest.raises(BatchUnsupported, match="item 1 has no sample"):
+        run_closed_form(["kf"], FilterParams(), [1_000_000, 2_000_000], [1_000_000, None], [[0.0, 0.0, 0.0], None],
+                        [None, None], [None, None])
 
 
 def _state(rng, has_bias: bool):

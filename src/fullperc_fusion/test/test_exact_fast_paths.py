@@ -13,7 +13,8 @@ cases where the fast form hands over to the plain one:
 * the stacked inverse of the eq. 2 link's sightings and the occluder test with its segments computed once;
 * :func:`.calibration.poses.pose_to_T`'s 4x4 test on floats against the numpy expression, near its tolerance;
 * the synchronizer's nearest-sample rule and its poll shortcut against a brute-force rule and a plain drain;
-* the filter kernel's update with one loop per source combination on every kind, source mix and a hop.
+* the filter kernel's update, one pass per axis with a hop redoing it, on every kind, source mix and a hop, its
+  prediction (alone and fused with the update) and the hop that redoes an update which divided by zero.
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ from fullperc_fusion.calibration.se3_stats import (
 )
 from fullperc_fusion.calibration.static_check import check_static, hotelling_threshold
 from fullperc_fusion.filters.paper_family import FILTER_KINDS, FilterParams
-from fullperc_fusion.filters.paper_kernel import axis_form, update_axes
+from fullperc_fusion.filters.paper_kernel import axis_form, predict_axes, update_axes
 from fullperc_fusion.margin.geometry import Box, segments
 from fullperc_fusion.pipeline.synchronizer import ApproxSync
 
@@ -566,6 +567,39 @@ def _reference_update(form, X, C, t, tg, zg, rg, tl, zl, rl):
     return Xn, Cn, hop, nis_g
 
 
+def _kernel_state(rng, has_bias: bool) -> tuple[list[float], list[list[float]]]:
+    X = (0.3 + 0.1 * rng.standard_normal(9 if has_bias else 6)).tolist()
+    C = []
+    for _ in range(3):
+        A = rng.standard_normal((3, 3)) * [[1e-3], [1e-2], [1e-3]]
+        P = A @ A.T + 1e-8 * np.eye(3)
+        if not has_bias:
+            P[2, :] = P[:, 2] = 0.0
+        C.append(P[np.triu_indices(3)].tolist())
+    return X, C
+
+
+def _kernel_samples(rng, X, k: int, t: int):
+    zg = (np.array(X[0:3]) + 2e-3 * rng.standard_normal(3)).tolist() if k % 3 != 1 else None
+    zl = (np.array(X[0:3]) + 1e-4 * rng.standard_normal(3)).tolist() if k % 3 != 0 else None
+    return t - int(rng.integers(0, 4_000_000)), zg, t - int(rng.integers(0, 4_000_000)), zl
+
+
+def _reference_predict(form, X, C, dt):
+    """Eq. (9)-(10) as the plain loop over the axes (predict_axes before it became update_axes without a sample),
+    on copies."""
+    qa = form.accel_noise
+    q_pp, q_pv, q_vv = qa * dt**3 / 3, qa * dt**2 / 2, qa * dt
+    q_bb = form.bias_walk * dt if form.has_bias else 0.0
+    X, C = list(X), list(C)
+    for a in range(3):
+        X[a] = X[a] + dt * X[3 + a]
+        pp, pv, pb, vv, vb, bb = C[a]
+        pvdt = pv + dt * vv
+        C[a] = [pp + dt * pv + dt * pvdt + q_pp, pvdt + q_pv, pb + dt * vb, vv + q_vv, vb, bb + q_bb]
+    return X, C
+
+
 @pytest.mark.parametrize("kind", FILTER_KINDS)
 @pytest.mark.parametrize("params", [FilterParams(hop_gate=3.0),
                                     FilterParams(hop_gate=3.0, shrink_blocks=("p", "v", "b"), eq14_covariance="prior")])
@@ -575,19 +609,55 @@ def test_kernel_update_equals_the_plain_loop(kind, params):
     t = 10 * 10**9
     hops = 0
     for k in range(600):
-        X = (0.3 + 0.1 * rng.standard_normal(9 if form.has_bias else 6)).tolist()
-        C = []
-        for _ in range(3):
-            A = rng.standard_normal((3, 3)) * [[1e-3], [1e-2], [1e-3]]
-            P = A @ A.T + 1e-8 * np.eye(3)
-            if not form.has_bias:
-                P[2, :] = P[:, 2] = 0.0
-            C.append(P[np.triu_indices(3)].tolist())
-        zg = (np.array(X[0:3]) + 2e-3 * rng.standard_normal(3)).tolist() if k % 3 != 1 else None
-        zl = (np.array(X[0:3]) + 1e-4 * rng.standard_normal(3)).tolist() if k % 3 != 0 else None
-        tg, tl = t - int(rng.integers(0, 4_000_000)), t - int(rng.integers(0, 4_000_000))
+        X, C = _kernel_state(rng, form.has_bias)
+        tg, zg, tl, zl = _kernel_samples(rng, X, k, t)
         got = update_axes(form, X, C, t, tg, zg, form.global_var, tl, zl, form.local_var)
         want = _reference_update(form, X, C, t, tg, zg, form.global_var, tl, zl, form.local_var)
         assert repr((got[0], got[1], got[2], got[4])) == repr(want)
         hops += got[2]
     assert hops > 0
+
+
+@pytest.mark.parametrize("kind", FILTER_KINDS)
+def test_kernel_predict_and_the_fused_step_equal_the_plain_loops(kind):
+    """predict_axes (update_axes without a sample) is the plain predict; update_axes(..., dt) -- the batched
+    replay's predict and update in one pass -- is the plain predict then the plain update, and reports (NIS,
+    innovation, M) what predict_axes then update_axes report."""
+    rng = np.random.default_rng(10)
+    form = axis_form(kind, FilterParams(hop_gate=3.0))
+    t = 10 * 10**9
+    hops = 0
+    for k in range(600):
+        X, C = _kernel_state(rng, form.has_bias)
+        dt = float(rng.uniform(0.0, 0.02)) if k % 5 else 0.0
+        Xp, Cp = _reference_predict(form, X, C, dt)
+        X1, C1 = list(X), list(C)
+        predict_axes(form, X1, C1, dt)
+        assert repr((X1, C1)) == repr((Xp, Cp))
+        tg, zg, tl, zl = _kernel_samples(rng, X, k, t)
+        got = update_axes(form, X, C, t, tg, zg, form.global_var, tl, zl, form.local_var, True, dt)
+        want = _reference_update(form, Xp, Cp, t, tg, zg, form.global_var, tl, zl, form.local_var)
+        assert repr((got[0], got[1], got[2], got[4])) == repr(want)
+        assert repr(got) == repr(update_axes(form, X1, C1, t, tg, zg, form.global_var, tl, zl, form.local_var))
+        lean = update_axes(form, X, C, t, tg, zg, form.global_var, tl, zl, form.local_var, False, dt)
+        assert repr(lean[0:3] + lean[4:5]) == repr(got[0:3] + got[4:5])
+        hops += got[2]
+    assert hops > 0
+
+
+@pytest.mark.parametrize("kind", ["ckf", "cbkf"])
+def test_kernel_hop_redoes_an_update_that_divided_by_zero(kind):
+    """A pair whose S is singular until a hop inflates it (no noise, no lag): the speculative update (as if there
+    were no hop) divides by zero; with a hop the result is the inflated update, the plain loop's; without one, or
+    with the full report (its NIS divides by the uninflated terms), the ZeroDivisionError stands, as before."""
+    t, r0 = 10 * 10**9, (0.0, 0.0, 0.0)
+    X, C = [0.1, 0.2, 0.3] + [0.0] * 6, [[1e-4, 0.0, 0.0, 1e-2, 0.0, 0.0] for _ in range(3)]
+    zg, zl = [0.2, 0.3, 0.4], [0.1, 0.2, 0.3]
+    form = axis_form(kind, FilterParams(hop_gate=0.5))
+    got = update_axes(form, X, C, t, t, zg, r0, t, zl, r0, False)
+    assert got[2] and repr((got[0], got[1], got[2], got[4])) == repr(_reference_update(form, X, C, t, t, zg, r0,
+                                                                                          t, zl, r0))
+    with pytest.raises(ZeroDivisionError):
+        update_axes(form, X, C, t, t, zg, r0, t, zl, r0)
+    with pytest.raises(ZeroDivisionError):
+        update_axes(axis_form(kind, FilterParams(hop_gate=1e9)), X, C, t, t, zg, r0, t, zl, r0, False)

@@ -1,18 +1,19 @@
-"""The paper's KF / BKF / CKF / CBKF over a whole recording at once: one loop, no per-sample objects.
+"""The paper's KF / BKF / CKF / CBKF over a whole recording at once: a loop per filter, no per-sample objects.
 
 Why: offline evaluation runs the four filters over thousands of synchronised items. Through
 :class:`~.paper_fast.ClosedFormFilter` each item costs a :class:`~.api.Measurement` per source, a
 :class:`~.api.Step`, numpy arrays for its fields and the filter protocol's calls -- several times the arithmetic
-itself. :func:`run_closed_form` takes the items as plain lists (stamps and positions in ``base``) and advances every
-requested filter in one Python loop, writing the results into preallocated arrays.
+itself. :func:`run_closed_form` takes the items as plain lists (stamps and positions in ``base``) and advances each
+requested filter over them in one Python loop, appending the results to flat buffers.
 
 Equality, not similarity: each step is :mod:`.paper_kernel`'s -- the time rule of :func:`~.api.predict_interval`,
-then the kernel's predict, (re-)initialisation or update, the very functions ``ClosedFormFilter`` calls -- so the
-estimates are bit-identical to the per-sample filters by construction (test_batch_filter.py checks it against
+then the kernel's (re-)initialisation, or its update with the prediction in the same pass (``update_axes(...,
+dt)``: the arithmetic ``ClosedFormFilter``'s predict_axes then update_axes run, in one call) -- so the estimates are
+bit-identical to the per-sample filters by construction (test_batch_filter.py checks it against
 ``ClosedFormFilter``, the evaluator's test against the whole pipeline). Only what the closed form serves is
 supported: fixed isotropic noise (no measurement covariance) -- anything else raises :class:`BatchUnsupported` and
 the caller runs the per-sample filters instead, as it does when a step would raise there (time going backwards, a
-sample older than ``max_gap_s``, a non-finite state).
+sample older than ``max_gap_s``, a non-finite state) and for an item without any sample.
 """
 
 from __future__ import annotations
@@ -22,9 +23,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fullperc_fusion.filters.api import SOURCE_GLOBAL, SOURCE_LOCAL, predict_interval
+from fullperc_fusion.filters.api import SOURCE_GLOBAL, SOURCE_LOCAL
 from fullperc_fusion.filters.paper_family import FILTER_KINDS, FilterParams
-from fullperc_fusion.filters.paper_kernel import AxisForm, axis_form, init_axes, initial_axes, predict_axes, update_axes
+from fullperc_fusion.filters.paper_kernel import AxisForm, axis_form, init_axes, initial_axes, update_axes
 
 __all__ = ["BatchOutput", "BatchUnsupported", "run_closed_form"]
 
@@ -46,35 +47,33 @@ class BatchOutput:
 
 
 class _State:
-    """One filter's closed-form state (ClosedFormFilter's ``_X``, ``_C``, ``t_ns``, ``_pending_ns``) and its outputs
-    so far, appended per item to flat float / bool buffers (:meth:`output` makes the arrays once: writing a numpy
-    row per item cost ~1 us each, three per item and filter)."""
+    """One filter's outputs so far, appended per item to flat buffers (:meth:`output` makes the arrays once: writing
+    a numpy row per item cost ~1 us each, three per item and filter): its whole state vector ``x`` (position and
+    bias are slices of it: one append instead of two slices and two), the position variances, the hop flags and the
+    indices of the (re-)initialisations. The state itself is stepped in :func:`_run`'s locals. (Keeping the state
+    lists themselves and converting them at the end was slower: the conversion, and the garbage collector walking
+    ~20 live lists per item.)"""
 
-    __slots__ = ("C", "X", "bias", "form", "has_bias", "hop", "kind", "p", "pending", "pos_var", "reset", "t")
+    __slots__ = ("form", "has_bias", "hop", "kind", "pos_var", "resets", "x")
 
     def __init__(self, kind: str, params: FilterParams) -> None:
         self.kind = kind
         self.form: AxisForm = axis_form(kind, params)
         self.has_bias = self.form.has_bias
-        self.X, self.C = initial_axes(self.form)
-        self.t: int | None = None
-        self.pending: int | None = None
-        self.p = array("d")         # x y z per item
-        self.bias = array("d")      # per item, only with the bias state
+        self.x = array("d")         # per item, the state vector [p v (b)] after it
         self.pos_var = array("d")   # per item, the variance of each position axis
         self.hop: list[bool] = []
-        self.reset: list[bool] = []
+        self.resets: list[int] = []
 
     def output(self, sources: np.ndarray) -> BatchOutput:
         """The filter's :class:`BatchOutput` over every item so far (``sources``: the items' source bits)."""
         n = len(self.hop)
-
-        def rows(buf: array) -> np.ndarray:
-            return np.frombuffer(buf, dtype=float).reshape(n, 3).copy() if n else np.zeros((0, 3))
-
-        return BatchOutput(rows(self.p), rows(self.bias) if self.has_bias else np.zeros((n, 3)), rows(self.pos_var),
-                           np.array(self.hop, dtype=bool).reshape(n), sources.copy(),
-                           np.array(self.reset, dtype=bool).reshape(n))
+        x = np.frombuffer(self.x, dtype=float).reshape(n, 9 if self.has_bias else 6) if n else np.zeros((0, 9))
+        reset = np.zeros(n, dtype=bool)
+        reset[self.resets] = True
+        return BatchOutput(x[:, 0:3].copy(), x[:, 6:9].copy() if self.has_bias else np.zeros((n, 3)),
+                           np.frombuffer(self.pos_var, dtype=float).reshape(n, 3).copy() if n else np.zeros((0, 3)),
+                           np.array(self.hop, dtype=bool).reshape(n), sources.copy(), reset)
 
 
 def run_closed_form(kinds: tuple[str, ...] | list[str], params: FilterParams, t_item: list[int],
@@ -85,53 +84,73 @@ def run_closed_form(kinds: tuple[str, ...] | list[str], params: FilterParams, t_
     Item i has processing stamp ``t_item[i]`` (the newer of its samples) and a global sample (stamp ``g_t[i]``,
     position ``g_p[i]`` in base) and/or a local one (``l_t``, ``l_p``); None where absent. The pipeline calls
     ``predict(t_item)`` then ``update(global, local)`` on a fresh filter per kind: so does this, in closed form.
+
+    The filters do not interact, so each runs over all items in turn (:func:`_run`, its state in locals: faster
+    than stepping every filter per item). What fails is what stepping them item by item would meet first: the
+    earliest item, and on it the first filter of ``kinds``.
     """
     for k in kinds:
         if k not in FILTER_KINDS:
             raise BatchUnsupported(f"filter '{k}' has no batched form")
     n_items = len(t_item)
     states = [_State(k, params) for k in kinds]
-    max_gap = params.max_gap_s
     sources = np.array([(SOURCE_GLOBAL if tg is not None else 0) | (SOURCE_LOCAL if tl is not None else 0)
                         for tg, tl in zip(g_t, l_t, strict=True)], dtype=np.int64).reshape(n_items)
-    for i in range(n_items):
-        t_i = t_item[i]
-        tg, tl = g_t[i], l_t[i]
-        zg, zl = g_p[i], l_p[i]
-        for s in states:
-            form = s.form
-            # predict(t_i) as ClosedFormFilter.predict; the filter's time is t_i after it, so update does not predict
-            try:
-                t, dt = predict_interval(t_i, s.t, s.pending, max_gap)
-            except ValueError:
-                raise BatchUnsupported(f"filter {s.kind}: time went backwards at item {i}") from None
-            if dt is None:
-                s.pending = t
-            else:
-                predict_axes(form, s.X, s.C, dt)
-                s.t = t
-            if s.pending is not None:   # (re-)initialisation, as ClosedFormFilter.update
-                s.X, s.C = init_axes(form, s.X, s.C, (t - s.t) * 1e-9 if s.t is not None else None, zg, zl)
-                s.t, s.pending = t, None
-                X = s.X
-                s.p.extend(X[0:3])
-                if s.has_bias:
-                    s.bias.extend(X[6:9])
-                v = form.init_pos_var
-                s.pos_var.extend((v, v, v))
-                s.hop.append(False)
-                s.reset.append(True)
-                continue
-            try:
-                X, C, hop, _, _, _, _ = update_axes(form, s.X, s.C, t, tg, zg, form.global_var, tl, zl,
-                                                    form.local_var, False)
-            except (ValueError, FloatingPointError) as e:
-                raise BatchUnsupported(f"filter {s.kind} at item {i}: {e}") from None
-            s.X, s.C = X, C
-            s.p.extend(X[0:3])
-            if s.has_bias:
-                s.bias.extend(X[6:9])
-            s.pos_var.extend((C[0][0], C[1][0], C[2][0]))
-            s.hop.append(hop)
-            s.reset.append(False)
+    if not sources.all():   # the pipeline makes none; update_axes would take it for a prediction alone
+        raise BatchUnsupported(f"item {int(np.argmin(sources))} has no sample")
+    items = list(zip([int(t) for t in t_item], g_t, g_p, l_t, l_p, strict=True))   # int(): as predict_interval
+    failure = None
+    for s in states:   # a later filter need only run up to an earlier one's failure, which comes first on a tie
+        failed = _run(s, items, params.max_gap_s)
+        if failed is not None:
+            items, failure = items[:failed[0]], failed[1]
+    if failure is not None:
+        raise failure
     return {s.kind: s.output(sources) for s in states}
+
+
+def _run(s: _State, items: list[tuple[int, int | None, list[float] | None, int | None, list[float] | None]],
+         max_gap: float) -> tuple[int, Exception] | None:
+    """Filter ``s`` over ``items`` (:func:`run_closed_form`'s, zipped), from no state; None, or the item where it
+    failed and the exception that stepping it there raises (BatchUnsupported for what the per-sample filter
+    refuses).
+
+    Per item ClosedFormFilter's predict(t) then update: the time rule of :func:`~.api.predict_interval`, written
+    out (the call was ~3 % of the replay; test_batch_filter.py holds the two to each other) -- no pending stamp
+    here: a (re-)initialisation takes it at once --, then the kernel's predict and update in one call, or its
+    (re-)initialisation when there is nothing to predict from."""
+    form, kind = s.form, s.kind
+    X, C = initial_axes(form)
+    t_s: int | None = None   # the state's stamp
+    rg, rl = form.global_var, form.local_var
+    v = form.init_pos_var
+    init_var = (v, v, v)
+    put_x, put_var, put_hop, put_reset = s.x.extend, s.pos_var.extend, s.hop.append, s.resets.append
+    i = 0
+    try:
+        for i, (t, tg, zg, tl, zl) in enumerate(items):
+            dt = None
+            if t_s is not None:
+                if t < t_s:
+                    return i, BatchUnsupported(f"filter {kind}: time went backwards at item {i}")
+                dt = (t - t_s) * 1e-9
+                if not dt > max_gap:
+                    t_s = t
+                    try:   # predict over dt and update, in one pass
+                        X, C, hop, _, _, _, _ = update_axes(form, X, C, t, tg, zg, rg, tl, zl, rl, False, dt)
+                    except (ValueError, FloatingPointError) as e:
+                        return i, BatchUnsupported(f"filter {kind} at item {i}: {e}")
+                    put_x(X)
+                    put_var((C[0][0], C[1][0], C[2][0]))
+                    put_hop(hop)
+                    continue
+            # (re-)initialisation: no state yet (dt None), or a gap longer than max_gap_s (the bias is kept)
+            X, C = init_axes(form, X, C, dt, zg, zl)
+            t_s = t
+            put_x(X)
+            put_var(init_var)
+            put_hop(False)
+            put_reset(i)
+    except Exception as e:   # noqa: BLE001 -- not ours to judge: raised as stepping item by item would raise it
+        return i, e
+    return None
