@@ -176,6 +176,8 @@ PARAMS: tuple[Param, ...] = (
     _filter_row("fullperc.hop_into", "hop_into", "str", *one_of(HOP_INTO), "",
           "the global bias part a position hop goes into: b (the lasting compensation, CBKF's rule) | g "
           "(Gauss-Markov, forgotten over fullperc.sys_time)"),
+    _filter_row("fullperc.hop_confirm", "hop_confirm", "int", *at_least(1), "samples",
+          "OMC samples in a row over the hop gate, in one direction, that make a hop (1: each, CBKF's rule)"),
     _filter_row("fullperc.noise_adapt_time", "noise_adapt_time", "float", *NONNEGATIVE, "s",
           "time constant of the OMC white-noise scale learnt from its innovations (0 = off: the model as it is)"),
     _filter_row("fullperc.noise_adapt_max", "noise_adapt_max", "float", *finite_at_least(1.0), "",

@@ -261,6 +261,13 @@ def test_fullperc_block_is_mapped_and_its_layout_loaded_only_when_used(tmp_path)
     assert cfg.params.hop_into == "g"
     with pytest.raises(fc.FusionConfigError, match="fullperc.hop_into"):
         fc.load_fusion_config(_write(tmp_path, {"fullperc": {"hop_into": "p"}}), filters=None)
+    assert cfg.params.hop_confirm == 1   # every crossing a hop (CBKF's rule) unless asked
+    cfg, _ = fc.load_fusion_config(_write(tmp_path, {"filter": "fullperc", "fullperc": {"hop_confirm": 2}}),
+                                   filters=None)
+    assert cfg.params.hop_confirm == 2
+    for bad in (0, 1.5):
+        with pytest.raises(fc.FusionConfigError, match="fullperc.hop_confirm"):
+            fc.load_fusion_config(_write(tmp_path, {"fullperc": {"hop_confirm": bad}}), filters=None)
     cfg, _ = fc.load_fusion_config(_write(tmp_path, {"fullperc": {"noise_adapt_time": 0.0, "noise_adapt_max": 4.0}}),
                                    filters=None)
     assert (cfg.params.noise_adapt_time, cfg.params.noise_adapt_max) == (0.0, 4.0)

@@ -60,7 +60,14 @@ from fullperc_fusion.filters.api import (
     split_update,
 )
 from fullperc_fusion.filters.fullperc_reference import FullpercReference
-from fullperc_fusion.filters.fullperc_state import POSE_FLAT, FullpercState, N, noise_scale_step
+from fullperc_fusion.filters.fullperc_state import (
+    HOLD_OUT,
+    POSE_FLAT,
+    FullpercState,
+    N,
+    hop_run_step,
+    noise_scale_step,
+)
 from fullperc_fusion.filters.motion import gaussian_log_lik, hop_mixture
 from fullperc_fusion.filters.paper_family import FilterParams
 from fullperc_fusion.filters.rot_noise_scale import pair_estimate, scale_decay, scale_step, scaled_cov
@@ -143,7 +150,7 @@ class FullpercFilter(StepCompat):
         self._anchor = None if s.anchor is None else s.anchor.tolist()
         self._tl, self._dmax = s.t_local_ns, s.rot_dmax
         self._ra = None if s.rot_anchor is None else s.rot_anchor.tolist()
-        self._mu, self._tmu = s.rot_scale, s.t_rot_scale_ns
+        self._mu, self._tmu, self._hrun = s.rot_scale, s.t_rot_scale_ns, s.hop_run
 
     @property
     def state(self) -> FullpercState:
@@ -153,7 +160,7 @@ class FullpercFilter(StepCompat):
                       np.array(x[12:15]), np.array(x[15:18]), self._P.copy(), self._t, self._pend, self._has_R,
                       np.array(x[18:21]), self._sys_var, self._lam, self._tg, self._frame,
                       None if self._anchor is None else np.array(self._anchor), self._tl,
-                      None if self._ra is None else np.array(self._ra), self._dmax, self._mu, self._tmu)
+                      None if self._ra is None else np.array(self._ra), self._dmax, self._mu, self._tmu, self._hrun)
 
     def express_in(self, T_frame: np.ndarray, local: bool = True) -> np.ndarray | None:
         """:meth:`FullpercReference.express_in`; a change (rare: once per link change) is delegated to the
@@ -170,14 +177,14 @@ class FullpercFilter(StepCompat):
     def snapshot(self) -> object:
         """The whole filter state, for :meth:`restore`: references only (nothing stored is changed in place)."""
         return ("fullperc", self._x, self._R, self._P, self._t, self._pend, self._has_R, self._sys_var, self._lam,
-                self._tg, self._frame, self._anchor, self._tl, self._ra, self._dmax, self._mu, self._tmu)
+                self._tg, self._frame, self._anchor, self._tl, self._ra, self._dmax, self._mu, self._tmu, self._hrun)
 
     def restore(self, obj: object) -> None:
         """Back to a :meth:`snapshot` (it stays usable)."""
-        if not (isinstance(obj, tuple) and len(obj) == 17 and obj[0] == "fullperc"):
+        if not (isinstance(obj, tuple) and len(obj) == 18 and obj[0] == "fullperc"):
             raise TypeError(f"not a fullperc snapshot: {type(obj).__name__}")
         (_, self._x, self._R, self._P, self._t, self._pend, self._has_R, self._sys_var, self._lam, self._tg,
-         self._frame, self._anchor, self._tl, self._ra, self._dmax, self._mu, self._tmu) = obj
+         self._frame, self._anchor, self._tl, self._ra, self._dmax, self._mu, self._tmu, self._hrun) = obj
 
     @property
     def time_ns(self) -> int | None:
@@ -390,8 +397,7 @@ class FullpercFilter(StepCompat):
         Z, lu = _solve(S, yv, U)
         nis = sum(map(mul, y, Z[:, 0].tolist()))
         log_lik = gaussian_log_lik(nis, float(np.log(np.abs(lu.diagonal())).sum()), len(y)) if self.likelihood else 0.0
-        nis_g = 0.0
-        hop = False
+        nis_g, hop, held = 0.0, False, False
         if mg is not None:
             Sl = S[0:6, 0:6].tolist() if len(y) >= 6 else S.tolist()
             nis_g = _nis3(Sl, y[0], y[1], y[2])
@@ -401,19 +407,29 @@ class FullpercFilter(StepCompat):
             lam_next = noise_scale_step(self._lam, self._tg, mg.t_ns, nis_g, pr)
             self.hop_counts["position"] += hop_p
             self.hop_counts["rotation"] += hop_r
-            if hop_p and pr.hop_to_bias and self.hop_allowed:
-                P = P.copy()
-                k = 18 if pr.hop_into == "g" else 6      # g or b (the reference's hop rule)
-                P[k, k] += y[0] * y[0]
-                P[k + 1, k + 1] += y[1] * y[1]
-                P[k + 2, k + 2] += y[2] * y[2]
-                U = P @ H.T
-                Z, lu = _solve(H @ U + Rm, yv, U)
+            confirmed, hop_run = hop_run_step(self._hrun, hop_p, y[0], y[1], y[2], pr)
+            if hop_p and pr.hop_to_bias and self.hop_allowed:   # the reference's hop rule
+                Ph = P.copy()
+                k = 18 if pr.hop_into == "g" else 6     # g or b
+                Ph[k, k] += y[0] * y[0]
+                Ph[k + 1, k + 1] += y[1] * y[1]
+                Ph[k + 2, k + 2] += y[2] * y[2]
+                Uh = Ph @ H.T
+                Zh, luh = _solve(H @ Uh + Rm, yv, Uh)
                 if self.likelihood:   # the reference's hop mixture of the likelihood (motion.hop_mixture)
-                    hop_ll = gaussian_log_lik(sum(map(mul, y, Z[:, 0].tolist())),
-                                              float(np.log(np.abs(lu.diagonal())).sum()), len(y))
+                    hop_ll = gaussian_log_lik(sum(map(mul, y, Zh[:, 0].tolist())),
+                                              float(np.log(np.abs(luh.diagonal())).sum()), len(y))
                     log_lik = hop_mixture(log_lik, hop_ll)
+                if confirmed:   # into the bias
+                    P, U, Z = Ph, Uh, Zh
+                else:           # not (yet) a step: its position held out
+                    Rm = Rm.copy()
+                    Rm[0:3, 0:3] *= HOLD_OUT
+                    held = True
+                    Z, lu = _solve(H @ U + Rm, yv, U)
         Gt = Z[:, 1:]                      # K^T = S^-1 U^T
+        if held:   # its position moves nothing
+            yv[0:3] = 0.0
         dx = (yv @ Gt).tolist()
         d0, d1, d2 = dx[9], dx[10], dx[11]
         P = P - U @ Gt                     # = the reference's Joseph form for this (optimal) gain, to rounding
@@ -431,7 +447,7 @@ class FullpercFilter(StepCompat):
             raise FloatingPointError("filter produced a non-finite state; it was reset")
         self._x, self._R, self._P, self._t = xn, Rn, P, t
         if mg is not None:
-            self._lam, self._tg = lam_next, mg.t_ns
+            self._lam, self._tg, self._hrun = lam_next, mg.t_ns, hop_run
         if mu is not None:
             self._mu, self._tmu = mu[1:]
         if ml is not None:   # where the local source last saw the tool (beta's and b's spatial decay)

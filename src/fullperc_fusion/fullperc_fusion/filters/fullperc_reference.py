@@ -3,10 +3,9 @@ covariance, plus orientation on SO(3).
 
 This is the model's definition, written as the textbook 21-state error-state filter in numpy matrix form, and the
 tests' reference; the pipeline runs :class:`.fullperc.FullpercFilter` (``"fullperc"`` in :mod:`.registry`), the same
-filter restructured for speed, which ``test_fullperc_fast.py`` holds to this one at 1e-12. The parameters are
-:class:`.fullperc_params.FullpercParams`. Its registry entry declares ``models`` (:class:`~.api.Capabilities`):
-the pipeline gives it the model covariances of :mod:`.measurement_models` (the paper's four keep their fixed
-noise).
+filter restructured for speed, which ``test_fullperc_fast.py`` holds to this one at 1e-12. Parameters:
+:class:`.fullperc_params.FullpercParams`. Its registry entry declares ``models`` (:class:`~.api.Capabilities`): the
+pipeline gives it :mod:`.measurement_models`' covariances (the paper's four keep their fixed noise).
 
 Nominal state (``base``, SI): position p, velocity v, the global source's position bias in two parts -- b, CBKF's
 compensation term (random walk: the part that stays, e.g. the error of the calibrated global link), and g, a
@@ -63,20 +62,17 @@ a Gauss-Markov process forgets it at the rate the sensor's error does, and the m
   Mehra 1972).
 * the global source's rotation noise, scaled by mu (``rot_noise_adapt_time`` > 0): R_rot used as mu R_rot, mu learnt
   from the disagreement of (global, local) pairs, back to 1 over the distance beta decays over (:mod:`rot_noise_scale`).
-* hops: NIS of the global position rows above ``hop_gate`` -> the variance of b (``hop_into: b``, the default:
-  CBKF's rule, :mod:`.paper_family`) or of g (``hop_into: g``) is raised by y_p^2 per axis before the gain, so a step of
-  the global source goes into its bias, not into the pose. In b a camera-set change is kept for as long as that
-  set sees the body, but so is anything else that crossed the gate: the gate cannot tell such a step from a
-  sample the motion model did not expect (a noisy velocity between local samples, a hand accelerating). In g it
-  is forgotten over ``sys_time``, as the sensor's own systematic error is. Which is better depends on the OMC: on
-  the twin, g wins where its steps are small and short (``spec``) and b where they are large and last (``paper``);
-  docs/fullperc_filter.md "Where a hop goes". A rotation hop (NIS of the global rotation rows above the gate) is
-  flagged but not put into beta: the OMC's rotation jumps revert within frames and are part of its R
-  (:func:`measurement_models.omc_covariance`), so a jump kept in beta would stay wrong after the OMC recovers.
-* the update's log-likelihood log N(y; 0, S) (``Step.log_lik``), with S before a hop raises it; at a hop that goes
-  into the bias, the mixture (1 - pi) N(y; 0, S) + pi N(y; 0, S_hop) with the raised S_hop
-  (:func:`.motion.hop_mixture`): how well this model predicted the sample -- the weight of a motion model in
-  ``motion: auto`` (:mod:`.fullperc_imm`).
+* hops: NIS of the global position rows above ``hop_gate`` on ``hop_confirm`` global samples in a row, each
+  innovation in the direction of the one before (:func:`.fullperc_state.hop_run_step`) -> the variance of b
+  (``hop_into: b``, CBKF's rule, :mod:`.paper_family`) or g (``hop_into: g``, forgotten over ``sys_time``) is raised
+  by y_p^2 per axis before the gain: a step of the global source goes into its bias, not into the pose. A crossing
+  not (yet) confirmed is held out (R_p x ``HOLD_OUT``; lambda learns from it). Why: a sensor's step lasts; noise
+  beyond the model (a body leaving some cameras' view, before lambda follows) crosses the gate in single frames
+  pointing anywhere, and each went into b (docs/fullperc_filter.md "Where a hop goes"). A rotation hop is flagged,
+  not put into beta: the OMC's rotation jumps revert within frames (:func:`measurement_models.omc_covariance`).
+* the update's log-likelihood log N(y; 0, S) (``Step.log_lik``), S before a hop raises it; at a crossing (held out or
+  not) the mixture (1 - pi) N(y; 0, S) + pi N(y; 0, S_hop), S_hop raised (:func:`.motion.hop_mixture`): how well
+  this model predicted the sample -- the weight of a motion model in ``motion: auto`` (:mod:`.fullperc_imm`).
 * error-state update (Joseph form), injection p += dp ..., R = Exp(dtheta) R, and the reset of the error state:
   P = G P G^T with G_thth = I - [dtheta/2]x (the first-order reset Jacobian of the multiplicative update).
 * why the spatial decay: the OMC's rotation error is a field over the room (its structure function over the
@@ -128,6 +124,7 @@ from fullperc_fusion.filters.fullperc_state import (
     B_,
     BE,
     G_,
+    HOLD_OUT,
     P_,
     TH,
     V_,
@@ -135,6 +132,7 @@ from fullperc_fusion.filters.fullperc_state import (
     FullpercState,
     N,
     copy_state,
+    hop_run_step,
     noise_scale_step,
 )
 from fullperc_fusion.filters.motion import gaussian_log_lik, hop_mixture
@@ -429,8 +427,7 @@ class FullpercReference(StepCompat):
         S = H @ P @ H.T + Rm
         nis = float(y @ np.linalg.solve(S, y))
         log_lik = gaussian_log_lik(nis, np.linalg.slogdet(S)[1], len(y))   # before a hop raises S
-        nis_g = 0.0
-        hop = False
+        nis_g, hop, held = 0.0, False, False
         if mg is not None:
             ng = len(blocks[0][1])
             nis_g = float(y[0:3] @ np.linalg.solve(S[0:3, 0:3], y[0:3]))
@@ -440,15 +437,21 @@ class FullpercReference(StepCompat):
             hop = hop_p or hop_r
             self.hop_counts["position"] += hop_p
             self.hop_counts["rotation"] += hop_r
-            if hop_p and pr.hop_to_bias:
-                P = P.copy()
+            confirmed, hop_run = hop_run_step(s.hop_run, hop_p, *y[0:3].tolist(), pr)
+            if hop_p and pr.hop_to_bias:   # the likelihood as a hop's (module docstring)
+                Ph = P.copy()
                 k = G_ if pr.hop_into == "g" else B_
-                P[k, k] += np.diag(y[0:3] ** 2)
-                S = H @ P @ H.T + Rm
-                log_lik = hop_mixture(log_lik, gaussian_log_lik(float(y @ np.linalg.solve(S, y)),
-                                                                np.linalg.slogdet(S)[1], len(y)))
+                Ph[k, k] += np.diag(y[0:3] ** 2)
+                Sh = H @ Ph @ H.T + Rm
+                log_lik = hop_mixture(log_lik, gaussian_log_lik(float(y @ np.linalg.solve(Sh, y)),
+                                                                np.linalg.slogdet(Sh)[1], len(y)))
+                if confirmed:   # into the bias
+                    P, S = Ph, Sh
+                else:           # not (yet) a step: its position held out
+                    Rm[0:3, 0:3] *= HOLD_OUT
+                    S, held = H @ P @ H.T + Rm, True
         G = np.linalg.solve(S, H @ P).T
-        dx = G @ y
+        dx = G @ (np.concatenate([np.zeros(3), y[3:]]) if held else y)   # held out: its position moves nothing
         IKH = _IN - G @ H
         P = IKH @ P @ IKH.T + G @ Rm @ G.T
         # inject and reset the error state
@@ -468,7 +471,7 @@ class FullpercReference(StepCompat):
             raise FloatingPointError("filter produced a non-finite state; it was reset")
         s.t_ns = t
         if mg is not None:
-            s.noise_scale, s.t_global_ns = lam_next, mg.t_ns
+            s.noise_scale, s.t_global_ns, s.hop_run = lam_next, mg.t_ns, hop_run
         if mu is not None:
             s.rot_scale, s.t_rot_scale_ns = mu[1:]
         self._local_fused(ml)

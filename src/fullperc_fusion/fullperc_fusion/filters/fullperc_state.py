@@ -15,8 +15,8 @@ import numpy as np
 
 from fullperc_fusion.filters.fullperc_params import FullpercParams
 
-__all__ = ["BE", "B_", "G_", "N", "POSE_FLAT", "P_", "TH", "V_", "W_", "FullpercState", "copy_state",
-           "noise_scale_step"]
+__all__ = ["BE", "B_", "G_", "HOLD_OUT", "N", "POSE_FLAT", "P_", "TH", "V_", "W_", "FullpercState", "copy_state",
+           "hop_run_step", "noise_scale_step"]
 
 # the error state dx = [dp dv db | dtheta dw dbeta | dg] (:mod:`.fullperc_reference`)
 N = 21
@@ -34,6 +34,24 @@ def noise_scale_step(lam: float, t_prev_ns: int | None, t_ns: int, nis_g: float,
     dt = 0.0 if t_prev_ns is None else max(0.0, (t_ns - t_prev_ns) * 1e-9)
     a = 1.0 - math.exp(-dt / pr.noise_adapt_time)
     return min(pr.noise_adapt_max, max(1.0, (1.0 - a) * lam + a * lam * nis_g / 3.0))
+
+
+# a gate crossing not (yet) confirmed as a hop: its position variance times this (std x 1000), so it moves the state by
+# ~1e-6 of a normal sample's pull -- held out, while the update's other rows (its rotation, a local sample) count
+HOLD_OUT = 1e6
+
+
+def hop_run_step(run: tuple | None, hop_p: bool, y0: float, y1: float, y2: float,
+                 pr: FullpercParams) -> tuple[bool, tuple | None]:
+    """(confirmed, run after this sample) of a global sample whose position crossed the hop gate (``hop_p``) with
+    innovation (y0, y1, y2), ``run`` = (n, innovation) of the crossings in a row before it (None: the previous
+    global sample did not cross): a crossing in the same direction as the previous one (positive dot product)
+    extends the run, any other starts one; the hop is confirmed once the run has ``hop_confirm`` samples
+    (:mod:`.fullperc_reference`'s module docstring)."""
+    if not hop_p:
+        return False, None
+    n = run[0] + 1 if run is not None and y0 * run[1] + y1 * run[2] + y2 * run[3] > 0.0 else 1
+    return n >= pr.hop_confirm, (n, y0, y1, y2)
 
 
 @dataclass
@@ -62,10 +80,11 @@ class FullpercState:
     rot_dmax: float = 0.0          # d_max: the farthest p has been from a_r since
     rot_scale: float = 1.0         # mu, the global rotation noise's scale (rot_noise_scale)
     t_rot_scale_ns: int | None = None  # stamp of the global sample of the newest pair mu was learnt from
+    hop_run: tuple | None = None   # (n, y_p) of the global samples in a row over the hop gate (hop_run_step)
 
 
 def copy_state(s: FullpercState) -> FullpercState:
     """A copy of every array of the state (the scalars are immutable): ~10x cheaper than copy.deepcopy."""
     return FullpercState(s.p.copy(), s.v.copy(), s.b.copy(), s.R.copy(), s.w.copy(), s.beta.copy(), s.P.copy(), s.t_ns,
                   s.pending_ns, s.has_R, s.g.copy(), s.sys_var, s.noise_scale, s.t_global_ns, s.frame,
-                  s.anchor, s.t_local_ns, s.rot_anchor, s.rot_dmax, s.rot_scale, s.t_rot_scale_ns)
+                  s.anchor, s.t_local_ns, s.rot_anchor, s.rot_dmax, s.rot_scale, s.t_rot_scale_ns, s.hop_run)
