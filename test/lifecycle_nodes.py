@@ -24,6 +24,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from fullperc_common.ports import free_port
 from fullperc_common.testing import Procs, poll_until, workspace_root
 
 HERE = Path(__file__).resolve().parent
@@ -68,10 +69,6 @@ def msg_type(name: str):
     return Region
 
 
-def free_port(kind: int = socket.SOCK_DGRAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def start_feed(procs: Procs, spec: NodeSpec, tmp: Path) -> list[str]:

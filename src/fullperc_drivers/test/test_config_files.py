@@ -20,6 +20,8 @@ from typing import Any
 import pytest
 import yaml
 
+from fullperc_common.ports import free_port
+
 CONFIG = Path(__file__).resolve().parents[1] / "config"
 
 # Per file: the parameters deliberately not at the node's default; the file's comment on each says why.
@@ -32,12 +34,6 @@ DELIBERATE = {
 RCLPY_OWN = {"use_sim_time", "start_type_description_service"}   # every rclpy node declares these itself
 NODE = {"ndi_vega.yaml": "ndi_driver", "ndi_spectra.yaml": "ndi_driver", "omc.yaml": "omc_driver",
         "diana.yaml": "diana_state"}
-
-
-def _free_port(kind: int) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _flatten(d: dict, prefix: str = "") -> dict[str, Any]:
@@ -71,9 +67,9 @@ def _build(name: str, tmp_path: Path, monkeypatch) -> tuple[dict[str, Any], dict
 
     cls = {"ndi_driver": ndi_driver.NdiDriverNode, "omc_driver": omc_driver.OmcDriverNode,
            "diana_state": diana_state.DianaStateNode}[NODE[name]]
-    moved = {"ndi_driver": [f"port:={_free_port(socket.SOCK_STREAM)}", f"serial_device:={tmp_path / 'no_tty'}"],
-             "omc_driver": [f"stream_port:={_free_port(socket.SOCK_DGRAM)}"],
-             "diana_state": [f"stream_port:={_free_port(socket.SOCK_DGRAM)}"]}[NODE[name]]
+    moved = {"ndi_driver": [f"port:={free_port(socket.SOCK_STREAM)}", f"serial_device:={tmp_path / 'no_tty'}"],
+             "omc_driver": [f"stream_port:={free_port(socket.SOCK_DGRAM)}"],
+             "diana_state": [f"stream_port:={free_port(socket.SOCK_DGRAM)}"]}[NODE[name]]
     defaults: dict[str, Any] = {}
     original = Node.declare_parameter
 

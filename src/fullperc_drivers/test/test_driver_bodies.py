@@ -16,15 +16,13 @@ import socket
 import numpy as np
 import pytest
 
+from fullperc_common.ports import free_port
+
 STAMP_NS = 1_764_530_000_123_456_789
 GOOD_P, GOOD_Q = np.array([0.1, -0.2, 1.5]), np.array([0.0, 0.0, 0.6, 0.8])
 BAD_P, BAD_Q = np.array([np.nan, 0.0, 1.0]), np.array([0.0, 0.0, 0.0, 1.0])
 
 
-def _free_port(kind: int) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _omc(node):
@@ -48,10 +46,10 @@ def _node(driver: str):
     if driver == "omc_driver":
         from fullperc_drivers.omc_driver import OmcDriverNode
 
-        return OmcDriverNode, ["-p", f"stream_port:={_free_port(socket.SOCK_DGRAM)}", "-p", "bodies:=[base, tool]"]
+        return OmcDriverNode, ["-p", f"stream_port:={free_port(socket.SOCK_DGRAM)}", "-p", "bodies:=[base, tool]"]
     from fullperc_drivers.ndi_driver import NdiDriverNode
 
-    return NdiDriverNode, ["-p", f"port:={_free_port(socket.SOCK_STREAM)}"]   # tools [tool, base]: the default
+    return NdiDriverNode, ["-p", f"port:={free_port(socket.SOCK_STREAM)}"]   # tools [tool, base]: the default
 
 
 # driver -> (hand it a frame, topic prefix); the body "tool" has the pose the node refuses, "base" a good one

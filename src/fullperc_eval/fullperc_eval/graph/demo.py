@@ -42,6 +42,7 @@ from pathlib import Path
 
 import yaml
 
+from fullperc_common.ports import free_port
 from fullperc_common.transforms import T_to_pq, inv_T
 from fullperc_eval.bag.errors import BagError
 from fullperc_eval.bag.reader import BagReader
@@ -54,13 +55,6 @@ from fullperc_eval.sim.scene import build_scene
 from fullperc_eval.sim.tasks import TaskPlanningError, plan_task
 
 from .supervisor import execute_graph
-
-
-def free_port(kind: int) -> int:
-    """A port nothing listens on now (``kind``: socket.SOCK_DGRAM or SOCK_STREAM), for a graph's devices."""
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def graph_path(root: Path) -> Path:
