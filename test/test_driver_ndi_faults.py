@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 
 from fullperc_common.diagnostics import as_level
+from fullperc_common.ports import free_port
 from fullperc_common.testing import SpunNode, installed_exe, side_by_side_fixture, wait_for, wait_for_first_line
 from fullperc_drivers.ndi import replies as R
 from fullperc_drivers.ndi.protocol import FrameReader, decode_command, encode_ascii_reply, encode_binary_reply
@@ -212,9 +213,7 @@ def start_driver(procs, port: int, *params: str, name: str = "ndi_driver", param
 
 
 def free_tcp_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    return free_port(socket.SOCK_STREAM)
 
 
 def _health_leaves_ok_on_frozen_nan_and_garbage_replies_and_recovers(procs, tmp_path, rclpy_context):

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fullperc_common.ports import free_port
 from fullperc_common.testing import side_by_side_fixture
 
 FIRST_FRAME, GAP_AT, GAP = 5000, 150, 4
@@ -83,9 +84,7 @@ def run_sender(port: int, frames: int, rate: float, truth: Path) -> None:
 
 
 def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    return free_port(socket.SOCK_DGRAM)
 
 
 class Listener:
