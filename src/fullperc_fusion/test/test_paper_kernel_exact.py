@@ -7,11 +7,17 @@ shows as a changed float (``repr``), not as a tolerance.
 
 from __future__ import annotations
 
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from fullperc_fusion.filters.paper_family import FILTER_KINDS, FilterParams
 from fullperc_fusion.filters.paper_kernel import axis_form, predict_axes, update_axes
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_batch_filter import _state  # noqa: E402  (same directory: a random per-axis state of the kernel)
 
 
 def _reference_update(form, X, C, t, tg, zg, rg, tl, zl, rl):
@@ -85,18 +91,6 @@ def _reference_update(form, X, C, t, tg, zg, rg, tl, zl, rl):
     return Xn, Cn, hop, nis_g
 
 
-def _kernel_state(rng, has_bias: bool) -> tuple[list[float], list[list[float]]]:
-    X = (0.3 + 0.1 * rng.standard_normal(9 if has_bias else 6)).tolist()
-    C = []
-    for _ in range(3):
-        A = rng.standard_normal((3, 3)) * [[1e-3], [1e-2], [1e-3]]
-        P = A @ A.T + 1e-8 * np.eye(3)
-        if not has_bias:
-            P[2, :] = P[:, 2] = 0.0
-        C.append(P[np.triu_indices(3)].tolist())
-    return X, C
-
-
 def _kernel_samples(rng, X, k: int, t: int):
     zg = (np.array(X[0:3]) + 2e-3 * rng.standard_normal(3)).tolist() if k % 3 != 1 else None
     zl = (np.array(X[0:3]) + 1e-4 * rng.standard_normal(3)).tolist() if k % 3 != 0 else None
@@ -127,7 +121,7 @@ def test_kernel_update_equals_the_plain_loop(kind, params):
     t = 10 * 10**9
     hops = 0
     for k in range(600):
-        X, C = _kernel_state(rng, form.has_bias)
+        X, C = _state(rng, form.has_bias)
         tg, zg, tl, zl = _kernel_samples(rng, X, k, t)
         got = update_axes(form, X, C, t, tg, zg, form.global_var, tl, zl, form.local_var)
         want = _reference_update(form, X, C, t, tg, zg, form.global_var, tl, zl, form.local_var)
@@ -146,7 +140,7 @@ def test_kernel_predict_and_the_fused_step_equal_the_plain_loops(kind):
     t = 10 * 10**9
     hops = 0
     for k in range(600):
-        X, C = _kernel_state(rng, form.has_bias)
+        X, C = _state(rng, form.has_bias)
         dt = float(rng.uniform(0.0, 0.02)) if k % 5 else 0.0
         Xp, Cp = _reference_predict(form, X, C, dt)
         X1, C1 = list(X), list(C)
