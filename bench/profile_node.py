@@ -1,8 +1,8 @@
 """Where fusion_node's CPU goes under the live bench load: py-spy samples of the node, split by what runs.
 
 Runs the ``live_fusion`` harness (publisher at OMC 240 Hz + OTS 400 Hz per target, the installed fusion_node with
-its defaults, primary filter only) and attaches ``py-spy record --native`` to the node once data flows
-(``--delay`` s after the node starts, for ``--record`` s). Each sample's stack is put in one row:
+its defaults, primary filter only unless ``--filters``) and attaches ``py-spy record --native`` to the node once data
+flows (``--delay`` s after the node starts, for ``--record`` s). Each sample's stack is put in one row:
 
   exec:wait/ready        the executor outside any callback (SingleThreadedExecutor: wait set, ready list, Task)
   exec:take              the executor taking/deserialising a message before the callback
@@ -19,7 +19,8 @@ sample, so the node runs slower while recorded: the shares matter, not the laten
 heuristic), e.g. a DDS write on its lock: read ``cb:publish``'s share as an upper bound of publishing's CPU.
 Not a figure of ``make bench`` (needs py-spy: ``pip install py-spy``).
 
-Run: python bench/profile_node.py [--targets 1] [--executor events|single] [--seconds 20] [--out FILE]
+Run: python bench/profile_node.py [--targets 1] [--filters all|ckf,fullperc,...] [--executor events|single]
+     [--seconds 20] [--out FILE]
 """
 
 from __future__ import annotations
@@ -79,6 +80,7 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=20.0, help="seconds of data")
     ap.add_argument("--delay", type=float, default=10.0, help="start recording this long after the node started")
     ap.add_argument("--record", type=float, default=8.0, help="seconds recorded")
+    ap.add_argument("--filters", default="", help="side-by-side filters (comma-separated; 'all': every registered one)")
     ap.add_argument("--out", default=str(Path(tempfile.gettempdir()) / "fusion_node_profile.txt"),
                     help="py-spy raw output")
     a = ap.parse_args()
@@ -103,7 +105,15 @@ def main() -> int:
 
     live_fusion.subprocess.Popen = Popen
     targets = [f"t{k}" for k in range(a.targets)]
-    res = live_fusion.run_live([live_fusion.target_params(targets)], targets, 170 + os.getpid() % 30, a.seconds,
+    extra: list[str] = []
+    if a.filters:
+        from fullperc_fusion.filters.registry import FILTERS
+        from fullperc_fusion.fusion_config import PARAMS
+
+        primary = str(next(p.default for p in PARAMS if p.name == "filter"))
+        names = [f for f in FILTERS if f != primary] if a.filters == "all" else a.filters.split(",")
+        extra = ["-p", f"filters:=[{', '.join(names)}]"]
+    res = live_fusion.run_live([live_fusion.target_params(targets) + extra], targets, 170 + os.getpid() % 30, a.seconds,
                                executor=a.executor)
     for s in spies:
         s.wait()

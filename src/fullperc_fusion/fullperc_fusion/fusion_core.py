@@ -37,8 +37,7 @@ the OTS moves) and ``base -> <source>`` of every further local source, from the 
 ``base -> diana_base`` when ``tf.diana_base`` is given. Sent when first known and again when one changes. The frame
 names are the node's ``frames.*`` (:mod:`fusion_interface`; these are the defaults).
 
-Run-time parameters (:data:`LIVE_PARAMS`, :meth:`FusionCore.apply_live`): the alarm thresholds, ``lag_warn`` and
-``status_rate`` are checked as at start-up and applied; every other parameter is read-only (module comment there).
+Run-time parameters: :data:`LIVE_PARAMS` (:meth:`FusionCore.apply_live`), checked as at start-up; the rest read-only.
 
 Publisher identity (:mod:`input_guard`, ``publishers.allow``): a sample or quality message of an input topic the
 guard holds closed (a publisher on it that is not accepted) is dropped and counted -- it reaches no pipeline, no
@@ -47,8 +46,7 @@ node and GID. While a publisher of any input has no name yet, *every* input's sa
 (at most the guard's 1 s): once it is named and accepted they are used in stamp order -- the order offline processing
 sees them in (holding only that topic's samples put a driver's first Vega samples behind OMC samples they preceded,
 and the static links averaged from the first samples came out different from the bag's evaluation); a refused
-publisher's topic is dropped from them. The node feeds the guard from discovery (:meth:`FusionCore.publishers_seen`).
-"""
+publisher's topic is dropped from them. The node feeds the guard from discovery (:meth:`FusionCore.publishers_seen`)."""
 
 from __future__ import annotations
 
@@ -313,17 +311,19 @@ class FusionCore:
 
     # ---- output -------------------------------------------------------------------------------------------------
     @property
-    def needs_clock(self) -> bool:
-        """Whether :meth:`poll` and :meth:`due_outputs` use the node clock (``clock: host``)."""
+    def needs_clock(self) -> bool:   # whether poll and due_outputs use the node clock (clock: host)
         return self.clock_mode == "host"
 
     def poll(self, target: str, clock_ns: int | None) -> list[FusedOutput]:
         """The outputs of ``target`` due after an input; ``clock_ns``: the node clock (used with ``clock: host``)."""
         return self.pipes[target].poll(clock_ns if self.needs_clock else None)
 
-    def side_outputs(self, target: str) -> list[FusedOutput]:
-        """The side-by-side outputs whose work waited for the live ones to go out (ArrivalPipeline.side_outputs)."""
-        return self.pipes[target].side_outputs()
+    def side_outputs(self, target: str, most: int | None = None) -> list[FusedOutput]:
+        """Side-by-side outputs whose work waited for the live ones, of at most ``most`` items (ArrivalPipeline)."""
+        return self.pipes[target].side_outputs(most)
+
+    def side_backlog(self) -> dict[str, int]:   # target -> its items with deferred side-by-side work (arrival)
+        return {t: n for t, p in self.pipes.items() if (n := getattr(p, "side_backlog", 0))}
 
     def due_outputs(self, now: float, clock_ns: int | None) -> Iterator[tuple[str, list[FusedOutput]]]:
         """The timer's flush policy (module docstring): (target, outputs) of every target with something due."""
@@ -332,7 +332,7 @@ class FusionCore:
             if isinstance(pipe, ArrivalPipeline):   # after idle_flush the history becomes final
                 if idle and pipe.pending:
                     yield t, pipe.flush()
-                elif pipe.waiting:   # a sample waiting for its partner: fused once its wait is over
+                elif pipe.waiting or pipe.side_backlog:   # a sample waiting for its partner, side-by-side work
                     yield t, pipe.poll() + pipe.side_outputs()
                 continue
             if pipe.sync.pending == 0:

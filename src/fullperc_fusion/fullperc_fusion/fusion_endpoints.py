@@ -245,13 +245,13 @@ class Inputs:
         """The input-batch items of one message of ``(dev, body)``'s subscription."""
         return self.frames(dev, body, data) if self.frames is not None else [input_sample(dev, body, data)]
 
-    def take(self, dev: str, body: str, data: bytes, most: int) -> tuple[list[tuple], set[str]]:
-        """The items of ``data`` (a message of ``(dev, body)``) and of everything queued on every input (at most
-        ``most`` per subscription), unsorted, and the topics they came from. Per body, the quality topics' queues
-        are taken too (:meth:`take_qualities`): a node behind its inputs holds a frame's quality record beside
-        its pose, and fusing the pose first would leave the record to a later callback -- too late once the item
-        has left the history (the sample then fused without its model covariance)."""
-        batch, topics = self.read(dev, body, data), {self.topic[(dev, body)]}
+    def take(self, dev: str | None, body: str, data: bytes, most: int) -> tuple[list[tuple], set[str]]:
+        """The items of ``data`` (a message of ``(dev, body)``; ``dev`` None: none) and of everything queued on every
+        input (at most ``most`` per subscription), unsorted, and the topics they came from. Per body, the quality
+        topics' queues are taken too (:meth:`take_qualities`): a node behind its inputs holds a frame's quality record
+        beside its pose, and fusing the pose first would leave the record to a later callback -- too late once the
+        item has left the history (the sample then fused without its model covariance)."""
+        batch, topics = ([], set()) if dev is None else (self.read(dev, body, data), {self.topic[(dev, body)]})
         for d, b, sub in self.subs:
             if msgs := take_queued(sub, most):
                 topics.add(self.topic[(d, b)])

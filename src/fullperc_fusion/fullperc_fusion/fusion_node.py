@@ -161,14 +161,32 @@ class FusionNode(Node):
 
     # ---- input ------------------------------------------------------------------------------
     def _on_input(self, dev: str, body: str, data: bytes, info) -> None:
-        """One executor callback: this message plus everything queued on every input, in stamp order (a link
-        body's sample before a target sample of the same stamp: the same device frame, mapped with it), taken
-        serialized and read by input_cdr (no Python message per sample); with ``inputs: frames`` each message is a
-        source's TrackedBodies. The quality records taken with it (the frames', or the queued ones of the quality
-        topics) go to the core first. ``info``: rclpy's message info (a required argument, so rclpy passes it),
-        for the callback delay."""
+        """One executor callback: this message plus everything queued on every input, fused and published
+        (:meth:`_fuse_inputs`); then the side-by-side filters' deferred work, an item at a time, each after fusing
+        and publishing what arrived meanwhile (arrival.py: a live output waits for one item's side-by-side work, not
+        for every due item's). At most as many items as waited when it began: the executor gets its turn (timers,
+        services), and what is left waits for the next callback or the timer. ``info``: rclpy's message info (a
+        required argument, so rclpy passes it), for the callback delay."""
+        received = info.get("received_timestamp") if isinstance(info, dict) else None
+        self._fuse_inputs(dev, body, data, received)
+        for _ in range(max(self.core.side_backlog().values(), default=0)):
+            self._fuse_inputs(None, "", b"", None)   # nothing queued: returns at once
+            for t in self.core.side_backlog():
+                self._publish(t, self.core.side_outputs(t, 1))
+                self._publish_final(t)
+            self._flush_wakeup()
+
+    def _fuse_inputs(self, dev: str | None, body: str, data: bytes, received: int | None) -> None:
+        """The message ``data`` of ``(dev, body)`` (``dev`` None: none) plus everything queued on every input, in stamp
+        order (a link body's sample before a target sample of the same stamp: the same device frame, mapped with it),
+        taken serialized and read by input_cdr (no Python message per sample); with ``inputs: frames`` each message is
+        a source's TrackedBodies. The quality records taken with it (the frames', or the queued ones of the quality
+        topics) go to the core first. The live outputs are published at once; ``received``: the message's reception
+        time, for the callback delay."""
         wall = time.time_ns()
         batch, topics = self._in.take(dev, body, data, self._take_max)   # this message and everything queued
+        if not topics:
+            return
         batch.sort(key=self.core.batch_key)
         changed = self._guard_inputs(topics)   # before fusing any
         touched: set[str] = set()
@@ -178,15 +196,12 @@ class FusionNode(Node):
             self.core.quality(*args)
         for t_ns, d, b, p, q in batch:
             touched.update(self.core.on_pose(d, b, t_ns, p, q, now, clock_ns))
-        for t in touched:   # the live outputs first, then the side-by-side filters' deferred work and outputs
+        for t in touched:   # the live outputs first; the side-by-side filters' deferred work after (_on_input)
             self._publish(t, self.core.poll(t, self._host_ns()))
         self._flush_wakeup()
         for t in touched:
-            self._publish(t, self.core.side_outputs(t))
             self._publish_final(t)
             self._log(self.core.watch_links(t, time.monotonic()))
-        self._flush_wakeup()
-        received = info.get("received_timestamp") if isinstance(info, dict) else None
         clock = self.get_clock().now().nanoseconds   # 0: sim time not started, no lag known
         if self.core.input_done(batch, None if not received else wall - int(received), clock, time.monotonic(),
                                 time.time_ns() - wall):

@@ -1,8 +1,10 @@
 """ArrivalPipeline.defer_side (fusion_node): the side-by-side filters' work waits until the node asks for it with
-side_outputs (after the wake-up's live outputs went out) or until the next fusion. Only when it is computed moves:
-every output, live, side-by-side and final, is the undeferred pipeline's bit for bit -- with the node's polls
-every sample, in bursts (a node behind takes many samples per wake-up), with samples out of order, with a quality
-record after its pose, across a timeline restart and at the end (flush)."""
+side_outputs (after the wake-up's live outputs went out, an item at a time while no input waits) or until a fusion
+finds it more than side_lag behind the history. Only when it is computed moves: every output, live, side-by-side
+and final, is the undeferred pipeline's bit for bit -- with the node's polls every sample, in bursts (a node behind
+takes many samples per wake-up), asking for all of the work, one item of it, or none (a node short of CPU: the
+fusions do it, side_lag late), with samples out of order, with a quality record after its pose, across a timeline
+restart and at the end (flush)."""
 
 from __future__ import annotations
 
@@ -12,13 +14,14 @@ import numpy as np
 import pytest
 
 from fullperc_common.testing import load_by_path
-from fullperc_fusion.pipeline.arrival import ArrivalPipeline
+from fullperc_fusion.pipeline.arrival import SIDE_LAG_MAX_NS, ArrivalPipeline
 from fullperc_fusion.pipeline.frame_chain import ChainConfig
 from fullperc_fusion.pipeline.ordered import TargetConfig
 
 MS = 1_000_000
 _ta = load_by_path(Path(__file__).with_name("test_arrival.py"), "_arrival_helpers")
 T0, S, stream, _push, _shuffled = _ta.T0, _ta.S, _ta.stream, _ta._push, _ta._shuffled
+_fc = load_by_path(Path(__file__).with_name("test_fusion_core.py"), "_fusion_core_helpers")
 
 
 def _feed(events, quality: bool, seed: int = 7) -> list[tuple[str, tuple]]:
@@ -34,9 +37,9 @@ def _feed(events, quality: bool, seed: int = 7) -> list[tuple[str, tuple]]:
     return feed
 
 
-def _run(cfg: TargetConfig, feed, defer: bool, burst: int) -> tuple[list, list, list]:
+def _run(cfg: TargetConfig, feed, defer: bool, burst: int, most: int | None = None) -> tuple[list, list, list]:
     """(live, side, final) outputs, each in the order handed out, polling as fusion_node does every ``burst`` inputs:
-    poll, then (deferred) side_outputs, then take_final."""
+    poll, then (deferred) side_outputs of at most ``most`` items, then take_final."""
     pipe = ArrivalPipeline(cfg)
     pipe.defer_side = defer
     live, side, final = [], [], []
@@ -53,7 +56,7 @@ def _run(cfg: TargetConfig, feed, defer: bool, burst: int) -> tuple[list, list, 
             pipe.push_omc_quality(*x)
         if (k + 1) % burst == 0:
             take(pipe.poll())
-            take(pipe.side_outputs())
+            take(pipe.side_outputs(most))
             final += pipe.take_final()
     take(pipe.flush())
     take(pipe.side_outputs())
@@ -64,9 +67,9 @@ def _key(o) -> tuple:
     return (o.filter, o.t_ns, o.p.tobytes(), o.q.tobytes(), o.cov.tobytes(), o.bias.tobytes(), o.sources, o.hop)
 
 
-@pytest.mark.parametrize("burst", [1, 7])
+@pytest.mark.parametrize(("burst", "most"), [(1, None), (7, None), (1, 1), (3, 0)])
 @pytest.mark.parametrize("case", ["in_order", "reordered", "fullperc_quality", "restart"])
-def test_deferred_side_by_side_work_gives_the_same_outputs(case, burst):
+def test_deferred_side_by_side_work_gives_the_same_outputs(case, burst, most):
     events = stream(duration=2.0, local=(0.5, 1.5), omc_hz=240, ots_hz=400)
     if case == "reordered":
         events = _shuffled(events, 30 * MS, seed=3)
@@ -77,7 +80,7 @@ def test_deferred_side_by_side_work_gives_the_same_outputs(case, burst):
     cfg = TargetConfig(filters=filters, chain=ChainConfig(static_links="average"))
     feed = _feed(events, quality=case == "fullperc_quality")
     now_live, now_side, now_final = _run(cfg, feed, defer=False, burst=burst)
-    d_live, d_side, d_final = _run(cfg, feed, defer=True, burst=burst)
+    d_live, d_side, d_final = _run(cfg, feed, defer=True, burst=burst, most=most)
     assert len(now_side) > 300 and len(now_final) > len(now_side)
     assert [_key(o) for o in d_live] == [_key(o) for o in now_live]
     # the side-by-side outputs in the same order; the deferral only hands them out no earlier than undeferred
@@ -85,34 +88,48 @@ def test_deferred_side_by_side_work_gives_the_same_outputs(case, burst):
     assert [_key(o) for o in d_final] == [_key(o) for o in now_final]
 
 
-def test_deferred_work_waits_for_side_outputs_or_the_next_fusion():
+def test_deferred_work_waits_for_side_outputs_or_falls_side_lag_behind():
     """Deferred: an item that left the history has no side-by-side output until side_outputs (the node, after
-    publishing) -- or the next sample's fusion, which does the work first."""
+    publishing; ``most`` items of it) -- or until a fusion finds it more than side_lag behind the history, which
+    does it first."""
     cfg = TargetConfig(filters=("cbkf", "kf"), chain=ChainConfig(static_links="average"))
-    events = stream(duration=1.0, local=(0.2, 0.8), omc_hz=240, ots_hz=400)
+    events = stream(duration=1.5, local=(0.2, 1.2), omc_hz=240, ots_hz=400)
     pipe = ArrivalPipeline(cfg)
     pipe.defer_side = True
+    assert pipe._side_lag_ns == min(cfg.history_ns, SIDE_LAG_MAX_NS) == 100 * MS
     for k in range(400):   # 0.4 s: the links known, the side-by-side lane fusing
         _push(pipe, events[k])
         pipe.poll()
         pipe.side_outputs()
     k = 400
-    _push(pipe, events[k])
-    k += 1
-    while not pipe._side_due:   # until an item leaves the history with its side-by-side work deferred
+    while pipe.side_backlog < 3:   # until three items left the history with their side-by-side work deferred
         _push(pipe, events[k])
         k += 1
-    due = len(pipe._side_due)
     assert not [o for o in pipe.poll() if o.filter == "kf"]   # the live poll does none of it
-    assert pipe.pending >= due   # counted as pending: the node's idle flush would do it
-    got = pipe.side_outputs()
-    assert len([o for o in got if o.filter == "kf"]) == due and not pipe._side_due
-    while not pipe._side_due:
+    assert pipe.pending >= pipe.side_backlog   # counted as pending: the node's idle flush would do it
+    first = pipe._side_due[0]
+    got = pipe.side_outputs(1)   # the oldest item only
+    assert [o.t_ns for o in got if o.filter == "kf"] == [first.item.t_ns] and pipe.side_backlog == 2
+    first = pipe._side_due[0]
+    while first in pipe._side_due:   # fusions leave it until it is side_lag behind the history
+        assert first.te >= pipe.rules.newest_ns - cfg.history_ns - pipe._side_lag_ns - 10 * MS
         _push(pipe, events[k])
         k += 1
-    first_due, end = pipe._side_due[0], k + 20
-    while first_due in pipe._side_due and k < end:   # a link body's sample or one waiting for its partner fuses nothing
-        _push(pipe, events[k])
-        k += 1
-    assert first_due not in pipe._side_due, "the next fusion did the deferred work"
+    assert first.te < pipe.rules.newest_ns - cfg.history_ns - pipe._side_lag_ns, "a fusion did it once due"
+    assert pipe.side_backlog > 10   # the newer items still wait
     assert [o for o in pipe.poll() if o.filter == "kf"]
+
+
+def test_deferred_side_by_side_work_is_counted_and_done_an_item_at_a_time_or_on_the_timer():
+    """Items that left the history wait for their side-by-side work (arrival.py, defer_side): side_backlog names
+    the target with their count, side_outputs(t, 1) does the oldest one, and the timer (due_outputs) does the rest
+    when no input came to do it."""
+    c = _fc.make_core(filters=["kf"])
+    _fc.frames(c, 0, 60)   # 0.6 s at 100 Hz: items left the 0.2 s history, none of their kf work done (never asked)
+    n = c.side_backlog()["tool"]
+    assert n > 2
+    one = [o for o in c.side_outputs("tool", 1) if o.filter == "kf"]
+    assert len(one) == 1 and c.side_backlog() == {"tool": n - 1}
+    out = dict(c.due_outputs(0.6, None))   # not idle: the timer does the deferred work
+    assert len([o for o in out["tool"] if o.filter == "kf"]) == n - 1 and c.side_backlog() == {}
+    assert [o.t_ns for o in one] < [o.t_ns for o in out["tool"] if o.filter == "kf"][:1]

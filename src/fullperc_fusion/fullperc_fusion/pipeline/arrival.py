@@ -38,10 +38,15 @@ is fused on arrival and replayed. The side-by-side filters (the others, for comp
 fused when an item leaves the history, in stamp order like ordered processing -- no replay, so they cost what they
 cost in ordered processing (replaying every filter would nearly double the node's CPU with the paper's four beside
 the primary) -- and their outputs are final, ``history`` behind; their counters and problems are not kept. With
-``defer_side`` (fusion_node) that work waits until :meth:`ArrivalPipeline.side_outputs` asks for it, which the node
-does once the wake-up's live outputs are published, or until the next fusion, whichever comes first: with every
-filter side by side the primary's latency no longer includes them (``bench/bench_e2e_latency.py``), and the results
-are the same bit for bit (``test_arrival_defer.py``); only when they are computed moves.
+``defer_side`` (fusion_node) that work waits until :meth:`ArrivalPipeline.side_outputs` asks for it -- the node does,
+an item at a time, once the wake-up's live outputs are published and while no input waits --, or until a fusion
+finds it more than ``side_lag`` (``min(history, SIDE_LAG_MAX_NS)``) behind the history, whichever comes first. So
+a sample's live output waits for at most one item's side-by-side work, not for every due item's (with every filter
+side by side that work is as much CPU as the live path: ``bench/bench_e2e_latency.py``), and a node short of CPU
+still does it, ``side_lag`` late. The results are the same bit for bit (``test_arrival_defer.py``); only when they
+are computed moves: what the work reads besides the item and its own lane -- the links the item was resolved with
+(its view), the rig and base poses (:class:`~.frame_chain.FrameChain`'s last 256 per body) and the OMC qualities
+(kept 1 s) -- is still there ``history + side_lag`` later.
 
 Outputs. :meth:`poll` returns, in stamp order, the primary filter's outputs of every item (re)processed since the
 last poll whose stamp is newer than the last one returned: the live estimate, stamps strictly increasing (what
@@ -76,6 +81,7 @@ from fullperc_fusion.pipeline.synchronizer import GLOBAL, LOCAL, ApproxSync, Sam
 __all__ = ["LATE_SOURCE_SPAN_NS", "PROCESSING_MODES", "ArrivalPipeline", "make_pipeline"]
 
 PROCESSING_MODES = ("arrival", "ordered")
+SIDE_LAG_MAX_NS = 100_000_000   # deferred side-by-side work falls at most this far behind the history (docstring)
 
 
 def _key(item: SyncItem) -> tuple[int | None, int | None, int]:
@@ -91,7 +97,7 @@ def _stream(item: SyncItem) -> int:
 class ArrivalPipeline(TargetPipeline):
     """:class:`TargetPipeline` with processing on arrival; see the module docstring. Same input API."""
 
-    CONSTANT = (*TargetPipeline.CONSTANT, "_resolve_ns", "defer_side")   # defer_side: set once, before any input
+    CONSTANT = (*TargetPipeline.CONSTANT, "_resolve_ns", "_side_lag_ns", "defer_side")   # defer_side: set once
     LANES = ("lane", "side")   # the live lane (rewound: each history entry holds its snapshot) and the side-by-side
     # the rewind's own bookkeeping, kept by it: the stamp rules (the samples taken stay taken; a rewind pairs them
     # again), the history, the outputs not handed out yet, the views of the static links
@@ -113,6 +119,7 @@ class ArrivalPipeline(TargetPipeline):
         self.hold = PartnerHold(config.slop_ns, config.partner_wait_ns)
         self._resolve_ns = 2 * config.slop_ns + config.delay_ns
         self.defer_side = False   # fusion_node: the side-by-side lane's work waits for side_outputs (docstring)
+        self._side_lag_ns = min(config.history_ns, SIDE_LAG_MAX_NS)
         self._side_due: list[Entry] = []
 
     def lanes(self) -> tuple[FilterLane, ...]:
@@ -182,8 +189,8 @@ class ArrivalPipeline(TargetPipeline):
     def _fuse(self, batch: list[tuple[int, int, object]]) -> None:
         """Fuse the samples ``(stream, t, payload)`` of ``batch``, admitted by the stamp rules: paired again with
         the history's samples near them, in one re-pairing, and fused from the first item they change on. Deferred
-        side-by-side work comes first: it never waits past the next fusion, so it sees the state it saw undeferred."""
-        self._commit_due()
+        side-by-side work more than ``side_lag`` behind the history comes first (module docstring)."""
+        self._commit_due(self.rules.newest_ns - self.rules.history_ns - self._side_lag_ns)
         h = self.history
         k = h.index(min(t for _, t, _ in batch) - 2 * self.config.slop_ns)
         old, names = h.entries[k:], self.rules.names
@@ -322,19 +329,35 @@ class ArrivalPipeline(TargetPipeline):
             self.outbox.committed.extend(side)
         self.outbox.final.extend(e.outs)
 
-    def side_outputs(self) -> list[FusedOutput]:
-        """With ``defer_side``: the side-by-side lane on the items that left the history since the last call, in
-        stamp order, and its outputs (what :meth:`poll` would have returned with the live ones). Their final outputs
-        are :meth:`take_final`'s from then on. Without: the side-by-side outputs committed since the last poll (the
-        work was done as the items left)."""
-        self._commit_due()
+    def side_outputs(self, most: int | None = None) -> list[FusedOutput]:
+        """With ``defer_side``: the side-by-side lane on the items that left the history and wait for it (at most
+        ``most`` of them, the oldest), in stamp order, and its outputs -- with those a fusion did meanwhile (what
+        :meth:`poll` would have returned with the live ones). Their final outputs are :meth:`take_final`'s from then
+        on. Without: the side-by-side outputs committed since the last poll (the work was done as the items left)."""
+        self._commit_due(most=most)
         out, self.outbox.committed = self.outbox.committed, []
         return out
 
-    def _commit_due(self) -> None:
-        due, self._side_due = self._side_due, []
-        for e in due:
-            self._commit(e)
+    @property
+    def side_backlog(self) -> int:
+        """Items whose deferred side-by-side work waits for :meth:`side_outputs`."""
+        return len(self._side_due)
+
+    def _commit_due(self, before_ns: int | None = None, most: int | None = None) -> None:
+        """The deferred side-by-side work of the items stamped before ``before_ns`` (None: every one), at most
+        ``most``, oldest first."""
+        due = self._side_due
+        n = len(due)
+        if before_ns is not None:
+            n = 0
+            while n < len(due) and due[n].te < before_ns:
+                n += 1
+        if most is not None:
+            n = min(n, most)
+        if n:
+            todo, self._side_due = due[:n], due[n:]
+            for e in todo:
+                self._commit(e)
 
     def _side_by_side(self, e: Entry) -> list[FusedOutput]:
         """The side-by-side lane on a final item, in stamp order as ordered processing does, mapped with the links

@@ -349,7 +349,7 @@ class TargetPipeline:
                 self.counts["link_bumped_checks"] += 1
 
     # ---- output -----------------------------------------------------------------------------
-    def side_outputs(self) -> list[FusedOutput]:
+    def side_outputs(self, most: int | None = None) -> list[FusedOutput]:
         """Deferred side-by-side outputs (:meth:`.arrival.ArrivalPipeline.side_outputs`): none in ordered processing."""
         return []
 
