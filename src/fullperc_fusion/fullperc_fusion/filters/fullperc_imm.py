@@ -36,6 +36,7 @@ carry it).
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -161,7 +162,7 @@ class FullpercImm(StepCompat):
             self._mu = np.full(len(self.models), 1.0 / len(self.models))
             log_l = 0.0
         else:
-            lls = [s.log_lik + speed_log_lik(float(np.linalg.norm(s.v)), name)
+            lls = [s.log_lik + speed_log_lik(math.sqrt(s.v.dot(s.v)), name)   # np.linalg.norm's arithmetic
                    for name, s in zip(self.names, steps, strict=True)]
             self._mu, log_l = posterior(self._mu, lls)
         return self._combine(steps, log_l)

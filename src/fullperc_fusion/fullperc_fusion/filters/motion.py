@@ -131,7 +131,12 @@ def mix(weights: np.ndarray, dx: Sequence[np.ndarray], Ps: Sequence[np.ndarray])
     D = np.asarray(dx, dtype=float)
     dx0 = weights @ D
     E = D - dx0
-    P0 = np.tensordot(weights, np.asarray(Ps), axes=1) + (E.T * weights) @ E
+    Ps = np.asarray(Ps)
+    n = len(weights)
+    # sum w_i P_i as np.tensordot(weights, Ps, axes=1) computes it -- the same one dot of a (1, n) by an (n, k*k)
+    # matrix, so the same bits -- without its ~15 us of Python (four calls per IMM step, fullperc_imm.py)
+    Pw = np.dot(weights.reshape(1, n), Ps.reshape(n, -1)).reshape(Ps.shape[1:])
+    P0 = Pw + (E.T * weights) @ E
     return dx0, 0.5 * (P0 + P0.T)
 
 
