@@ -41,14 +41,15 @@ def test_a_slow_rotation_part_at_the_grids_end_is_a_random_walk():
 
 
 def test_the_position_bias_length_and_std_come_from_the_raw_differences_fit():
-    """``bias_length`` / ``bias_field_std`` are the semivariogram fit's L and s_f; a length at the fit's grid end
-    (no level-off within the data's distances, the paper bags) writes 0 for both: b kept as learnt. Without the
-    differences (``fitted`` without ``diffs``) the file leaves them out (the built-in values stay)."""
+    """``bias_field_std`` / ``bias_field_length`` are the semivariogram fit's s_f and L, and ``bias_length`` L too; a
+    length at the fit's grid end (no level-off within the data's distances, the paper bags) writes ``bias_length`` 0
+    (b kept as learnt) and keeps s_f and L (the output covariance's growth with distance). Without the differences
+    (``fitted`` without ``diffs``) the file leaves them out (the built-in values stay)."""
     _, bias = noise_model_from_stats(stats(pos_gm_dist=(0.05e-3, 0.34e-3, 0.3)))
-    assert bias["bias_length"] == 0.3 and bias["bias_field_std"] == 0.34e-3
+    assert (bias["bias_length"], bias["bias_field_std"], bias["bias_field_length"]) == (0.3, 0.34e-3, 0.3)
     _, bias = noise_model_from_stats(stats(pos_gm_dist=(0.0, 4.8e-3, LENGTH_GRID[1])))
-    assert bias["bias_length"] == 0.0 and bias["bias_field_std"] == 0.0
-    assert "bias_length" not in noise_model_from_stats(stats())[1]
+    assert (bias["bias_length"], bias["bias_field_std"], bias["bias_field_length"]) == (0.0, 4.8e-3, LENGTH_GRID[1])
+    assert not {"bias_length", "bias_field_std", "bias_field_length"} & set(noise_model_from_stats(stats())[1])
 
 
 def test_negative_regression_terms_count_as_none():

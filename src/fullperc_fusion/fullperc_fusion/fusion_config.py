@@ -170,7 +170,10 @@ PARAMS: tuple[Param, ...] = (
     _filter_row("fullperc.bias_length", "bias_length", "float", *NONNEGATIVE, "m",
           "fullperc: distance over which the OMC position bias b decays once the local source lost the tool (0: off)"),
     _filter_row("fullperc.bias_field_std", "bias_field_std", "float", *NONNEGATIVE, "m",
-          "fullperc: b's stationary per-axis std in that decay: its variance far from where it was learnt"),
+          "fullperc: per-axis std of the OMC's position error field (b's far from where it was learnt)"),
+    _filter_row("fullperc.bias_field_length", "bias_field_length", "float", *NONNEGATIVE, "m",
+          "fullperc: that field's correlation length; with bias_length 0 the output covariance adds the field's "
+          "change since the local source lost the tool (0 = off)"),
     _filter_row("fullperc.local_lost_s", "local_lost_s", "float", *POSITIVE, "s",
           "fullperc: time without a local sample after which the local source counts as having lost the tool"),
     _filter_row("fullperc.hop_into", "hop_into", "str", *one_of(HOP_INTO), "",
@@ -195,7 +198,7 @@ PARAMS: tuple[Param, ...] = (
     Param("fullperc.noise_model_file", "", "str", None, "", "",
           "fullperc: noise model of this installation's OMC (written by fit_noise_model); '' = the built-in one. "
           "Its omc_bias values replace fullperc.sys_time, sys_std, rot_sys_time, rot_sys_std, rot_bias_walk, "
-          "rot_bias_length, bias_length, bias_field_std"),
+          "rot_bias_length, bias_length, bias_field_std, bias_field_length"),
     *TIMING_PARAMS,   # slop ... partner_wait (pipeline/target.py)
     Param("lag_warn", 0.2, "float", *POSITIVE, "s",
           "processing lag (node clock - stamp of the newest fused sample) above this for a whole /diagnostics "

@@ -467,9 +467,10 @@ def noise_model_from_stats(f: dict[str, Any]) -> tuple[dict[str, float], dict[st
       how far the tool moves, once the Vega has lost it, before that part is forgotten), or, when its time
       constant is at the grid's end (>= :data:`RANDOM_WALK_TAU_S`), a random walk with the same short-lag
       increments: ``rot_bias_walk = 2 s^2 / tau``, ``rot_sys_time = 0`` and ``rot_bias_length = 0`` (nothing to
-      forget: the slow error of such a room stays where it was learnt); with ``pos_gm_dist``, ``bias_length`` and
-      ``bias_field_std`` from it, or both 0 when its length is at the grid's end (no length determined: b is kept as
-      learnt, CBKF's rule).
+      forget: the slow error of such a room stays where it was learnt); with ``pos_gm_dist``, ``bias_field_std``
+      and ``bias_field_length`` its s_f and L, and ``bias_length`` L too, or 0 when L is at the grid's end (no
+      length determined: b is kept as learnt, CBKF's rule, and the field's s_f and L give the output covariance's
+      growth with distance within the distances seen, ``fullperc_state.field_var``).
     """
     floor_w, k_w, m_w = np.maximum(f["pos_white"], 0.0)   # a negative term (signed std): the data show none
     floor_t, k_fit, m = np.maximum(f["pos_total"], 0.0)
@@ -488,10 +489,7 @@ def noise_model_from_stats(f: dict[str, Any]) -> tuple[dict[str, float], dict[st
         bias.update(rot_sys_time=t2, rot_sys_std=s2, rot_bias_length=f["rot_gm_dist"][2])
     if "pos_gm_dist" in f:
         _, sf, L = f["pos_gm_dist"]
-        if _at_grid_end(L):
-            bias.update(bias_length=0.0, bias_field_std=0.0)
-        else:
-            bias.update(bias_length=L, bias_field_std=sf)
+        bias.update(bias_length=0.0 if _at_grid_end(L) else L, bias_field_std=sf, bias_field_length=L)
     return {k: float(v) for k, v in omc.items()}, {k: float(v) for k, v in bias.items()}
 
 

@@ -65,6 +65,7 @@ from fullperc_fusion.filters.fullperc_state import (
     POSE_FLAT,
     FullpercState,
     N,
+    field_var,
     hop_run_step,
     noise_scale_step,
 )
@@ -482,6 +483,12 @@ class FullpercFilter(StepCompat):
 
     def _step(self, t: int, mg, ml, **kw) -> Step:
         x, P = self._x, self._P
+        fv = field_var(t, self._tl, x[0:3], self._ra, self.params)   # the output's only (fullperc_state.field_var)
+        if fv > 0.0:
+            P = P.copy()
+            P[0, 0] += fv
+            P[1, 1] += fv
+            P[2, 2] += fv
         src = (SOURCE_GLOBAL if mg is not None else 0) | (SOURCE_LOCAL if ml is not None else 0)
         has_R = self._has_R
         return Step(t, np.array(x[0:3]), np.array(x[3:6]), np.array([x[6] + x[18], x[7] + x[19], x[8] + x[20]]),

@@ -41,14 +41,19 @@ class FullpercParams(FilterParams):
                      OMC rotation error over distance, white + Gauss-Markov (``paper`` bags; ``sensor_stats``).
     bias_length      L_b [m], the position bias b's decay length once the local source has lost the tool (0: off,
                      b kept as learnt: CBKF's compensation); Gauss-Markov in the distance from where it last saw it.
-    bias_field_std   s_f [m], b's stationary per-axis std in that model: what b's variance returns to far away.
-                     Both 0 by default (off: b kept as learnt, CBKF's rule); a room's own noise-model file sets them
-                     (``fit_noise_model --write``: the raw (OMC - local chain) position differences' semivariogram over
-                     distance, no truth, no filter output; 0 where the fit shows no length). No one value fits every
-                     room: the ``spec`` bags give 0.296 m / 0.341 mm, the ``paper`` bags no length (their error field
-                     holds beyond the Vega's 0.54 m), and shipping spec's values, measured over 10 seeds (``make
-                     accuracy``), helps ``spec`` (tool 0.308 -> 0.297 mm) and hurts ``paper`` (tool 2.073 -> 2.245 mm,
-                     above CBKF's 2.097).
+    bias_field_std   s_f [m], the OMC's position error field's per-axis std (the sill of its semivariogram over
+                     distance): b's stationary std in that model, what b's variance returns to far away.
+    bias_field_length  L_f [m], that field's correlation length. With ``bias_length`` 0 (b kept as learnt) the
+                     output's position covariance adds the field's change since the local source last saw the tool,
+                     2 s_f^2 (1 - exp(-d / L_f)) per axis at the distance d from there (:func:`.fullperc_state.
+                     field_var`): the estimate is unchanged, its covariance says how far the learnt b may be off.
+                     ``bias_length`` 0 by default (b kept as learnt, CBKF's rule); s_f and L_f the ``spec`` bags' fit
+                     (0.341 mm, 0.296 m); a room's own noise-model file sets all three (``fit_noise_model --write``:
+                     the raw (OMC - local chain) position differences' semivariogram over distance, no truth, no
+                     filter output; ``bias_length`` 0 where the fit shows no length). No one decay length fits every
+                     room: the ``paper`` bags show none (their error field holds beyond the Vega's 0.54 m), and
+                     shipping spec's, measured over 10 seeds (``make accuracy``), helps ``spec`` (tool 0.308 -> 0.297
+                     mm) and hurts ``paper`` (tool 2.073 -> 2.245 mm, above CBKF's 2.097).
     local_lost_s     no local sample for this long [s]: it has lost the tool (0.1: the evaluation's split).
     hop_into         "b" (default) or "g": the bias part a position hop goes into (module docstring).
     hop_confirm      global samples in a row over the hop gate, each innovation in the direction of the one before,
@@ -91,7 +96,8 @@ class FullpercParams(FilterParams):
     rot_sys_std: float = 8.94e-3
     rot_bias_length: float = 0.0527
     bias_length: float = 0.0
-    bias_field_std: float = 0.0
+    bias_field_std: float = 0.341e-3
+    bias_field_length: float = 0.296
     local_lost_s: float = 0.1
     hop_into: str = "b"
     hop_confirm: int = 1
@@ -111,7 +117,7 @@ class FullpercParams(FilterParams):
             raise ValueError(f"filter parameter hop_into must be one of {HOP_INTO}, got {self.hop_into!r}")
         for name in ("ang_accel_noise", "rot_bias_walk", "init_rot_std", "init_angvel_std", "init_rot_bias_std",
                      "rot_sys_time", "rot_sys_std", "noise_adapt_time", "rot_bias_length", "rot_noise_adapt_time",
-                     "rot_noise_length", "bias_length", "bias_field_std"):
+                     "rot_noise_length", "bias_length", "bias_field_std", "bias_field_length"):
             v = float(getattr(self, name))
             if not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"filter parameter {name} must be finite and >= 0, got {v!r}")

@@ -77,30 +77,28 @@ a Gauss-Markov process forgets it at the rate the sensor's error does, and the m
   P = G P G^T with G_thth = I - [dtheta/2]x (the first-order reset Jacobian of the multiplicative update).
 * why the spatial decay: the OMC's rotation error is a field over the room (its structure function over the
   distance between samples, ``sensor_stats.structure_over_distance``: L = 56.5 mm on the ``paper`` bags); once the
-  local source has lost the tool, the tool is usually on its way elsewhere and beta, the OMC's error where the Vega
-  saw it, is not the error here (docs/fullperc_filter.md "The orientation bias after the Vega lost the tool"). While
-  the local source sees the tool, beta is observed: no decay by distance. The position error is such a field too
-  (issue 41: the twin's OMC error is a smooth function of position): b, learnt against the Vega in its volume, was
-  applied metres away as it was, and the fused output was worse there than the raw OMC. Its length and std come
-  from the raw (OMC - local chain) differences' semivariogram over distance (``fullperc_eval`` ``bias_variogram``),
-  not from the truth. d is the distance from a_r, not the path length: the error is a function of where the tool
-  is, so coming back towards a_r forgets nothing more, and d_max keeps the decay monotone (no variance given back).
+  local source has lost the tool, beta, the OMC's error where the Vega saw it, is not the error here
+  (docs/fullperc_filter.md "The orientation bias after the Vega lost the tool"); while it sees the tool, beta is
+  observed. The position error is such a field too (issue 41): b, learnt in the Vega's volume and applied metres
+  away, left the output worse there than the raw OMC. Its length and std come from the raw (OMC - local chain)
+  differences' semivariogram over distance (``fullperc_eval`` ``bias_variogram``), not from the truth. With
+  ``bias_length`` 0 (b kept as learnt) the output's position covariance gets the field's change since a_r instead,
+  2 s_f^2 (1 - exp(-d / L_f)) per axis (:func:`.fullperc_state.field_var`; state and estimate unchanged). d is the
+  distance from a_r, not the path length: the error is a function of where the tool is, so coming back towards a_r
+  forgets nothing more, and d_max keeps the decay monotone (no variance given back).
 * gaps longer than ``max_gap_s`` re-initialise p, v, R, w from the next sample; b and beta (and their variances)
   are kept (propagated over the gap: b's walk, beta's decay and walk, g's decay).
 * (re-)initialisation: p from the local sample if there is one, else p = z - b - g from the global one. Then p's
   error is minus the errors of b and g plus the prior's own: P_pp = init_pos_std^2 I + P_bb + P_gg, P_pb = -P_bb,
   P_pg = -P_gg, so z's sum p + b + g has the prior's variance alone and the global source by itself cannot move b
   or g (cov(b, p + b + g) = 0). Why: with p independent of b, each model's first global samples split their
-  innovation (its velocity not yet known) between p and b in proportion to the priors -- about half into b for a
-  model with a small velocity prior --, and b kept that (a random walk no source observes before the local one
-  sees the tool): measured on ``spec``'s hand-held instrument, seed 0, an offset of 0.15-0.2 mm from the raw OMC
-  for the whole stretch before the Vega first saw it, 1.3x the OMC's error there (``test_fullperc_filter.py``).
+  innovation (velocity not yet known) between p and b by the priors -- about half into b for a small velocity prior
+  --, and b, which no source observes before the local one, kept that (``spec``'s instrument, seed 0: 0.15-0.2 mm
+  off the raw OMC until the Vega first saw it, 1.3x the OMC's error; ``test_fullperc_filter.py``).
 
 CBKF's biased estimator M is left out: on the position block it is a shrinkage towards the origin of ``base``
 with m = 1 - O(1e-7) (see :mod:`.paper_family`), i.e. micrometres, and on the other blocks it breaks the filter.
-
-Output: :class:`~.api.Step` with ``q`` (x y z w) and ``pose_cov`` (6x6, [p, theta], base).
-"""
+Output: :class:`~.api.Step` with ``q`` (x y z w) and ``pose_cov`` (6x6, [p, theta], base)."""
 
 from __future__ import annotations
 
@@ -132,6 +130,7 @@ from fullperc_fusion.filters.fullperc_state import (
     FullpercState,
     N,
     copy_state,
+    field_var,
     hop_run_step,
     noise_scale_step,
 )
@@ -141,8 +140,7 @@ from fullperc_fusion.filters.rot_noise_scale import pair_estimate, scale_decay, 
 
 __all__ = ["N", "FullpercReference", "noise_scale_step"]
 
-_I3 = np.eye(3)
-_IN = np.eye(N)
+_I3, _IN = np.eye(3), np.eye(N)
 
 
 class FullpercReference(StepCompat):
@@ -494,7 +492,9 @@ class FullpercReference(StepCompat):
     def _step(self, t: int, mg, ml, **kw) -> Step:
         s = self.s
         src = (SOURCE_GLOBAL if mg is not None else 0) | (SOURCE_LOCAL if ml is not None else 0)
-        pose_cov = s.P[np.ix_(np.r_[P_, TH], np.r_[P_, TH])]   # the [p, theta] rows and columns
-        return Step(t, s.p.copy(), s.v.copy(), s.b + s.g, s.P.copy(), src,
+        P = s.P.copy()
+        P[P_, P_] += field_var(t, s.t_local_ns, s.p, s.rot_anchor, self.params) * _I3   # the output's only
+        pose_cov = P[np.ix_(np.r_[P_, TH], np.r_[P_, TH])]   # the [p, theta] rows and columns
+        return Step(t, s.p.copy(), s.v.copy(), s.b + s.g, P, src,
                     q=R_to_quat(s.R) if s.has_R else None, pose_cov=pose_cov if s.has_R else None,
                     reset=kw.pop("reset", False), **kw)

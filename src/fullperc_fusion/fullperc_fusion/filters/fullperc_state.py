@@ -16,7 +16,7 @@ import numpy as np
 from fullperc_fusion.filters.fullperc_params import FullpercParams
 
 __all__ = ["BE", "B_", "G_", "HOLD_OUT", "N", "POSE_FLAT", "P_", "TH", "V_", "W_", "FullpercState", "copy_state",
-           "hop_run_step", "noise_scale_step"]
+           "field_var", "hop_run_step", "noise_scale_step"]
 
 # the error state dx = [dp dv db | dtheta dw dbeta | dg] (:mod:`.fullperc_reference`)
 N = 21
@@ -52,6 +52,25 @@ def hop_run_step(run: tuple | None, hop_p: bool, y0: float, y1: float, y2: float
         return False, None
     n = run[0] + 1 if run is not None and y0 * run[1] + y1 * run[2] + y2 * run[3] > 0.0 else 1
     return n >= pr.hop_confirm, (n, y0, y1, y2)
+
+
+def field_var(t_ns: int, t_local_ns: int | None, p, anchor, pr: FullpercParams) -> float:
+    """The variance per axis [m^2] the OMC's position error field adds to the output at ``p`` once the local source
+    has lost the tool (its newest sample, fused at ``anchor``, older than ``local_lost_s`` at ``t_ns``).
+
+    Why: with ``bias_length`` 0 the filter keeps b as learnt where the local source last saw the tool (CBKF's rule,
+    what the ``paper`` room needs: its error field holds beyond the Vega's volume). The OMC's error is a field over
+    the room, e(x) = b(x) + white, whose semivariogram of the raw (OMC - local chain) differences is
+    gamma(h) = nugget^2 + s_f^2 (1 - exp(-h / L_f)) (``fit_noise_model``): so at a distance d from where it was
+    learnt, b may be off by e(x) - e(a) less the white part, variance 2 s_f^2 (1 - exp(-d / L_f)) per axis, which
+    the filter's P (b a random walk in time) does not hold. It goes into the output's covariance only -- the
+    estimate, whose best guess of the field is still b, is unchanged. 0 while the local source sees the tool, when
+    b itself decays with distance (``bias_length`` > 0: P holds that), or with s_f or L_f 0."""
+    if (pr.bias_length > 0.0 or pr.bias_field_std <= 0.0 or pr.bias_field_length <= 0.0 or anchor is None
+            or t_local_ns is None or (t_ns - t_local_ns) * 1e-9 <= pr.local_lost_s):
+        return 0.0
+    d = math.dist(p, anchor)
+    return 2.0 * pr.bias_field_std**2 * -math.expm1(-d / pr.bias_field_length)
 
 
 @dataclass

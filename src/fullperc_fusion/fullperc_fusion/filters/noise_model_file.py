@@ -23,7 +23,8 @@ Format (YAML, SI units; every key of ``omc`` and ``omc_bias`` optional: a key no
       rot_bias_walk: 1.0e-06         # [rad^2/s]
       rot_bias_length: 5.27e-02      # [m] (0: the orientation bias does not decay with distance)
       bias_length: 0.296             # [m] (0: the position bias b does not decay with distance)
-      bias_field_std: 3.41e-04       # [m] b's std far from where it was learnt
+      bias_field_std: 3.41e-04       # [m] the OMC's position error field's std (b's far from where it was learnt)
+      bias_field_length: 0.296       # [m] its correlation length (bias_field_std's and this: the raw variogram fit)
 
 A file that cannot be read, has another version, an unknown key or a value that is not a finite number in its
 range raises :class:`NoiseModelError` naming the file and the key: a typo must not silently leave a default.
@@ -51,7 +52,7 @@ OMC_KEYS: dict[str, tuple[str, bool]] = {
 BIAS_KEYS: dict[str, tuple[str, bool]] = {
     "sys_time": ("s", True), "sys_std": ("m", True), "rot_sys_time": ("s", False), "rot_sys_std": ("rad", False),
     "rot_bias_walk": ("rad^2/s", False), "rot_bias_length": ("m", False), "bias_length": ("m", False),
-    "bias_field_std": ("m", False)}
+    "bias_field_std": ("m", False), "bias_field_length": ("m", False)}
 
 
 class NoiseModelError(ValueError):
