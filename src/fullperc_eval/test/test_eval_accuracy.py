@@ -270,6 +270,11 @@ def test_calibrated_noise_model_of_the_committed_spec_bags_is_the_built_in_one(t
     for k, v in dataclasses.asdict(cfg.omc_model).items():
         assert v == pytest.approx(builtin[k], rel=0.02), k
     assert r["noise_model"]["omc"]["margin_std"] == cfg.omc_model.margin_std
+    # the position error field from the raw (OMC - local chain) differences too, as fit_noise_model --write fits it:
+    # the spec bags' fit is the built-in one (FullpercParams), and it reaches the filter
+    bias = r["noise_model"]["omc_bias"]
+    assert bias["bias_field_std"] == pytest.approx(0.341e-3, rel=0.02)
+    assert bias["bias_field_length"] == pytest.approx(0.296, rel=0.02) == cfg.params.bias_field_length
 
 
 def test_mae_split_at_the_first_local_sample_and_the_ceiling_it_gives():

@@ -93,21 +93,24 @@ CALIBRATION_SEEDS = "100-102"
 
 def calibrated_fusion_config(profile: str, key: str, cache: str, fusion_config: str | None,
                              seeds: list[int]) -> dict[str, Any]:
-    """Fit ``profile``'s noise model on the six bags of each calibration seed (generated when missing) and write it
-    with a fusion config that reads it (:func:`fusion_config_reading`) into ``<cache>/<profile>-<key>/``."""
+    """Fit ``profile``'s noise model on the six bags of each calibration seed (generated when missing) as
+    ``fit_noise_model --write`` does -- the raw OMC against the arm's kinematics and the raw (OMC - local chain)
+    differences' semivariogram over distance -- and write it with a fusion config that reads it
+    (:func:`fusion_config_reading`) into ``<cache>/<profile>-<key>/``."""
     from fullperc_fusion.margin.layout import default_layout_path, load_layout
 
-    from .sensor_stats import fitted, pool_rows, profile_rows, write_noise_model
+    from .sensor_stats import fitted, pool_rows, profile_differences, profile_rows, write_noise_model
 
     root = Path(cache) / f"{profile}-{key}"
     layout = load_layout(default_layout_path())
-    parts = []
+    parts, diffs = [], []
     for seed in seeds:
         ensure_bags(root / f"seed{seed}", seed, profile)
         parts.append(profile_rows(root / f"seed{seed}", layout))
+        diffs += profile_differences(root / f"seed{seed}")
     tag = "-".join(str(s) for s in seeds)
     nm = root / f"noise_model_seeds{tag}.yaml"
-    f = fitted(*pool_rows(parts))
+    f = fitted(*pool_rows(parts), diffs)
     text = write_noise_model(nm, f, f"raw-sensor statistics of twin profile {profile}, calibration seed(s) {tag}")
     return fusion_config_reading(fusion_config, nm, text, root / f"fusion_noise_model_seeds{tag}.yaml")
 
