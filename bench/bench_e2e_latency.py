@@ -31,20 +31,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from benchlib import emit, load  # noqa: E402
-from live_fusion import run_live  # noqa: E402
+from live_fusion import every_filter, run_live  # noqa: E402
 
 DURATION = float(os.environ.get("FULLPERC_BENCH_E2E_S", "10"))
 EXECUTORS = [e for e in os.environ.get("FULLPERC_BENCH_EXECUTORS", "events,single").split(",") if e]
 REPEATS = int(os.environ.get("FULLPERC_BENCH_REPEATS", "3"))
-
-
-def every_filter() -> tuple[str, list[str]]:
-    """The node's default primary filter and every other registered one (side by side)."""
-    from fullperc_fusion.filters.registry import FILTERS
-    from fullperc_fusion.fusion_config import PARAMS
-
-    primary = str(next(p.default for p in PARAMS if p.name == "filter"))
-    return primary, [f for f in FILTERS if f != primary]
 
 
 def one_run(primary: str, extra: list[str], executor: str) -> dict:

@@ -95,6 +95,15 @@ def uncovered(sent_ns: np.ndarray, fused_ns: np.ndarray, slop_ns: int) -> int:
     return int((~covered).sum())
 
 
+def every_filter() -> tuple[str, list[str]]:
+    """The node's default primary filter and every other registered one (side by side)."""
+    from fullperc_fusion.filters.registry import FILTERS
+    from fullperc_fusion.fusion_config import PARAMS
+
+    primary = str(next(p.default for p in PARAMS if p.name == "filter"))
+    return primary, [f for f in FILTERS if f != primary]
+
+
 def target_params(targets: list[str]) -> list[str]:
     """``--ros-args`` of a node fusing ``targets`` (each its own OMC body and OTS tool of the same name)."""
     out = ["-p", f"targets:=[{', '.join(targets)}]"]

@@ -107,11 +107,7 @@ def main() -> int:
     targets = [f"t{k}" for k in range(a.targets)]
     extra: list[str] = []
     if a.filters:
-        from fullperc_fusion.filters.registry import FILTERS
-        from fullperc_fusion.fusion_config import PARAMS
-
-        primary = str(next(p.default for p in PARAMS if p.name == "filter"))
-        names = [f for f in FILTERS if f != primary] if a.filters == "all" else a.filters.split(",")
+        names = live_fusion.every_filter()[1] if a.filters == "all" else a.filters.split(",")
         extra = ["-p", f"filters:=[{', '.join(names)}]"]
     res = live_fusion.run_live([live_fusion.target_params(targets) + extra], targets, 170 + os.getpid() % 30, a.seconds,
                                executor=a.executor)
