@@ -127,6 +127,13 @@ def _state(rng, has_bias: bool):
     return X, C
 
 
+def _kernel_samples(rng, X, k: int, t: int):
+    """(tg, zg, tl, zl) near the state X: a pair, a global or a local sample by k % 3, stamps up to 4 ms before t."""
+    zg = (np.array(X[0:3]) + 2e-3 * rng.standard_normal(3)).tolist() if k % 3 != 1 else None
+    zl = (np.array(X[0:3]) + 1e-4 * rng.standard_normal(3)).tolist() if k % 3 != 0 else None
+    return t - int(rng.integers(0, 4_000_000)), zg, t - int(rng.integers(0, 4_000_000)), zl
+
+
 @pytest.mark.parametrize("kind", FILTER_KINDS)
 def test_kernel_update_without_diagnostics_gives_the_same_state(kind):
     """``full=False`` (the batched replay) skips NIS, innovation and M only: state, hop flag and the hop test's
@@ -137,9 +144,7 @@ def test_kernel_update_without_diagnostics_gives_the_same_state(kind):
     hops = 0
     for k in range(300):
         X, C = _state(rng, form.has_bias)
-        zg = (np.array(X[0:3]) + 2e-3 * rng.standard_normal(3)).tolist() if k % 3 != 1 else None
-        zl = (np.array(X[0:3]) + 1e-4 * rng.standard_normal(3)).tolist() if k % 3 != 0 else None
-        tg, tl = t - int(rng.integers(0, 4_000_000)), t - int(rng.integers(0, 4_000_000))
+        tg, zg, tl, zl = _kernel_samples(rng, X, k, t)
         full = update_axes(form, X, C, t, tg, zg, form.global_var, tl, zl, form.local_var)
         lean = update_axes(form, X, C, t, tg, zg, form.global_var, tl, zl, form.local_var, False)
         assert full[0:3] == lean[0:3] and full[4] == lean[4]

@@ -17,7 +17,7 @@ from fullperc_fusion.filters.paper_family import FILTER_KINDS, FilterParams
 from fullperc_fusion.filters.paper_kernel import axis_form, predict_axes, update_axes
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_batch_filter import _state  # noqa: E402  (same directory: a random per-axis state of the kernel)
+from test_batch_filter import _kernel_samples, _state  # noqa: E402  (same directory: random kernel inputs)
 
 
 def _reference_update(form, X, C, t, tg, zg, rg, tl, zl, rl):
@@ -89,12 +89,6 @@ def _reference_update(form, X, C, t, tg, zg, rg, tl, zl, rl):
             Xn[6 + a] = xb
         Cn.append([n0, n1, n2, n3, n4, n5])
     return Xn, Cn, hop, nis_g
-
-
-def _kernel_samples(rng, X, k: int, t: int):
-    zg = (np.array(X[0:3]) + 2e-3 * rng.standard_normal(3)).tolist() if k % 3 != 1 else None
-    zl = (np.array(X[0:3]) + 1e-4 * rng.standard_normal(3)).tolist() if k % 3 != 0 else None
-    return t - int(rng.integers(0, 4_000_000)), zg, t - int(rng.integers(0, 4_000_000)), zl
 
 
 def _reference_predict(form, X, C, dt):
