@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from operator import add, sub
 
 import numpy as np
 
@@ -45,13 +46,15 @@ from fullperc_fusion.filters.api import Measurement, Step, StepCompat
 from fullperc_fusion.filters.fullperc import FullpercFilter
 from fullperc_fusion.filters.fullperc_params import FullpercParams
 from fullperc_fusion.filters.fullperc_state import POSE_FLAT, TH
-from fullperc_fusion.filters.motion import mix, mixing, posterior, speed_log_lik, transition, with_preset
+from fullperc_fusion.filters.motion import mix, mix_each, posterior, speed_log_lik, transition, with_preset
 from fullperc_fusion.filters.paper_family import FilterParams
 from fullperc_fusion.filters.so3_float import R9_to_quat, exp9, log9, mul9, mul9_t
 
 __all__ = ["HOP_MAJORITY", "FullpercImm"]
 
 HOP_MAJORITY = 0.5   # a model puts a hop into its bias only while at least this probable (module docstring)
+_POSE_6X6 = POSE_FLAT.reshape(6, 6)   # P.take(_POSE_6X6): the step's 6x6 pose covariance in one call
+_CACHE_MAX = 64   # transition matrices kept; cleared when full
 
 
 
@@ -69,6 +72,7 @@ class FullpercImm(StepCompat):
             f = FullpercFilter(with_preset(pr, name))
             f.likelihood = True
             self.models.append(f)
+        self._tcache: dict[int, np.ndarray] = {}   # transition() by the step [ns] (a stream has few distinct steps)
         self.reset()
 
     # ---- state ------------------------------------------------------------------------------------
@@ -107,36 +111,45 @@ class FullpercImm(StepCompat):
 
     # ---- the IMM ----------------------------------------------------------------------------------
     @staticmethod
-    def _offsets(ref: FullpercFilter, models: list[FullpercFilter]) -> list[np.ndarray]:
-        """Each model's error-state offset from ``ref``'s state (module docstring)."""
-        xr, Rr = np.array(ref._x), ref._R
-        out = []
+    def _offsets(ref: FullpercFilter, models: list[FullpercFilter]) -> np.ndarray:
+        """Each model's error-state offset from ``ref``'s state (module docstring), one row per model: the
+        differences in Python floats (the models keep their states as float lists), one array call for all."""
+        xr, Rr = ref._x, ref._R
+        flat: list[float] = []
         for f in models:
-            d = np.array(f._x) - xr
-            d[TH] = log9(mul9_t(f._R, Rr))
-            out.append(d)
-        return out
+            d = list(map(sub, f._x, xr))
+            d[9:12] = log9(mul9_t(f._R, Rr))
+            flat += d
+        return np.fromiter(flat, float, len(flat)).reshape(len(models), -1)
 
     def _advance(self, t_ns: int) -> None:
-        """Mix the models before they predict to ``t_ns`` (the IMM's interaction step), when all have a state."""
+        """Mix the models before they predict to ``t_ns`` (the IMM's interaction step), when all have a state.
+
+        :func:`.motion.mixing` and one :func:`.motion.mix` per model, computed as they do: the mixing weights
+        W_ij = T_ij mu_i / c_j in Python floats and every model's mixture in one :func:`.motion.mix_each`."""
         fs = self.models
         t0 = fs[0]._t
         if len(fs) == 1 or t0 is None or t_ns <= t0 or any(f._pend is not None or f._t != t0 for f in fs):
             return
-        c, W = mixing(self._mu, transition((t_ns - t0) * 1e-9, len(fs), self.params.motion_dwell))
+        n = len(fs)
+        T = self._tcache.get(t_ns - t0)
+        if T is None:
+            if len(self._tcache) >= _CACHE_MAX:
+                self._tcache.clear()
+            T = self._tcache[t_ns - t0] = transition((t_ns - t0) * 1e-9, n, self.params.motion_dwell)
+        c = self._mu @ T   # mixing()'s c
+        mu, cl, Tl = self._mu.tolist(), c.tolist(), T.tolist()
+        W = np.array([[Tl[i][j] * mu[i] / cl[j] for j in range(n)] for i in range(n)])   # mixing()'s W
         # every model's offset from one reference, the most probable model (the tangent space the output is mixed
         # in too, _combine): one offset per model, not one per pair of models
         ref = fs[int(np.argmax(self._mu))]
-        D, Ps, xr = np.array(self._offsets(ref, fs)), np.array([f._P for f in fs]), np.array(ref._x)
-        mixed = []
-        for j in range(len(fs)):
-            dx0, P0 = mix(W[:, j], D, Ps)
-            x = (xr + dx0).tolist()
-            R = mul9(exp9(*dx0[TH].tolist()), ref._R)
+        xr, Rr = ref._x, ref._R
+        dx0, P0 = mix_each(W, self._offsets(ref, fs), np.array([f._P for f in fs]))
+        for f, d, P in zip(fs, dx0.tolist(), P0, strict=True):
+            x = list(map(add, xr, d))
             x[9] = x[10] = x[11] = 0.0
-            mixed.append((x, R, P0))
-        for f, (x, R, P) in zip(fs, mixed, strict=True):
-            f._x, f._R, f._P = x, R, P   # new objects: a snapshot taken before still holds the old ones
+            # new objects: a snapshot taken before still holds the old ones (P: one of P0's planes, never written)
+            f._x, f._R, f._P = x, mul9(exp9(d[9], d[10], d[11]), Rr), P
         self._mu = c
 
     def predict(self, t_ns: int) -> None:
@@ -151,8 +164,8 @@ class FullpercImm(StepCompat):
         if now is not None and t_new > now:
             self.predict(t_new)
         before = self.snapshot()
-        for f, c in zip(self.models, self._mu, strict=True):   # a hop rule acts in a majority model only (docstring)
-            f.hop_allowed = bool(c >= HOP_MAJORITY)
+        for f, c in zip(self.models, self._mu.tolist(), strict=True):   # a hop rule acts in a majority model only
+            f.hop_allowed = c >= HOP_MAJORITY
         try:
             steps = [f.update(*measurements) for f in self.models]
         except Exception:
@@ -180,4 +193,4 @@ class FullpercImm(StepCompat):
         q = R9_to_quat(mul9(exp9(*dx[TH].tolist()), ref._R)) if has_q else None
         return Step(top.t_ns, x[0:3], x[3:6], x[6:9] + x[18:21], P, top.sources, innovation=top.innovation,
                     nis=top.nis, nis_global=top.nis_global, hop=top.hop, reset=top.reset, q=q,
-                    pose_cov=P.ravel()[POSE_FLAT].reshape(6, 6) if has_q else None, log_lik=log_l)
+                    pose_cov=P.take(_POSE_6X6) if has_q else None, log_lik=log_l)

@@ -43,6 +43,7 @@ a noise-model file for another installation: :mod:`noise_model_file`). Per-axis 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -50,6 +51,12 @@ import numpy as np
 # The paper's GVV threshold (§5: theta ~ 50 deg, k = 6 -> ~300 deg): the margin at which the OMC's margin
 # term has its reference value.
 MARGIN_REF_DEG = 300.0
+# The 6x6 templates the matrices below start from: a copy with the non-zero entries written in (ndarray.put for
+# scattered ones: one call instead of np.diag or a 36-entry array literal, which cost more per sample).
+_ZERO6 = np.zeros((6, 6))
+_EYE6 = np.eye(6)
+_DIAG6 = np.arange(0, 36, 7)                                               # the diagonal, in C.ravel()
+_SKEW6 = np.array([4, 5, 9, 11, 15, 16])                                    # [0:3, 3:6] without its diagonal
 
 
 @dataclass(frozen=True)
@@ -112,13 +119,13 @@ def margin_factor(margin_deg: float | None, ref_deg: float = MARGIN_REF_DEG, min
     margin M and is triangulated from fewer rays, so its error is larger. The summed margin grows roughly with
     the number of valid pairs; a least-squares solution over k rays has a variance ~1/k: variance ~ 1/M.
     """
-    if margin_deg is None or not np.isfinite(margin_deg):
+    if margin_deg is None or not math.isfinite(margin_deg):   # math's test: np.isfinite's answer, without its call
         return 1.0
     return float(ref_deg / max(float(margin_deg), min_deg))
 
 
 def _fit(fit_error: float | None, params: OmcModelParams) -> float:
-    if fit_error is None or not np.isfinite(fit_error) or fit_error < 0:
+    if fit_error is None or not math.isfinite(fit_error) or fit_error < 0:
         return params.default_fit
     return float(fit_error)
 
@@ -147,13 +154,20 @@ def omc_covariance(fit_error: float | None, margin_deg: float | None,
     ``sys_var``: :func:`omc_systematic_var` of the same arguments when the caller has it already (the pipeline
     needs it for the sample's bias model too); computed here otherwise.
     """
+    vp, vr, _ = omc_variances(fit_error, margin_deg, params, sys_var)
+    return _diag6(vp, vr)
+
+
+def omc_variances(fit_error: float | None, margin_deg: float | None, params: OmcModelParams = OmcModelParams(),
+                  sys_var: tuple[float, float] | None = None) -> tuple[float, float, tuple[float, float]]:
+    """(sigma_p^2, sigma_r^2, sys_var): the diagonal of :func:`omc_covariance` and :func:`omc_systematic_var` (unless
+    given), the fit error and margin factor taken once for both (the pipeline needs all three per OMC sample)."""
     e = _fit(fit_error, params)
     f = margin_factor(margin_deg, params.margin_ref, params.margin_min)
     vp = params.white_std**2 + (params.white_fit_gain * e) ** 2 + params.white_margin_std**2 * f
     if sys_var is None:
-        sys_var = omc_systematic_var(fit_error, margin_deg, params)
-    vr = vp / params.marker_lever**2 + sys_var[1]
-    return np.diag([vp, vp, vp, vr, vr, vr])
+        sys_var = _systematic_var(e, f, params)
+    return vp, vp / params.marker_lever**2 + sys_var[1], sys_var
 
 
 def omc_systematic_var(fit_error: float | None, margin_deg: float | None,
@@ -165,8 +179,12 @@ def omc_systematic_var(fit_error: float | None, margin_deg: float | None,
     The stationary variance of the Gauss-Markov bias of ``fullperc`` (correlation time ``FullpercParams.sys_time``).
     Margin-adaptive: where few cameras see the body or their rays disagree, the OMC's systematic error is larger.
     """
-    e = _fit(fit_error, params)
-    f = margin_factor(margin_deg, params.margin_ref, params.margin_min)
+    return _systematic_var(_fit(fit_error, params), margin_factor(margin_deg, params.margin_ref, params.margin_min),
+                           params)
+
+
+def _systematic_var(e: float, f: float, params: OmcModelParams) -> tuple[float, float]:
+    """:func:`omc_systematic_var` of the fit error ``e`` (:func:`_fit`) and the margin factor ``f``."""
     vp = params.sys_floor**2 + (params.fit_gain * e) ** 2 + params.margin_std**2 * f
     vr = params.rot_sys_floor**2 + (params.fit_gain * e / params.marker_lever) ** 2 + params.rot_margin_std**2 * f
     return vp, vr
@@ -181,10 +199,20 @@ def vega_covariance(distance_m: float, params: LocalModelParams = LocalModelPara
     Isotropic for simplicity (a stereo bar's depth axis is worse than its lateral ones; the NDI figure is an
     RMS over all three). d is floored at 0.1 m so a degenerate pose does not give a zero covariance.
     """
+    return _diag6(*vega_variances(distance_m, params))
+
+
+def vega_variances(distance_m: float, params: LocalModelParams = LocalModelParams()) -> tuple[float, float]:
+    """(position, rotation) per-axis variance on the diagonal of :func:`vega_covariance`."""
     s = (max(float(distance_m), 0.1) / params.d_ref) ** params.exponent
-    vp = (params.std_ref * s) ** 2
-    vr = (params.rot_std_ref * s) ** 2
-    return np.diag([vp, vp, vp, vr, vr, vr])
+    return (params.std_ref * s) ** 2, (params.rot_std_ref * s) ** 2
+
+
+def _diag6(vp: float, vr: float) -> np.ndarray:
+    """diag(vp, vp, vp, vr, vr, vr)."""
+    C = _ZERO6.copy()
+    C.put(_DIAG6, (vp, vp, vp, vr, vr, vr))
+    return C
 
 
 def rotate_cov(cov: np.ndarray, R: np.ndarray) -> np.ndarray:
@@ -192,6 +220,18 @@ def rotate_cov(cov: np.ndarray, R: np.ndarray) -> np.ndarray:
     J = np.zeros((6, 6))
     J[0:3, 0:3] = J[3:6, 3:6] = R
     out = J @ cov @ J.T
+    return 0.5 * (out + out.T)
+
+
+def rotate_diag_cov(vp: float, vr: float, R: np.ndarray) -> np.ndarray:
+    """:func:`rotate_cov` of diag(vp, vp, vp, vr, vr, vr) (the OMC's and the Vega's model covariances), bit for bit.
+
+    J C of a diagonal C has one product per entry (J_ij C_jj; the other terms of its sum are exact zeros), so it is
+    J times C's diagonal, element-wise, instead of a matrix product; (J C) J^T is the same matrix product as
+    :func:`rotate_cov`'s (``test_imm_fast.py`` holds the two equal)."""
+    J = _ZERO6.copy()
+    J[0:3, 0:3] = J[3:6, 3:6] = R
+    out = (J * np.array((vp, vp, vp, vr, vr, vr))) @ J.T
     return 0.5 * (out + out.T)
 
 
@@ -207,9 +247,12 @@ def link_covariance_at(link_cov: np.ndarray, lever_arm) -> np.ndarray:
     so the chained pose's error is J [dp; dphi] with J = [[I, -[l]x], [0, I]] and C = J C_link J^T. The link's
     rotation error times the lever arm is what dominates a Vega 1.5 m from the tool.
     """
-    x, y, z = (float(v) for v in lever_arm)   # J written out: one array call instead of eye + so3.skew + a write
-    J = np.array([[1.0, 0.0, 0.0, 0.0, z, -y], [0.0, 1.0, 0.0, -z, 0.0, x], [0.0, 0.0, 1.0, y, -x, 0.0],
-                  [0.0, 0.0, 0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 0.0, 0.0, 1.0]])
+    if isinstance(lever_arm, np.ndarray) and lever_arm.shape == (3,):
+        x, y, z = lever_arm.tolist()   # the floats float() gives, in one call
+    else:
+        x, y, z = (float(v) for v in lever_arm)
+    J = _EYE6.copy()   # I with -[l]x written into its [0:3, 3:6] block
+    J.put(_SKEW6, (z, -y, -z, x, y, -x))
     out = J @ np.asarray(link_cov, dtype=float) @ J.T
     return 0.5 * (out + out.T)
 
@@ -226,8 +269,11 @@ def local_covariance(T_base_ots: np.ndarray, T_ots_tool: np.ndarray, link_cov: n
     """
     R = T_base_ots[:3, :3]
     p = T_ots_tool[:3, 3]
-    C_dev = vega_covariance(float(np.linalg.norm(p)), params) if device_cov is None else device_cov
-    C = rotate_cov(C_dev, R)
+    if device_cov is None:
+        d = p.ravel(order="K")   # |p| as np.linalg.norm computes it (sqrt of the dot), without its wrapper
+        C = rotate_diag_cov(*vega_variances(math.sqrt(d.dot(d)), params), R)
+    else:
+        C = rotate_cov(device_cov, R)
     if link_cov is not None:
         C = C + link_covariance_at(link_cov, R @ p)
     return 0.5 * (C + C.T)

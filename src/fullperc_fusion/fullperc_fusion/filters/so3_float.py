@@ -9,7 +9,8 @@ against 13 us in numpy, Log 1.5 against 5.7, quaternion -> R 2.1 against 13.6, R
 
 Same formulas and branches as ``fullperc_common.so3`` (Rodrigues with its series below 1e-8 rad; Log robust near 0
 and pi -- the branch near pi, rare, calls the shared ``so3_log``; Shepperd's quaternion with w >= 0);
-test_fullperc_fast.py holds each to the shared function.
+test_fullperc_fast.py holds each to the shared function, test_imm_fast.py :func:`exp9` and :func:`log9` to their
+plain forms bit for bit (written with fewer operations, the same roundings).
 """
 
 from __future__ import annotations
@@ -26,16 +27,27 @@ R9_IDENT = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
 
 
 def exp9(a: float, b: float, c: float) -> tuple:
-    """Exp of the rotation vector (a, b, c): I + s K + k K^2 (Rodrigues), the series below 1e-8 rad."""
-    th = math.sqrt(a * a + b * b + c * c)
+    """Exp of the rotation vector (a, b, c): I + s K + k K^2 (Rodrigues), the series below 1e-8 rad. Each product
+    once (the squares shared with th; s K's entries written as differences, -s c + k a b = k a b - s c exactly)."""
+    aa = a * a
+    bb = b * b
+    cc = c * c
+    th = math.sqrt(aa + bb + cc)
     if th < 1e-8:
-        s, k = 1.0, 0.5
+        s = 1.0
+        k = 0.5
     else:
-        s, k = math.sin(th) / th, (1.0 - math.cos(th)) / (th * th)
-    aa, bb, cc, ab, ac, bc = a * a, b * b, c * c, a * b, a * c, b * c
-    return (1.0 - k * (bb + cc), -s * c + k * ab, s * b + k * ac,
-            s * c + k * ab, 1.0 - k * (aa + cc), -s * a + k * bc,
-            -s * b + k * ac, s * a + k * bc, 1.0 - k * (aa + bb))
+        s = math.sin(th) / th
+        k = (1.0 - math.cos(th)) / (th * th)
+    kab = k * (a * b)
+    kac = k * (a * c)
+    kbc = k * (b * c)
+    sa = s * a
+    sb = s * b
+    sc = s * c
+    return (1.0 - k * (bb + cc), kab - sc, sb + kac,
+            sc + kab, 1.0 - k * (aa + cc), kbc - sa,
+            kac - sb, sa + kbc, 1.0 - k * (aa + bb))
 
 
 def mul9(A: tuple, B: tuple) -> tuple:
@@ -57,16 +69,20 @@ def mul9_t(A: tuple, B: tuple) -> tuple:
 
 
 def log9(R: tuple) -> list[float]:
-    """Log of a rotation (|w| <= pi); near pi (rare) the shared ``so3_log`` on an array."""
-    c = max(-1.0, min(1.0, 0.5 * (R[0] + R[4] + R[8] - 1.0)))
-    v = [R[7] - R[5], R[2] - R[6], R[3] - R[1]]
+    """Log of a rotation (|w| <= pi); near pi (rare) the shared ``so3_log`` on an array. The cosine clamped to
+    [-1, 1] by comparisons (max(-1, min(1, c)) without the calls; NaN goes to 1 as there)."""
+    c = 0.5 * (R[0] + R[4] + R[8] - 1.0)
+    if not c < 1.0:
+        c = 1.0
+    elif not c > -1.0:
+        c = -1.0
     th = math.acos(c)
     if th < 1e-6:
-        return [0.5 * v[0], 0.5 * v[1], 0.5 * v[2]]
+        return [0.5 * (R[7] - R[5]), 0.5 * (R[2] - R[6]), 0.5 * (R[3] - R[1])]
     if th > math.pi - 1e-4:
         return so3_log(np.array(R).reshape(3, 3)).tolist()
     f = th / (2.0 * math.sin(th))
-    return [f * v[0], f * v[1], f * v[2]]
+    return [f * (R[7] - R[5]), f * (R[2] - R[6]), f * (R[3] - R[1])]
 
 
 def quat_to_R9(q: np.ndarray) -> tuple:

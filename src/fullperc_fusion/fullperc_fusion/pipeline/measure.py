@@ -18,12 +18,7 @@ import numpy as np
 
 from fullperc_common.transforms import T_to_pq, inv_T
 from fullperc_fusion.filters.api import SOURCE_GLOBAL, SOURCE_LOCAL, Measurement
-from fullperc_fusion.filters.measurement_models import (
-    local_covariance,
-    omc_covariance,
-    omc_systematic_var,
-    rotate_cov,
-)
+from fullperc_fusion.filters.measurement_models import local_covariance, omc_variances, rotate_diag_cov
 from fullperc_fusion.margin.view_margin import margin_at
 from fullperc_fusion.pipeline.frame_chain import FrameChain
 from fullperc_fusion.pipeline.sources import model_cov_std
@@ -107,10 +102,10 @@ def model_measurements(config: TargetConfig, rot_stds: tuple[float, float], fixe
         if C is None:
             lay = config.layout
             margin = margin_at(lay, T_dev[:3, 3])[0] if lay is not None else None
-        sys_var = omc_systematic_var(quality.get("fit_error"), margin, config.omc_model)
+        # omc_systematic_var and omc_covariance's diagonal at once; rotate_diag_cov = rotate_cov of that diagonal
+        vp, vr, sys_var = omc_variances(quality.get("fit_error"), margin, config.omc_model)
         if C is None:
-            RA = Tg[:3, :3] @ T_dev[:3, :3].T
-            C = rotate_cov(omc_covariance(quality.get("fit_error"), margin, config.omc_model, sys_var), RA)
+            C = rotate_diag_cov(vp, vr, Tg[:3, :3] @ T_dev[:3, :3].T)   # R_A = R_base R_dev^T
         out.append(Measurement(mg.t_ns, SOURCE_GLOBAL, mg.p, mg.q, C, extras={**quality, "sys_var": sys_var[0]}))
     if ml is not None:
         T_dev, C_dev = item.local.payload[0], item.local.payload[1]
