@@ -31,6 +31,7 @@ from enum import IntEnum
 from typing import Protocol, runtime_checkable
 
 import numpy as np
+from scipy.linalg.lapack import dpotrf as _dpotrf
 
 
 class Role(IntEnum):
@@ -85,10 +86,9 @@ def check_covariance(cov) -> np.ndarray:
     scale = float(np.abs(C).max())
     if float(np.abs(C - C.T).max()) > SYMMETRY_RTOL * scale:
         raise BadMeasurement("covariance not symmetric")
-    try:
-        np.linalg.cholesky(0.5 * (C + C.T))
-    except np.linalg.LinAlgError:
-        raise BadMeasurement("covariance not positive definite") from None
+    # LAPACK's Cholesky itself (np.linalg.cholesky's ~5 us of wrapper less): info > 0 = not positive definite
+    if _dpotrf(0.5 * (C + C.T), lower=1, clean=0)[1] != 0:
+        raise BadMeasurement("covariance not positive definite")
     return C
 
 
