@@ -31,7 +31,7 @@ from fullperc_common.params import ParameterError
 from fullperc_fusion.calibration.io import load_calibration
 from fullperc_fusion.calibration.monitor import MonitorParams
 from fullperc_fusion.calibration.se3_stats import CalibrationError, CalibrationSettings, StaticThresholds
-from fullperc_fusion.filters.fullperc_params import HOP_INTO
+from fullperc_fusion.filters.fullperc_params import HOP_INTO, HOP_NEEDS_LOCAL
 from fullperc_fusion.filters.motion import MOTIONS, PRESETS, preset_fields
 from fullperc_fusion.filters.paper_family import FilterParams
 from fullperc_fusion.filters.registry import FILTERS, params_of_every_filter
@@ -179,6 +179,9 @@ PARAMS: tuple[Param, ...] = (
     _filter_row("fullperc.hop_into", "hop_into", "str", *one_of(HOP_INTO), "",
           "the global bias part a position hop goes into: b (the lasting compensation, CBKF's rule) | g "
           "(Gauss-Markov, forgotten over fullperc.sys_time)"),
+    _filter_row("fullperc.hop_needs_local", "hop_needs_local", "str", *one_of(HOP_NEEDS_LOCAL), "",
+          "when a position hop may go into the bias: once (the local source has seen the target) | always (while "
+          "it sees it) | never (CBKF's rule)"),
     _filter_row("fullperc.hop_confirm", "hop_confirm", "int", *at_least(1), "samples",
           "OMC samples in a row over the hop gate, in one direction, that make a hop (1: each, CBKF's rule)"),
     _filter_row("fullperc.noise_adapt_time", "noise_adapt_time", "float", *NONNEGATIVE, "s",

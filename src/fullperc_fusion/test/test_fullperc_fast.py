@@ -203,11 +203,14 @@ def test_fast_form_equals_the_reference(seed):
     FullpercParams(rot_sys_time=0.0),
     FullpercParams(rot_sys_time=0.4, rot_sys_std=0.05),
     FullpercParams(hop_into="g"),
+    FullpercParams(hop_needs_local="never"),
+    FullpercParams(hop_needs_local="always"),
     FullpercParams(noise_adapt_time=0.0),
     FullpercParams(noise_adapt_time=0.05, noise_adapt_max=4.0),
     FullpercParams(rot_noise_adapt_time=0.0),
     FullpercParams(rot_noise_adapt_time=0.1, rot_noise_adapt_min=0.5, rot_noise_adapt_max=2.0, rot_noise_length=0.0),
-], ids=["no-hop-to-bias", "other-noise", "beta-random-walk", "beta-fast-gauss-markov", "hop-into-g", "no-noise-scale",
+], ids=["no-hop-to-bias", "other-noise", "beta-random-walk", "beta-fast-gauss-markov", "hop-into-g", "cbkf-hop-rule",
+        "hop-while-local", "no-noise-scale",
         "fast-noise-scale", "no-rot-noise-scale", "fast-rot-noise-scale-held"])
 def test_fast_form_equals_the_reference_for_other_settings(params, stream_23):
     _run(stream_23, params)
@@ -291,8 +294,9 @@ def test_refusals_and_resets_are_the_references():
         f.predict(S + S // 10)
         with pytest.raises(ValueError, match="older than the filter time"):
             f.update(Measurement(S // 2, SOURCE_LOCAL, [0.1, 0.2, 0.3]))
-        with pytest.raises(FloatingPointError, match="non-finite"):
-            f.update(Measurement(S + S // 5, SOURCE_GLOBAL, [1e200, 0.2, 0.3]))
+        with pytest.raises(FloatingPointError, match="non-finite"):   # a hop (the Vega sees it) of 1e400 m^2
+            f.update(Measurement(S + S // 5, SOURCE_GLOBAL, [1e200, 0.2, 0.3]),
+                     Measurement(S + S // 5, SOURCE_LOCAL, [0.1, 0.2, 0.3]))
         assert f.time_ns is None   # reset
 
 

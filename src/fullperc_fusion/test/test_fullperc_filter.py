@@ -293,29 +293,49 @@ def test_nees_is_consistent_on_data_from_its_own_model():
 STEP_P = np.array([0.1, 0.2, 0.3])
 
 
-def _omc_step_run(f: FullpercFilter, n: int):
-    """Both sources for 2 s (250 samples at 125 Hz), then the OMC alone, which steps by 3 mm in x at sample 300
-    (a camera-set change); yields (k, Step) after each update."""
+def _omc_step_run(f: FullpercFilter, n: int, local_until: int = 250):
+    """Both sources for 2 s (250 samples at 125 Hz; ``local_until``), then the OMC alone, which steps by 3 mm in x at
+    sample 300 (a camera-set change); yields (k, Step) after each update."""
     q = R_to_quat(np.eye(3))
     for k in range(n):
         t = k * 8 * MS
         zg = STEP_P + (np.array([3e-3, 0, 0]) if k >= 300 else 0)
         ms = [_m(t, SOURCE_GLOBAL, zg, q)]
-        if k < 250:
+        if k < local_until:
             ms.append(_m(t, SOURCE_LOCAL, STEP_P, q))
         f.predict(t)
         yield k, f.update(*ms)
 
 
-def test_hop_of_the_global_source_goes_into_the_bias():
+@pytest.mark.parametrize(("rule", "local_until"), [("once", 250), ("never", 250), ("never", 0), ("always", 400)])
+def test_hop_of_the_global_source_goes_into_the_bias(rule, local_until):
     """The OMC step of :func:`_omc_step_run` is flagged and goes into b: the fused position moves by far less than
-    the step."""
-    f = FullpercFilter()
-    out = [st for _, st in _omc_step_run(f, 400)]
+    the step -- after the Vega has seen and lost the tool (``hop_needs_local`` once, the default), also before it
+    has ever seen it under CBKF's rule (never), and while it sees it (always)."""
+    f = FullpercFilter(FullpercParams(hop_needs_local=rule))
+    out = [st for _, st in _omc_step_run(f, 400, local_until=local_until)]
     hops = [st.hop for st in out]
     assert hops[300] and not any(hops[250:300]) and sum(hops) <= 3
     assert np.linalg.norm(out[-1].p - STEP_P) < 0.5e-3
     assert f.bias[0] > 2.5e-3
+
+
+@pytest.mark.parametrize(("cls", "rule", "local_until"), [(FullpercFilter, "once", 0), (FullpercReference, "once", 0),
+                                                          (FullpercFilter, "always", 250),
+                                                          (FullpercReference, "always", 250)])
+def test_a_hop_no_local_source_sees_goes_into_the_pose(cls, rule, local_until):
+    """The same step before the Vega has ever seen the tool (``hop_needs_local`` once, the default: b holds nothing
+    learnt), or once it has lost it (always): flagged, but fused as any sample -- within 0.2 s the pose is at the
+    OMC's new position and b has not moved (:func:`.fullperc_state.hop_watched`)."""
+    f = cls(FullpercParams(hop_needs_local=rule))
+    out = []
+    for k, st in _omc_step_run(f, 400, local_until=local_until):
+        out.append(st)
+        if k == 299:
+            b_before = out[-1].b
+    assert out[300].hop
+    assert np.linalg.norm(out[-1].p - STEP_P - [3e-3, 0, 0]) < 0.3e-3
+    assert np.linalg.norm(out[-1].b - b_before) < 0.1e-3
 
 
 @pytest.mark.parametrize("into", ["b", "g"])

@@ -119,7 +119,7 @@ def test_an_absurd_sample_is_held_out_once_and_refused_when_it_lasts(cls):
     1e200 m, which makes the state non-finite: refused, and the filter reset (as every crossing is under CBKF's
     rule, test_fullperc_fast.py)."""
     f = cls(TWO)
-    f.update(Measurement(0, SOURCE_GLOBAL, P0, Q0))
+    f.update(Measurement(0, SOURCE_GLOBAL, P0, Q0), Measurement(0, SOURCE_LOCAL, P0, Q0))   # hops count from here on
     f.predict(8 * MS)
     f.update(Measurement(8 * MS, SOURCE_GLOBAL, [1e200, 0.2, 0.3]))
     s = f.state if cls is FullpercFilter else f.s

@@ -67,6 +67,7 @@ from fullperc_fusion.filters.fullperc_state import (
     N,
     field_var,
     hop_run_step,
+    hop_watched,
     noise_scale_step,
 )
 from fullperc_fusion.filters.motion import gaussian_log_lik, hop_mixture
@@ -409,7 +410,7 @@ class FullpercFilter(StepCompat):
             self.hop_counts["position"] += hop_p
             self.hop_counts["rotation"] += hop_r
             confirmed, hop_run = hop_run_step(self._hrun, hop_p, y[0], y[1], y[2], pr)
-            if hop_p and pr.hop_to_bias and self.hop_allowed:   # the reference's hop rule
+            if hop_p and pr.hop_to_bias and self.hop_allowed and hop_watched(t, self._tl, ml is not None, pr):
                 Ph = P.copy()
                 k = 18 if pr.hop_into == "g" else 6     # g or b
                 Ph[k, k] += y[0] * y[0]

@@ -17,9 +17,10 @@ import numpy as np
 from fullperc_fusion.filters.motion import PRESETS
 from fullperc_fusion.filters.paper_family import FilterParams
 
-__all__ = ["HOP_INTO", "FullpercParams"]
+__all__ = ["HOP_INTO", "HOP_NEEDS_LOCAL", "FullpercParams"]
 
 HOP_INTO = ("b", "g")   # FullpercParams.hop_into: the bias part a position hop goes into
+HOP_NEEDS_LOCAL = ("never", "once", "always")   # FullpercParams.hop_needs_local
 
 
 @dataclass
@@ -56,6 +57,9 @@ class FullpercParams(FilterParams):
                      mm) and hurts ``paper`` (tool 2.073 -> 2.245 mm, above CBKF's 2.097).
     local_lost_s     no local sample for this long [s]: it has lost the tool (0.1: the evaluation's split).
     hop_into         "b" (default) or "g": the bias part a position hop goes into (module docstring).
+    hop_needs_local  when a position hop may go into the bias (:func:`.fullperc_state.hop_watched`): "once" (default)
+                     once a local source has seen the target, "always" only while one sees it, "never" (CBKF's rule)
+                     needs none.
     hop_confirm      global samples in a row over the hop gate, each innovation in the direction of the one before,
                      that make a hop (1: every crossing is one, CBKF's rule, the default); a crossing not (yet)
                      confirmed is held out (:mod:`.fullperc_reference`). 2 keeps single frames of an OMC noisier than
@@ -100,6 +104,7 @@ class FullpercParams(FilterParams):
     bias_field_length: float = 0.296
     local_lost_s: float = 0.1
     hop_into: str = "b"
+    hop_needs_local: str = "once"
     hop_confirm: int = 1
     noise_adapt_time: float = 0.4
     noise_adapt_max: float = 25.0
@@ -115,6 +120,9 @@ class FullpercParams(FilterParams):
         super().validate()
         if self.hop_into not in HOP_INTO:
             raise ValueError(f"filter parameter hop_into must be one of {HOP_INTO}, got {self.hop_into!r}")
+        if self.hop_needs_local not in HOP_NEEDS_LOCAL:
+            raise ValueError(f"filter parameter hop_needs_local must be one of {HOP_NEEDS_LOCAL}, "
+                             f"got {self.hop_needs_local!r}")
         for name in ("ang_accel_noise", "rot_bias_walk", "init_rot_std", "init_angvel_std", "init_rot_bias_std",
                      "rot_sys_time", "rot_sys_std", "noise_adapt_time", "rot_bias_length", "rot_noise_adapt_time",
                      "rot_noise_length", "bias_length", "bias_field_std", "bias_field_length"):

@@ -65,11 +65,10 @@ a Gauss-Markov process forgets it at the rate the sensor's error does, and the m
 * hops: NIS of the global position rows above ``hop_gate`` on ``hop_confirm`` global samples in a row, each
   innovation in the direction of the one before (:func:`.fullperc_state.hop_run_step`) -> the variance of b
   (``hop_into: b``, CBKF's rule, :mod:`.paper_family`) or g (``hop_into: g``, forgotten over ``sys_time``) is raised
-  by y_p^2 per axis before the gain: a step of the global source goes into its bias, not into the pose. A crossing
-  not (yet) confirmed is held out (R_p x ``HOLD_OUT``; lambda learns from it). Why: a sensor's step lasts; noise
-  beyond the model (a body leaving some cameras' view, before lambda follows) crosses the gate in single frames
-  pointing anywhere, and each went into b (docs/fullperc_filter.md "Where a hop goes"). A rotation hop is flagged,
-  not put into beta: the OMC's rotation jumps revert within frames (:func:`measurement_models.omc_covariance`).
+  by y_p^2 per axis before the gain (a step of the global source goes into its bias), while a local source sees the
+  target (:func:`.fullperc_state.hop_watched`). Unconfirmed crossings are held out (R_p x ``HOLD_OUT``): noise beyond
+  the model crosses in single frames pointing anywhere (docs/fullperc_filter.md "Where a hop goes"). A rotation hop
+  is flagged, not put into beta: the OMC's rotation jumps revert within frames (``omc_covariance``).
 * the update's log-likelihood log N(y; 0, S) (``Step.log_lik``), S before a hop raises it; at a crossing (held out or
   not) the mixture (1 - pi) N(y; 0, S) + pi N(y; 0, S_hop), S_hop raised (:func:`.motion.hop_mixture`): how well
   this model predicted the sample -- the weight of a motion model in ``motion: auto`` (:mod:`.fullperc_imm`).
@@ -132,6 +131,7 @@ from fullperc_fusion.filters.fullperc_state import (
     copy_state,
     field_var,
     hop_run_step,
+    hop_watched,
     noise_scale_step,
 )
 from fullperc_fusion.filters.motion import gaussian_log_lik, hop_mixture
@@ -436,7 +436,7 @@ class FullpercReference(StepCompat):
             self.hop_counts["position"] += hop_p
             self.hop_counts["rotation"] += hop_r
             confirmed, hop_run = hop_run_step(s.hop_run, hop_p, *y[0:3].tolist(), pr)
-            if hop_p and pr.hop_to_bias:   # the likelihood as a hop's (module docstring)
+            if hop_p and pr.hop_to_bias and hop_watched(t, s.t_local_ns, ml is not None, pr):   # module docstring
                 Ph = P.copy()
                 k = G_ if pr.hop_into == "g" else B_
                 Ph[k, k] += np.diag(y[0:3] ** 2)
