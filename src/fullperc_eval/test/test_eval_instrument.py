@@ -2,9 +2,11 @@
 
 With the arm's motion (the ``arm`` preset: the paper filters' tuning) the walk's jumps pass the hop gate and go into
 the bias, and so does the motion of a target already walking when first seen; that bias is applied metres away where
-the Vega cannot correct it -- the defect this pins. The ``hand`` preset keeps the compensated filters at the OMC's
-level. ``motion: auto`` (the shipped fusion.yaml sets no target's motion) lets fullperc find that itself
-(filters/fullperc_imm.py); the paper's filters, one motion model each, then keep the node-wide (arm) values.
+the Vega cannot correct it -- the defect this pins (for ``fullperc`` under CBKF's hop rule, ``hop_needs_local:
+never``; by default its hops wait for the Vega's first sample, and the walk before it is fused as samples). The
+``hand`` preset keeps the compensated filters at the OMC's level. ``motion: auto`` (the shipped fusion.yaml sets no
+target's motion) lets fullperc find that itself (filters/fullperc_imm.py); the paper's filters, one motion model
+each, then keep the node-wide (arm) values.
 """
 
 from __future__ import annotations
@@ -23,10 +25,11 @@ SPEC_BAG = ROOT / "bags" / "spec" / "G-B-P"
 COMPENSATED = ("ckf", "cbkf", "fullperc")
 
 
-def _with_motion(tmp_path: Path, motion: str) -> Path:
+def _with_motion(tmp_path: Path, motion: str, hop_needs_local: str = "once") -> Path:
     doc = yaml.safe_load(default_fusion_config_path().read_text())
     doc[node_key(doc)]["ros__parameters"]["instrument"] = {"motion": motion}
-    path = tmp_path / f"{motion}.yaml"
+    doc[node_key(doc)]["ros__parameters"]["fullperc"]["hop_needs_local"] = hop_needs_local
+    path = tmp_path / f"{motion}-{hop_needs_local}.yaml"
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
     return path
 
@@ -40,7 +43,8 @@ def results(tmp_path_factory):
     """MAE [mm] per method of each run; ``<run>_result``: the whole evaluation of the paper runs auto and hand."""
     tmp = tmp_path_factory.mktemp("motion")
     runs = {"auto": _result(BAG), "hand": _result(BAG, _with_motion(tmp, "hand")),
-            "arm": _result(BAG, _with_motion(tmp, "arm")), "spec_auto": _result(SPEC_BAG),
+            "arm": _result(BAG, _with_motion(tmp, "arm", "never")),
+            "arm_once": _result(BAG, _with_motion(tmp, "arm")), "spec_auto": _result(SPEC_BAG),
             "spec_hand": _result(SPEC_BAG, _with_motion(tmp, "hand"))}
     return {**{k: r["mae_mm"] for k, r in runs.items()}, "auto_result": runs["auto"], "hand_result": runs["hand"]}
 
@@ -57,6 +61,14 @@ def test_with_the_arms_motion_the_walk_goes_into_the_bias(results):
     assert arm["omc"] == hand["omc"]
     for m in COMPENSATED:
         assert arm[m] > 1.5 * hand["omc"] and arm[m] > 1.5 * hand[m], (m, arm, hand)
+
+
+def test_fullperc_keeps_the_walk_out_of_the_bias_before_the_vega_sees_it(results):
+    """The instrument is walking when the OMC first sees it (G-B-P): with the arm's values and the default
+    ``hop_needs_local: once`` fullperc fuses those jumps as samples, so it stays at the OMC's level where CBKF's hop
+    rule (the run above) put them into the bias."""
+    once, hand = results["arm_once"], results["hand"]
+    assert once["fullperc"] <= 1.15 * hand["omc"] and once["fullperc"] < results["arm"]["fullperc"] / 1.5, once
 
 
 def test_auto_finds_the_hand_for_fullperc_and_the_paper_filters_keep_the_arms_values(results):
