@@ -62,7 +62,7 @@ def _posterior_plain(c: np.ndarray, log_lik) -> tuple[np.ndarray, float]:
     return a / s, top + math.log(s)
 
 
-def test_transition_and_posterior_are_the_plain_formulas_bit_for_bit():
+def test_transition_posterior_and_mixing_are_the_plain_formulas_bit_for_bit():
     rng = np.random.default_rng(0)
     for _ in range(300):
         n = int(rng.integers(1, 5))
@@ -77,6 +77,11 @@ def test_transition_and_posterior_are_the_plain_formulas_bit_for_bit():
             mu, log_l = posterior(c, ll)
             mu0, log_l0 = _posterior_plain(c, ll)
         assert _same(mu, mu0) and (log_l == log_l0 or (math.isnan(log_l) and math.isnan(log_l0))), ll
+    for _ in range(300):   # mixing's W in floats: the element-wise numpy formula's bits
+        n = int(rng.integers(1, 5))
+        mu, T = rng.dirichlet(np.ones(n)), _transition_plain(float(rng.uniform(0, 0.5)), n, 2.0)
+        c, W = mixing(mu, T)
+        assert _same(c, mu @ T) and _same(W, (T * mu[:, None]) / c[None, :])
 
 
 @pytest.mark.parametrize("n", [2, 3, 4])

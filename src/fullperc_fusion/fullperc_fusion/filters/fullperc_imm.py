@@ -46,7 +46,7 @@ from fullperc_fusion.filters.api import Measurement, Step, StepCompat
 from fullperc_fusion.filters.fullperc import FullpercFilter
 from fullperc_fusion.filters.fullperc_params import FullpercParams
 from fullperc_fusion.filters.fullperc_state import POSE_FLAT, TH
-from fullperc_fusion.filters.motion import mix, mix_each, posterior, speed_log_lik, transition, with_preset
+from fullperc_fusion.filters.motion import mix, mix_each, mixing, posterior, speed_log_lik, transition, with_preset
 from fullperc_fusion.filters.paper_family import FilterParams
 from fullperc_fusion.filters.so3_float import R9_to_quat, exp9, log9, mul9, mul9_t
 
@@ -125,8 +125,8 @@ class FullpercImm(StepCompat):
     def _advance(self, t_ns: int) -> None:
         """Mix the models before they predict to ``t_ns`` (the IMM's interaction step), when all have a state.
 
-        :func:`.motion.mixing` and one :func:`.motion.mix` per model, computed as they do: the mixing weights
-        W_ij = T_ij mu_i / c_j in Python floats and every model's mixture in one :func:`.motion.mix_each`."""
+        :func:`.motion.mixing`, and one :func:`.motion.mix` per model computed as every model's mixture in one
+        :func:`.motion.mix_each`."""
         fs = self.models
         t0 = fs[0]._t
         if len(fs) == 1 or t0 is None or t_ns <= t0 or any(f._pend is not None or f._t != t0 for f in fs):
@@ -137,9 +137,7 @@ class FullpercImm(StepCompat):
             if len(self._tcache) >= _CACHE_MAX:
                 self._tcache.clear()
             T = self._tcache[t_ns - t0] = transition((t_ns - t0) * 1e-9, n, self.params.motion_dwell)
-        c = self._mu @ T   # mixing()'s c
-        mu, cl, Tl = self._mu.tolist(), c.tolist(), T.tolist()
-        W = np.array([[Tl[i][j] * mu[i] / cl[j] for j in range(n)] for i in range(n)])   # mixing()'s W
+        c, W = mixing(self._mu, T)
         # every model's offset from one reference, the most probable model (the tangent space the output is mixed
         # in too, _combine): one offset per model, not one per pair of models
         ref = fs[int(np.argmax(self._mu))]

@@ -119,9 +119,11 @@ def transition(dt: float, n: int, dwell: float) -> np.ndarray:
 
 def mixing(mu: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(c, W): the predicted model probabilities c_j = sum_i T_ij mu_i and the mixing weights W_ij = T_ij mu_i / c_j
-    (each column of W sums to 1)."""
+    (each column of W sums to 1). W in Python floats: each entry the same two roundings as (T * mu[:, None]) /
+    c[None, :], without the numpy calls (the IMM makes one mixing per sample, for a few models)."""
     c = mu @ T
-    return c, (T * mu[:, None]) / c[None, :]
+    m, cl, Tl = mu.tolist(), c.tolist(), T.tolist()
+    return c, np.array([[Tl[i][j] * m[i] / cl[j] for j in range(len(cl))] for i in range(len(m))])
 
 
 def mix(weights: np.ndarray, dx: Sequence[np.ndarray], Ps: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
