@@ -65,10 +65,10 @@ a Gauss-Markov process forgets it at the rate the sensor's error does, and the m
 * hops: NIS of the global position rows above ``hop_gate`` on ``hop_confirm`` global samples in a row, each
   innovation in the direction of the one before (:func:`.fullperc_state.hop_run_step`) -> the variance of b
   (``hop_into: b``, CBKF's rule, :mod:`.paper_family`) or g (``hop_into: g``, forgotten over ``sys_time``) is raised
-  by y_p^2 per axis before the gain (a step of the global source goes into its bias), while a local source sees the
-  target (:func:`.fullperc_state.hop_watched`). Unconfirmed crossings are held out (R_p x ``HOLD_OUT``): noise beyond
-  the model crosses in single frames pointing anywhere (docs/fullperc_filter.md "Where a hop goes"). A rotation hop
-  is flagged, not put into beta: the OMC's rotation jumps revert within frames (``omc_covariance``).
+  by y_p^2 per axis before the gain (a step of the global source goes into its bias), by default once a local
+  source has seen the target (``hop_needs_local``, :func:`.fullperc_state.hop_watched`). Unconfirmed crossings are
+  held out (R_p x ``HOLD_OUT``): noise beyond the model crosses in single frames pointing anywhere
+  (docs/fullperc_filter.md "Where a hop goes"). A rotation hop is flagged, not put into beta (``omc_covariance``).
 * the update's log-likelihood log N(y; 0, S) (``Step.log_lik``), S before a hop raises it; at a crossing (held out or
   not) the mixture (1 - pi) N(y; 0, S) + pi N(y; 0, S_hop), S_hop raised (:func:`.motion.hop_mixture`): how well
   this model predicted the sample -- the weight of a motion model in ``motion: auto`` (:mod:`.fullperc_imm`).
