@@ -258,12 +258,16 @@ def run_node(factory: Callable[[], object], name: str, fatal: tuple[type[BaseExc
         # here on (the interpreter resets Python-level handlers to SIG_DFL while it finalises, so a second
         # Ctrl-C there would kill the process with -SIGINT; SIG_IGN survives that), and keep the thread hook
         # while device threads may still be ending. Called in-process with explicit args (tests): restore both.
-        if args is None:
-            for s in old_handlers:
-                signal.signal(s, signal.SIG_IGN)
-        else:
-            for s, h in old_handlers.items():
-                signal.signal(s, h)
+        # The signals are held while the handlers change: a SIGINT caught by CPython's C handler just before
+        # the swap would otherwise be run after it against SIG_IGN ("Signal 2 ignored due to race
+        # condition", a traceback on stderr); held, it is discarded by the kernel under SIG_IGN.
+        with executor_choice.signals_blocked():
+            if args is None:
+                for s in old_handlers:
+                    signal.signal(s, signal.SIG_IGN)
+            else:
+                for s, h in old_handlers.items():
+                    signal.signal(s, h)
             if threading.active_count() == 1:
                 threading.excepthook = old_hook
     return status if close_ok else 1

@@ -221,3 +221,25 @@ def test_settle_heap_collects_garbage_before_freezing():
         assert gone() is None and gc.get_freeze_count() > 0
     finally:
         gc.unfreeze()
+
+
+def test_the_handlers_are_restored_with_the_signals_held(ros_env, monkeypatch):
+    """A SIGINT that CPython's C handler catches between ``signal.signal``'s pending-signal check and the swap
+    would be run afterwards against SIG_IGN ("Signal 2 ignored due to race condition", a traceback after a
+    double Ctrl-C). The window cannot be hit on purpose from Python: this pins that every swap at the end
+    happens with SIGINT and SIGTERM blocked, so a signal there waits in the kernel instead."""
+    real = signal.signal
+    calls: list[tuple[int, bool]] = []
+
+    def spy(s, h):
+        held = signal.pthread_sigmask(signal.SIG_BLOCK, [])
+        calls.append((s, {signal.SIGINT, signal.SIGTERM} <= held))
+        return real(s, h)
+
+    monkeypatch.setattr(signal, "signal", spy)
+    handlers = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    assert run_node(_raises(ParameterError("parameter 'gain' = -1 is invalid: > 0")), "unit_node", (),
+                    ["prog"]) == 2
+    assert [s for s, _ in calls[-2:]] == [signal.SIGINT, signal.SIGTERM] and all(h for _, h in calls[-2:]), calls
+    assert not signal.pthread_sigmask(signal.SIG_BLOCK, []) & {signal.SIGINT, signal.SIGTERM}  # released again
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == handlers

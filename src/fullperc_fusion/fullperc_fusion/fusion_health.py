@@ -121,11 +121,6 @@ class StampOffsetWatch:
     # so one estimate costs ~25 ms whatever the devices' rates (1 kHz streams: 54 ms without it)
 
     def __init__(self, window_s: float, period_s: float, background: bool = False) -> None:
-        # imported here, at the node's start: scipy's signal/interpolate/optimize take ~0.7 s to import, a stall
-        # the first estimate would otherwise make mid-stream (fusion_health is imported by offline tools too)
-        from fullperc_fusion.calibration import time_offset
-
-        self._align, self._error = time_offset.align_tracks, time_offset.AlignmentError
         self.window_ns, self.period_ns = int(window_s * 1e9), int(period_s * 1e9)
         self.rings: dict[str, deque] = {GLOBAL: deque(), LOCAL: deque()}
         self.newest_ns: int | None = None
@@ -169,9 +164,15 @@ class StampOffsetWatch:
         return a
 
     def _fit(self, tg, pg, tl, pl):
+        # imported at the first estimate, not at the node's start: scipy.signal (with scipy.stats) costs ~0.4 s of
+        # CPU, ~0.7 s cold, which a node stopped before its first estimate never needs (a short run; a test suite
+        # starts dozens). In fusion_node this runs on its worker thread (background), so the import slows the
+        # executor's thread (the GIL) but does not stop it.
+        from fullperc_fusion.calibration import time_offset
+
         try:
-            return self._align(tg, pg, tl, pl, max_lag_s=0.2)
-        except (self._error, ValueError):
+            return time_offset.align_tracks(tg, pg, tl, pl, max_lag_s=0.2)
+        except (time_offset.AlignmentError, ValueError):
             return None
 
 

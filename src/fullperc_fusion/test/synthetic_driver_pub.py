@@ -52,13 +52,20 @@ import numpy as np
 import rclpy
 from geometry_msgs.msg import PoseStamped
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from scipy.spatial.transform import Rotation as Rot
 
 from fullperc_common.ros_conv import ns_to_stamp
+from fullperc_common.so3 import so3_exp
 from fullperc_common.transforms import T_to_pq, inv_T, make_T
 
-T_OMC_BASE = make_T([1.0, 0.5, 0.8], Rot.from_euler("z", 30, degrees=True).as_quat())
-T_OMC_OTS = make_T([3.0, 1.0, 1.5], Rot.from_euler("zyx", [150, 20, 0], degrees=True).as_quat())
+
+def _rot(axis: str, deg: float) -> np.ndarray:
+    """The rotation by ``deg`` about the x, y or z axis (fullperc_common.so3: a process started dozens of times in
+    the suite is spared scipy.spatial's import)."""
+    return so3_exp(math.radians(deg) * np.eye(3)["xyz".index(axis)])
+
+
+T_OMC_BASE = make_T([1.0, 0.5, 0.8], R=_rot("z", 30))
+T_OMC_OTS = make_T([3.0, 1.0, 1.5], R=_rot("y", 20) @ _rot("z", 150))   # extrinsic z then y
 OMC_OFFSET = np.array([3e-3, -2e-3, 1e-3])
 
 
@@ -81,8 +88,7 @@ def read_log(path) -> tuple[list[dict], int]:
 
 def truth(t: float) -> np.ndarray:
     """T_base_tool at t seconds after start."""
-    return make_T([0.5 + 0.05 * math.cos(0.5 * t), 0.05 * math.sin(0.5 * t), 0.3],
-                  Rot.from_euler("z", 5 * t, degrees=True).as_quat())
+    return make_T([0.5 + 0.05 * math.cos(0.5 * t), 0.05 * math.sin(0.5 * t), 0.3], R=_rot("z", 5 * t))
 
 
 def msg(stamp_ns: int, frame: str, p, q) -> PoseStamped:
@@ -184,7 +190,7 @@ def main() -> int:
         """T with sensor noise when --link-noise (position sig_p [m], rotation sig_r [rad] per axis)."""
         if not a.link_noise:
             return T_to_pq(T)
-        d = make_T(link_rng.normal(0, sig_p, 3), Rot.from_rotvec(link_rng.normal(0, sig_r, 3)).as_quat())
+        d = make_T(link_rng.normal(0, sig_p, 3), R=so3_exp(link_rng.normal(0, sig_r, 3)))
         return T_to_pq(T @ d)
 
     final_max = [0]   # newest stamp of the node's final estimates (--bad: when to send the backwards sample)
