@@ -307,3 +307,29 @@ def test_a_process_without_a_ready_condition_that_is_gone_before_it_is_checked_s
     assert sup.start()
     sup.wait(timeout=30)
     assert sup.completed and sup.shutdown() == {"end": 0}
+
+
+def test_the_callers_signal_handlers_come_back_with_the_signals_held(tmp_path, monkeypatch):
+    """The restore at the end runs with SIGINT and SIGTERM blocked: a SIGTERM caught by CPython's C handler between
+    ``signal.signal``'s pending check and the swap back to SIG_DFL would otherwise be dropped with "Signal 15
+    ignored due to race condition" (fullperc_common.node_main holds them for the same reason)."""
+    import signal
+
+    g = _graph(tmp_path, """
+        processes:
+          - name: quick
+            cmd: [PY, -c, "print('ready', flush=True)"]
+        grace: 0.5
+        """)
+    real, calls = signal.signal, []
+
+    def spy(s, h):
+        calls.append((s, {signal.SIGINT, signal.SIGTERM} <= signal.pthread_sigmask(signal.SIG_BLOCK, [])))
+        return real(s, h)
+
+    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    monkeypatch.setattr(signal, "signal", spy)
+    run_graph(g, {}, tmp_path / "logs", tmp_path, timeout=60)
+    assert [s for s, _ in calls[-2:]] == [signal.SIGINT, signal.SIGTERM] and all(h for _, h in calls[-2:]), calls
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+    assert not signal.pthread_sigmask(signal.SIG_BLOCK, []) & {signal.SIGINT, signal.SIGTERM}

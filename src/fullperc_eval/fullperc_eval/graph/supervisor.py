@@ -48,6 +48,8 @@ from pathlib import Path
 
 import yaml
 
+from fullperc_common.executor_choice import signals_blocked
+
 
 class GraphError(ValueError):
     """The graph description is invalid; the message names the file and the field."""
@@ -410,8 +412,9 @@ def execute_graph(path: str | Path, values: dict[str, str], log_dir: Path, root:
             sup.wait(timeout)
     finally:
         codes = sup.shutdown()
-        for s, h in old.items():
-            signal.signal(s, h)
+        with signals_blocked():   # a signal in the swap waits for the old handler (node_main: the same race)
+            for s, h in old.items():
+                signal.signal(s, h)
     sup.say("supervisor", "all processes stopped: " + ", ".join(f"{k}={v}" for k, v in codes.items()))
     return GraphOutcome(1 if sup.failed else 0, codes, sup.completed and not sup.failed, sup.interrupted,
                         sup.reason)
