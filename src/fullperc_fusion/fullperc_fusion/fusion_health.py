@@ -121,6 +121,13 @@ class StampOffsetWatch:
     # so one estimate costs ~25 ms whatever the devices' rates (1 kHz streams: 54 ms without it)
 
     def __init__(self, window_s: float, period_s: float, background: bool = False) -> None:
+        # imported here, at the node's start, not at the first estimate: an import on the worker thread takes the
+        # GIL in turns with the input thread (measured: a 1 kHz loop 20-28 ms late at the first estimate, against
+        # 1-12 ms with the import done before). time_offset needs neither scipy.signal nor scipy.stats, so this
+        # costs fusion_node ~0.1 s of CPU (fusion_health is imported by offline tools too)
+        from fullperc_fusion.calibration import time_offset
+
+        self._align, self._error = time_offset.align_tracks, time_offset.AlignmentError
         self.window_ns, self.period_ns = int(window_s * 1e9), int(period_s * 1e9)
         self.rings: dict[str, deque] = {GLOBAL: deque(), LOCAL: deque()}
         self.newest_ns: int | None = None
@@ -164,15 +171,9 @@ class StampOffsetWatch:
         return a
 
     def _fit(self, tg, pg, tl, pl):
-        # imported at the first estimate, not at the node's start: scipy.signal (with scipy.stats) costs ~0.4 s of
-        # CPU, ~0.7 s cold, which a node stopped before its first estimate never needs (a short run; a test suite
-        # starts dozens). In fusion_node this runs on its worker thread (background), so the import slows the
-        # executor's thread (the GIL) but does not stop it.
-        from fullperc_fusion.calibration import time_offset
-
         try:
-            return time_offset.align_tracks(tg, pg, tl, pl, max_lag_s=0.2)
-        except (time_offset.AlignmentError, ValueError):
+            return self._align(tg, pg, tl, pl, max_lag_s=0.2)
+        except (self._error, ValueError):
             return None
 
 

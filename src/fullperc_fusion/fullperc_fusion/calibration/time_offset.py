@@ -35,9 +35,9 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
+from scipy import fft as sfft
 from scipy.interpolate import CubicSpline
 from scipy.optimize import minimize_scalar
-from scipy.signal import correlate, savgol_filter
 
 SIGNALS = ("speed", "angular", "both")
 COARSE_STEP_S = 0.001          # grid of the cross-correlation [s]
@@ -104,6 +104,29 @@ def _rotmats(q_xyzw: np.ndarray) -> np.ndarray:
                      2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=1)
 
 
+def savgol_slope(x: np.ndarray, n: int, delta: float) -> np.ndarray:
+    """The first derivative of a quadratic Savitzky-Golay filter of odd length ``n`` along axis 0, at the samples
+    whose whole window lies inside ``x`` (``len(x) - n + 1`` rows: the ``h = n // 2`` at each end are left out).
+
+    There a window is symmetric, so the quadratic's even term does not move its slope at the centre: the slope is
+    the least-squares line's, sum_k k x[i + k] / (delta sum_k k^2), k = -h..h -- what ``scipy.signal.savgol_filter(x,
+    n, 2, deriv=1, delta=delta, axis=0)`` gives there, to rounding (``test_time_align.py``). Written out because
+    scipy.signal's import (with scipy.stats: ~0.35 s of CPU, 1 s cold) would be most of fusion_node's start-up.
+    """
+    h = n // 2
+    k = np.arange(-h, h + 1, dtype=float)
+    c = k / (delta * float(k @ k))
+    return np.lib.stride_tricks.sliding_window_view(x, n, axis=0) @ c
+
+
+def xcorr_full(g: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """The full cross-correlation of two real 1-D series by FFT: entry ``len(f) - 1 + lag`` is sum_i f[i - lag]
+    g[i] (``scipy.signal.correlate(g, f, mode="full", method="fft")``, to rounding)."""
+    m = len(g) + len(f) - 1
+    nf = sfft.next_fast_len(m, real=True)
+    return sfft.irfft(sfft.rfft(g, nf) * sfft.rfft(f[::-1], nf), nf)[:m]
+
+
 def motion_signal(t_s: np.ndarray, p: np.ndarray, q_xyzw: np.ndarray | None = None, signal: str = "speed",
                   smooth_s: float = 0.1, max_gap_s: float | None = None) -> Motion:
     """Speed |dp/dt| [m/s] and/or angular speed |omega| [rad/s] of a pose series, per gap-free segment.
@@ -141,17 +164,16 @@ def motion_signal(t_s: np.ndarray, p: np.ndarray, q_xyzw: np.ndarray | None = No
         n = max(n, 5)
         if len(ts) < n + 4:
             continue
-        cols = []
-        if signal in ("speed", "both"):
-            v = savgol_filter(p[s], n, 2, deriv=1, delta=dt, axis=0)
-            cols.append(np.linalg.norm(v, axis=1))
-        if signal in ("angular", "both"):
-            dR = savgol_filter(R[s], n, 2, deriv=1, delta=dt, axis=0)
-            cols.append(np.linalg.norm(dR, axis=1) / np.sqrt(2.0))
         # only where the whole window is inside the segment: at its ends the filter is one-sided, and a one-sided
         # derivative lags or leads -- the device that loses the target more often would look shifted
+        cols = []
+        if signal in ("speed", "both"):
+            cols.append(np.linalg.norm(savgol_slope(p[s], n, dt), axis=1))
+        if signal in ("angular", "both"):
+            dR = savgol_slope(R[s], n, dt)
+            cols.append(np.linalg.norm(dR, axis=1) / np.sqrt(2.0))
         h = n // 2
-        out.append((ts[h:len(ts) - h], np.stack(cols, axis=1)[h:len(ts) - h]))
+        out.append((ts[h:len(ts) - h], np.stack(cols, axis=1)))
     return Motion(out)
 
 
@@ -178,7 +200,7 @@ def _masked_ncc(a: np.ndarray, b: np.ndarray, lags: np.ndarray, min_overlap: int
     idx = n - 1 + lags
 
     def xc(f: np.ndarray, g: np.ndarray) -> np.ndarray:     # sum_i f[i - lag] g[i] at each lag
-        return correlate(g, f, mode="full", method="fft")[idx]
+        return xcorr_full(g, f)[idx]
 
     pairs = np.rint(xc(ma, mb))
     r = np.zeros(len(lags))
