@@ -19,7 +19,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from fullperc_common.transforms import apply_T, inv_T
 
@@ -90,6 +89,9 @@ class Camera:
 
     @property
     def quat_xyzw(self) -> np.ndarray:
+        # imported here: margin_node's start does not need scipy.spatial
+        from scipy.spatial.transform import Rotation
+
         return Rotation.from_matrix(self.R).as_quat()
 
     @property

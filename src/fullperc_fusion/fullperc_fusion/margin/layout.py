@@ -44,10 +44,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from fullperc_common.share import share_path
-from fullperc_common.transforms import make_T
+from fullperc_common.transforms import make_T, quat_to_R_rows
 from fullperc_common.yaml_file import load_yaml_file
 from fullperc_fusion.margin.geometry import (
     NDI_EXTENDED_PLANES,
@@ -229,7 +228,7 @@ class _Ctx:
             raise self.err(where, "zero-length quaternion (x y z w); an orientation needs a unit quaternion")
         if abs(n - 1.0) > 1e-2:
             raise self.err(where, f"quaternion (x y z w) is not unit length (norm {n:.4f}); typo?")
-        return Rotation.from_quat(q / n).as_matrix()
+        return np.array(quat_to_R_rows(*(q / n).tolist()))   # scipy's from_quat().as_matrix(), bit for bit
 
 
 def _parse_camera(ctx: _Ctx, m: Any, defaults: dict, where: str) -> Camera:
