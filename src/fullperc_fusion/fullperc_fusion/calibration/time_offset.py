@@ -110,8 +110,8 @@ def savgol_slope(x: np.ndarray, n: int, delta: float) -> np.ndarray:
 
     There a window is symmetric, so the quadratic's even term does not move its slope at the centre: the slope is
     the least-squares line's, sum_k k x[i + k] / (delta sum_k k^2), k = -h..h -- what ``scipy.signal.savgol_filter(x,
-    n, 2, deriv=1, delta=delta, axis=0)`` gives there, to rounding (``test_time_align.py``). Written out because
-    scipy.signal's import (with scipy.stats: ~0.35 s of CPU, 1 s cold) would be most of fusion_node's start-up.
+    n, 2, deriv=1, delta=delta, axis=0)`` gives there, to rounding (``test_time_offset_kernels.py``). Written out
+    because scipy.signal's import (with scipy.stats: ~0.35 s of CPU, 1 s cold) would be most of fusion_node's start.
     """
     h = n // 2
     k = np.arange(-h, h + 1, dtype=float)
