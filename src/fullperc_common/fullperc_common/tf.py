@@ -43,6 +43,14 @@ def static_qos() -> QoSProfile:
                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
+def static_listener_qos() -> QoSProfile:
+    """tf2_ros.StaticListenerQoS: reliable, transient local, keep last 100. A subscriber of /tf_static needs the
+    depth: each broadcaster's message lands in one keyless instance, so with depth 1 a reader that takes late keeps
+    only the newest of several nodes' messages (a test listener on a busy machine lost one node's base -> ots)."""
+    return QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
 def transform_stamped(stamp_ns: int, parent: str, child: str, T: np.ndarray | None = None, p=None,
                       q_xyzw=None) -> TransformStamped:
     """``parent -> child`` from ``T`` (= T_parent_child, 4x4) or from position [m] + quaternion (x y z w).

@@ -13,6 +13,7 @@ from fullperc_common.tf import (
     Broadcaster,
     StaticBroadcaster,
     dynamic_qos,
+    static_listener_qos,
     static_qos,
     transform_stamped,
     transform_to_T,
@@ -51,6 +52,9 @@ def test_qos_is_tf2_ros():
         100, HistoryPolicy.KEEP_LAST, ReliabilityPolicy.RELIABLE, DurabilityPolicy.VOLATILE)
     assert (s.depth, s.history, s.reliability, s.durability) == (
         1, HistoryPolicy.KEEP_LAST, ReliabilityPolicy.RELIABLE, DurabilityPolicy.TRANSIENT_LOCAL)
+    r = static_listener_qos()   # tf2_ros.StaticListenerQoS: a reader keeps every broadcaster's latched message
+    assert (r.depth, r.history, r.reliability, r.durability) == (
+        100, HistoryPolicy.KEEP_LAST, ReliabilityPolicy.RELIABLE, DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def test_static_union_reaches_a_late_subscriber_and_type_hash_matches_rosbags_jazzy(rclpy_context):

@@ -34,8 +34,8 @@ nothing is checked.
 
 /tf_static: ``omc -> base`` (T_omc_base), ``base -> ots`` (T_base_ots, not with ``local_chain: tracked``, where
 the OTS moves) and ``base -> <source>`` of every further local source, from the first target whose link is known;
-``base -> diana_base`` when ``tf.diana_base`` is given. Sent when first known and again when one changes. The frame
-names are the node's ``frames.*`` (:mod:`fusion_interface`; these are the defaults).
+``base -> diana_base`` when ``tf.diana_base`` is given. Sent when first known and again when one changes. Frame
+names: the node's ``frames.*`` (:mod:`fusion_interface`).
 
 Run-time parameters: :data:`LIVE_PARAMS` (:meth:`FusionCore.apply_live`), checked as at start-up; the rest read-only.
 
@@ -251,8 +251,8 @@ class FusionCore:
         h = self.health[target]
         if accepted:   # the stamp-offset watch pairs the global source with the first local one only
             h.accepted(source, now, t_ns, p if source == GLOBAL or self.local_k.get(dev) == 0 else None)
-        else:
-            h.rejected(source, now, self.pipes[target].last_problem)
+        else:   # the stamp of a sample refused for its pose times the run of refusals (fusion_health)
+            h.rejected(source, now, (d := self.pipes[target].diag).last, t_ns=d.pose_refused(t_ns))
 
     def quality_rx(self, key: Key, now: float) -> None:
         """A quality callback of ``key`` ran at ``now`` (the stream is not silent)."""

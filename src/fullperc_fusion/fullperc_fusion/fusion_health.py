@@ -20,12 +20,16 @@ The rules (thresholds are :class:`HealthParams`, node parameters ``alarm.*`` in 
   base marker or a wrong static link. Filters without a bias state (kf, bkf, omc) report b = 0.
 * **all rejected** (ERROR, per source): a *run* of rejections starts at the first rejected sample of a source
   and ends when a sample of that source that was accepted *after* the run started is used by the primary filter
-  (its bit is set in an output). It is an alarm while ``now - first_rejection >= reject_timeout_s`` and the
-  newest rejection is less than ``reject_timeout_s`` old (the source is still sending; a source that went
-  silent is reported as silent by the node, not here). "Rejected" = refused at the input (non-finite, non-unit
-  quaternion, bad stamp, late, duplicate) or skipped by the chain (local_skipped); "accepted" = taken by the
-  pipeline at the input. Outputs of samples accepted before the run (they come out up to ``reorder_delay`` or
-  ``idle_flush`` later) do not end it; samples waiting for the static links neither start nor end one.
+  (its bit is set in an output). It is an alarm while the run has lasted ``reject_timeout_s`` and the newest
+  rejection is less than ``reject_timeout_s`` old (the source is still sending; a source that went silent is
+  reported as silent by the node, not here). A run lasts the longer of ``now - first_rejection`` and the span of
+  its samples' stamps (those the caller passes: not of samples refused for their stamp): a node that fell behind
+  takes seconds of a source's refused samples in one burst, and by its clock alone that run would never last the
+  timeout (a CI run on a busy machine: no ERROR for 2.5 s of NaN poses). "Rejected" = refused at the input
+  (non-finite, non-unit quaternion, bad stamp, late, duplicate) or skipped by the chain (local_skipped);
+  "accepted" = taken by the pipeline at the input. Outputs of samples accepted before the run (they come out up
+  to ``reorder_delay`` or ``idle_flush`` later) do not end it; samples waiting for the static links neither start
+  nor end one.
 * **stamp offset** (WARN, local source): the OMC's and the Vega's stamps of one instant disagree. Every
   ``offset_period_s`` of stamps the last ``offset_window_s`` of the target's accepted samples of each source go to
   :func:`~fullperc_fusion.calibration.time_offset.align_tracks` (the speed of the target seen by each device,
@@ -47,12 +51,11 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass
 
 import numpy as np
 
 from fullperc_common.background import Job
-from fullperc_common.latency import LatencyHistogram
 from fullperc_fusion.filters.api import Role
 
 OK, WARN, ERROR = 0, 1, 2
@@ -193,6 +196,7 @@ class TargetHealth:
         self._run_last: dict[str, float | None] = {GLOBAL: None, LOCAL: None}
         self._run_count = {GLOBAL: 0, LOCAL: 0}
         self._run_reason = {GLOBAL: "", LOCAL: ""}
+        self._run_stamps: dict[str, list[int]] = {GLOBAL: [], LOCAL: []}   # the run's [oldest, newest] stamp
         self._last_accept: dict[str, float | None] = {GLOBAL: None, LOCAL: None}
         self._held = {("hop_rate", GLOBAL): _Held(), ("bias", GLOBAL): _Held(),
                       ("rejected", GLOBAL): _Held(), ("rejected", LOCAL): _Held(), ("stamp_offset", LOCAL): _Held()}
@@ -206,13 +210,18 @@ class TargetHealth:
         if t_ns is not None and p is not None:
             self.offset.add(source, t_ns, p)
 
-    def rejected(self, source: str, now: float, reason: str = "", n: int = 1) -> None:
-        """``n`` samples of ``source`` were refused at ``now`` (``reason``: the pipeline's description)."""
+    def rejected(self, source: str, now: float, reason: str = "", n: int = 1, t_ns: int | None = None) -> None:
+        """``n`` samples of ``source`` were refused at ``now`` (``reason``: the pipeline's description); ``t_ns``:
+        the sample's stamp, when it is one to go by (module docstring, "all rejected")."""
         if n <= 0:
             return
+        span = self._run_stamps[source]
         if self._run_first[source] is None:
             self._run_first[source] = now
             self._run_count[source] = 0
+            span.clear()
+        if t_ns is not None:
+            span[:] = [min(span[0], t_ns), max(span[1], t_ns)] if span else [t_ns, t_ns]
         self._run_last[source] = now
         self._run_count[source] += n
         if reason:
@@ -257,9 +266,15 @@ class TargetHealth:
             v["stamp_offset_ms"] = round(1e3 * a.offset_s, 3)
             v["stamp_offset_sigma_ms"] = round(1e3 * a.offset_sigma_s, 3)
         for s in (GLOBAL, LOCAL):
-            first = self._run_first[s]
-            v[f"{s}_rejected_run_s"] = 0.0 if first is None else round(now - first, 3)
+            v[f"{s}_rejected_run_s"] = round(self._run_s(s, now), 3)
         return v
+
+    def _run_s(self, source: str, now: float) -> float:
+        """How long the current run of rejections of ``source`` has lasted (module docstring); 0 without one."""
+        first, span = self._run_first[source], self._run_stamps[source]
+        if first is None:
+            return 0.0
+        return max(now - first, 1e-9 * (span[1] - span[0]) if span else 0.0)
 
     # ---- rules --------------------------------------------------------------------------------------------
     def _prune(self, now: float) -> None:
@@ -297,204 +312,10 @@ class TargetHealth:
                 "(docs/time_alignment.md)"))
 
     def _check_rejected(self, source: str, now: float) -> None:
-        first, last = self._run_first[source], self._run_last[source]
-        T = self.params.reject_timeout_s
-        if first is None or last is None or now - first < T or now - last >= T:
+        last, T, run = self._run_last[source], self.params.reject_timeout_s, self._run_s(source, now)
+        if last is None or run < T or now - last >= T:
             return
         why = self._run_reason[source]
         self._held[("rejected", source)].mark(now, (
-            f"target '{self.target}': every sample of the {self.names[source]} rejected for {now - first:.1f} s "
+            f"target '{self.target}': every sample of the {self.names[source]} rejected for {run:.1f} s "
             f"({self._run_count[source]} samples, none used)" + (f"; last: {why}" if why else "")))
-
-
-class SourceLoss:
-    """Samples of one source the node never got, from the driver's TrackingQuality (issue 16 item 5).
-
-    Why: under overload DDS drops samples (a reader's keep-last history overflows) and nothing said so -- at
-    1 kHz + 1 kHz the node took in a quarter of the OMC samples while /diagnostics said OK. The drivers publish a
-    TrackingQuality per device frame, visible or not, with the device's frame counter and the pose's stamp:
-
-    * ``frames_lost``: gaps in ``frame_number`` -- quality messages that never arrived (a counter that goes back,
-      e.g. a driver restart, starts a new count without a gap);
-    * ``samples_lost``: pose samples that never arrived: frames whose quality says *visible* and whose pose (same
-      stamp) did not come within ``match_ns`` (stamp time) of it, plus the frames of the gaps whose pose did not
-      come either -- the gap frames minus the poses that came without a quality message. Frames of a gap are taken
-      as visible (their quality is unknown), so this is an upper bound when the body was occluded during a gap.
-
-    A visible frame waits for its pose until a *pose* ``match_ns`` newer arrives, and a pose for its quality until a
-    *quality* message ``match_ns`` newer arrives: each topic comes in order, but the two are taken in separate
-    callbacks, and a node that lags in its pose callbacks has the quality messages seconds ahead (a demo run on a
-    busy machine counted 678 OMC samples lost, every one of which it had fused). At the end of a stream nothing
-    newer comes, so the caller says when the source has gone silent (:meth:`end_of_stream`) and what is still
-    waiting is settled then.
-
-    Pure: the caller passes stamps; a source without quality messages reports nothing.
-    """
-
-    def __init__(self, match_ns: int = 1_000_000_000) -> None:
-        self.match_ns = int(match_ns)
-        self.frames_lost = 0
-        self._unmatched = 0                    # visible frames whose pose did not come
-        self._orphans = 0                      # poses that came without their quality message
-        self._last_frame: int | None = None
-        self._waiting: dict[int, None] = {}    # stamps of visible frames whose pose has not arrived (insertion order)
-        self._poses: dict[int, None] = {}      # stamps of poses whose quality has not arrived
-        self._newest_pose = 0
-        self._newest_quality = 0
-
-    @property
-    def samples_lost(self) -> int:
-        return self._unmatched + max(0, self.frames_lost - self._orphans - len(self._poses))
-
-    @property
-    def lost(self) -> int:
-        return self.samples_lost
-
-    def quality(self, frame_number: int, stamp_ns: int, visible: bool) -> int:
-        """One TrackingQuality; returns the frames this one shows lost (a gap before it)."""
-        gap = 0
-        if self._last_frame is not None and frame_number > self._last_frame + 1:
-            gap = frame_number - self._last_frame - 1
-            self.frames_lost += gap
-        self._last_frame = frame_number
-        if stamp_ns in self._poses:
-            del self._poses[stamp_ns]
-        elif visible:
-            self._waiting[stamp_ns] = None
-        self._newest_quality = max(self._newest_quality, stamp_ns)
-        self._expire(self._poses, self._newest_quality, "_orphans")
-        return gap
-
-    def pose(self, stamp_ns: int) -> None:
-        """One pose sample of the source arrived (whatever the pipeline then did with it)."""
-        if stamp_ns in self._waiting:
-            del self._waiting[stamp_ns]
-        else:
-            self._poses[stamp_ns] = None
-        self._newest_pose = max(self._newest_pose, stamp_ns)
-        self._expire(self._waiting, self._newest_pose, "_unmatched")
-
-    @property
-    def pending(self) -> int:
-        """Visible frames still waiting for their pose plus poses still waiting for their quality."""
-        return len(self._waiting) + len(self._poses)
-
-    def end_of_stream(self) -> None:
-        """The source went silent (the caller has had neither a pose nor a quality message of it for a while):
-        the visible frames still waiting for their pose will not get it and count as lost now -- else a loss in
-        a stream's last ``match_ns`` would never be counted -- and the poses still waiting for their quality are
-        orphans (they reduce the gap frames' share, as when they expire)."""
-        self._unmatched += len(self._waiting)
-        self._orphans += len(self._poses)
-        self._waiting.clear()
-        self._poses.clear()
-
-    def _expire(self, pending: dict[int, None], newest_ns: int, counter: str) -> None:
-        """Settle the entries of ``pending`` more than match_ns older than ``newest_ns`` (the other topic's newest
-        stamp) as ``counter``."""
-        old = newest_ns - self.match_ns
-        while pending:
-            t = next(iter(pending))
-            if t >= old:
-                break
-            del pending[t]
-            setattr(self, counter, getattr(self, counter) + 1)
-
-
-STAGES = ("callback_delay", "wakeup", "received_to_published")   # fullperc_common.latency: what each measures
-
-
-@dataclass
-class LoadWindow:
-    """The input callbacks of one stretch of time: the largest queue depth and lag, the smallest lag, the number of
-    callbacks (None where no callback measured it), and a histogram of each latency stage (:data:`STAGES`)."""
-
-    depth_max: int = 0
-    lag_max_ns: int | None = None
-    lag_min_ns: int | None = None
-    callbacks: int = 0
-    stages: dict[str, LatencyHistogram] = field(default_factory=lambda: {s: LatencyHistogram() for s in STAGES})
-
-    def add(self, depth: int, delay_ns: int | None, lag_ns: int | None, work_ns: int | None = None) -> None:
-        self.callbacks += 1
-        self.depth_max = max(self.depth_max, depth)
-        self.lag_max_ns = _opt(max, self.lag_max_ns, lag_ns)
-        self.lag_min_ns = _opt(min, self.lag_min_ns, lag_ns)
-        for stage, ns in zip(STAGES, (delay_ns, work_ns, None if delay_ns is None or work_ns is None
-                                      else delay_ns + work_ns), strict=True):
-            if ns is not None:
-                self.stages[stage].add(ns)
-
-    def merged(self, other: LoadWindow) -> LoadWindow:
-        """Both stretches as one."""
-        return LoadWindow(max(self.depth_max, other.depth_max), _opt(max, self.lag_max_ns, other.lag_max_ns),
-                          _opt(min, self.lag_min_ns, other.lag_min_ns), self.callbacks + other.callbacks,
-                          {s: self.stages[s].merged(other.stages[s]) for s in STAGES})
-
-
-def _opt(f, a: int | None, b: int | None) -> int | None:
-    """f(a, b) of two optional values; the one that is there when the other is None."""
-    return b if a is None else a if b is None else f(a, b)
-
-
-class InputLoad:
-    """What fusion_node's input callbacks saw (issue 16 item 5: overload visible).
-
-    Why: at 1 kHz + 1 kHz the node fell half a second behind and /diagnostics said OK. ``depth``: samples waiting
-    besides the one that started the callback (taken in the same callback); ``delay``: from the DDS reception of
-    that sample to the callback; ``lag``: node clock - stamp of the newest sample, after it was fused (with arrival
-    processing the fused estimate is that old; with ordered processing add the synchronizer's wait).
-
-    Two stretches. The **window** is one evaluation period of the node (``_update_diagnostics``, every 0.5 s): its
-    ``lag_min`` is what the overload WARN looks at -- a lag that never came down for a whole period is overload, a
-    single late callback on a busy machine is not. The **report** is what /diagnostics shows: every window since
-    the last report that was published (:meth:`begin_report`). The node evaluates twice per /diagnostics period,
-    and each evaluation replaces the status; a report of its own window alone left every other window unpublished,
-    so a burst processed in one of those (a node catching up after a stall) never showed as a queue depth or a lag.
-    """
-
-    def __init__(self) -> None:
-        self.depth = 0
-        self.lag_ns: int | None = None
-        self.window = LoadWindow()
-        self.report = LoadWindow()
-
-    # the window's figures, for the overload verdict
-    @property
-    def depth_max(self) -> int:
-        return self.window.depth_max
-
-    @property
-    def lag_min_ns(self) -> int | None:
-        return self.window.lag_min_ns
-
-    def callback(self, depth: int, delay_ns: int | None, lag_ns: int | None, work_ns: int | None = None) -> None:
-        """``depth`` samples were waiting besides the callback's own; ``delay_ns`` from its reception to the
-        callback; ``lag_ns`` node clock - stamp of the newest sample, after it was fused; ``work_ns`` from the
-        callback's start until its outputs were published."""
-        self.depth = depth
-        if lag_ns is not None:
-            self.lag_ns = lag_ns
-        self.window.add(depth, delay_ns, lag_ns, work_ns)
-
-    def begin_report(self, previous_published: bool) -> None:
-        """Fold the window into the report; ``previous_published``: the report set at the last evaluation went out
-        on /diagnostics, so the new one starts with this window (else it adds it: nothing is dropped unpublished).
-        """
-        self.report = replace(self.window) if previous_published else self.report.merged(self.window)
-
-    def values(self) -> dict:
-        """The report's figures, and the newest depth and lag."""
-        def ms(v: int | None) -> float | None:
-            return None if v is None else round(v * 1e-6, 3)
-
-        r = self.report
-        out = {"queue_depth": self.depth, "queue_depth_max": r.depth_max, "lag_ms": ms(self.lag_ns),
-               "lag_min_ms": ms(r.lag_min_ns), "lag_max_ms": ms(r.lag_max_ns), "input_callbacks": r.callbacks}
-        for stage in STAGES:   # median, p99 and maximum of each latency stage (fullperc_common.latency)
-            out.update(r.stages[stage].figures_ms(stage))
-        return out
-
-    def reset_period(self) -> None:
-        """End of one evaluation period: a new window."""
-        self.window = LoadWindow()

@@ -118,6 +118,32 @@ def test_every_sample_rejected_for_longer_than_the_timeout_is_an_error():
     assert all(a.source == GLOBAL for a in h.alarms(3.0))
 
 
+def test_a_run_taken_in_one_burst_lasts_as_long_as_its_stamps():
+    """A node behind takes 2 s of a source's refused samples in 0.1 s (the CI failure: no ERROR for 2.5 s of NaN
+    poses): by its clock the run never lasts the timeout, by the samples' stamps it does. Without stamps (the caller
+    passes none for a sample refused for its stamp) only the clock counts."""
+    S, T0 = 1_000_000_000, 1_700_000_000_000_000_000
+
+    def burst(stamps: bool) -> TargetHealth:
+        h = _h(reject_timeout_s=1.0)
+        for k in range(240):
+            h.rejected(GLOBAL, 5.0 + k * 0.1 / 240, "OMC body 'tool': non-finite pose",
+                       t_ns=T0 + k * S // 120 if stamps else None)
+        return h
+
+    h = burst(stamps=True)
+    [a] = h.alarms(5.2)
+    assert a.rule == "rejected" and "rejected for 2.0 s (240 samples" in a.message
+    assert h.values(5.2)["global_rejected_run_s"] == round(239 / 120, 3)
+    assert burst(stamps=False).alarms(5.2) == []
+    assert burst(stamps=False).values(5.2)["global_rejected_run_s"] == pytest.approx(0.2)
+    # a run's stamps are its own: after a used sample the next run starts from its own first stamp
+    h.accepted(GLOBAL, 5.3)
+    h.output(5.3, G_BIT, False, Z)
+    h.rejected(GLOBAL, 5.4, "x", t_ns=T0 + 10 * S)
+    assert h.values(5.4)["global_rejected_run_s"] == 0.0
+
+
 def test_a_few_rejected_samples_between_good_ones_are_no_error():
     h = _h(reject_timeout_s=1.0)
     for k in range(600):               # 5 s at 120 Hz, every 10th sample rejected
@@ -162,7 +188,7 @@ def test_alarms_are_sorted_most_severe_first():
 
 # ---- overload: lost samples and input load (issue 16 item 5) --------------------------------------------------
 def test_source_loss_counts_frame_gaps_and_visible_frames_without_pose():
-    from fullperc_fusion.fusion_health import SourceLoss
+    from fullperc_fusion.fusion_verdict import SourceLoss
 
     loss = SourceLoss(match_ns=100)
     for fn in (1, 2, 3, 7, 8):            # quality of frames 4-6 missing
@@ -179,7 +205,7 @@ def test_source_loss_counts_frame_gaps_and_visible_frames_without_pose():
 
 
 def test_source_loss_pose_before_its_quality_is_not_lost():
-    from fullperc_fusion.fusion_health import SourceLoss
+    from fullperc_fusion.fusion_verdict import SourceLoss
 
     loss = SourceLoss(match_ns=100)
     loss.pose(10)
@@ -192,7 +218,7 @@ def test_source_loss_with_the_quality_seconds_ahead_of_the_poses_counts_nothing_
     """A node lagging in its pose callbacks takes the quality messages seconds ahead of the poses of the same frames
     (each topic in order): a visible frame is overdue only once a pose match_ns newer came, not a quality message.
     Settled by either topic's newest stamp, the demo on a busy machine counted 678 of its fused OMC samples lost."""
-    from fullperc_fusion.fusion_health import SourceLoss
+    from fullperc_fusion.fusion_verdict import SourceLoss
 
     loss = SourceLoss(match_ns=100)
     for fn in range(1, 51):               # 500 stamp-ns of quality first (5 x match_ns)
@@ -207,7 +233,7 @@ def test_source_loss_with_the_quality_seconds_ahead_of_the_poses_counts_nothing_
 def test_source_loss_settles_the_tail_of_a_stream_when_the_caller_says_it_ended():
     """A pose lost in a stream's last match_ns is counted only once the caller says the source went silent: no
     later sample would ever settle it (1 kHz test: the node's last /diagnostics never accounted for every sample)."""
-    from fullperc_fusion.fusion_health import SourceLoss
+    from fullperc_fusion.fusion_verdict import SourceLoss
 
     loss = SourceLoss(match_ns=100)
     for fn in range(1, 6):
@@ -227,7 +253,7 @@ def test_source_loss_settles_the_tail_of_a_stream_when_the_caller_says_it_ended(
 
 
 def test_input_load_keeps_the_period_maximum():
-    from fullperc_fusion.fusion_health import InputLoad
+    from fullperc_fusion.fusion_verdict import InputLoad
 
     load = InputLoad()
     load.callback(3, 2_000_000, 40_000_000)
@@ -248,7 +274,7 @@ def test_input_load_reports_every_window_until_a_report_is_published():
     """The node evaluates every 0.5 s and /diagnostics goes out every 1 s: a burst in a window whose report was
     replaced before it was published must still show in the next report (it used to be lost: a node catching up
     after a stall could report no lag at all)."""
-    from fullperc_fusion.fusion_health import InputLoad
+    from fullperc_fusion.fusion_verdict import InputLoad
 
     load = InputLoad()
     load.callback(50, 3_000_000, 900_000_000)            # the burst
@@ -269,7 +295,7 @@ def test_input_load_reports_every_window_until_a_report_is_published():
 def test_input_load_reports_each_stage():
     """InputLoad's report: callback delay, the wake-up's own work and their sum, per callback; a callback without
     rclpy's message info (the events executor) adds no delay and no sum, only its work."""
-    from fullperc_fusion.fusion_health import InputLoad
+    from fullperc_fusion.fusion_verdict import InputLoad
 
     load = InputLoad()
     load.callback(0, 2_000_000, None, 500_000)
@@ -393,3 +419,23 @@ def test_in_the_background_the_estimate_comes_at_a_later_call_and_equals_the_one
     [al] = [x for x in h.alarms(12.0) if x.rule == "stamp_offset"]
     m = re.search(r"late by ([0-9.]+) ms", al.message)
     assert al.level == WARN and m and abs(float(m[1]) - 10.0) < 0.5, al.message
+
+
+# ---- the node's core: which stamps time a run ------------------------------------------------------------------------
+@pytest.mark.parametrize("bad", ["nan_pose", "hour_ahead"])
+def test_the_core_times_a_run_by_the_stamps_of_samples_refused_for_their_pose_only(bad):
+    """fusion_core passes the stamp of a sample the pipeline refused for its pose (NaN: its stamp is good) and not
+    of one refused for its stamp (an hour ahead of the node clock: the stamp says nothing about when it was sent)."""
+    from fullperc_fusion.fusion_config import read_values
+    from fullperc_fusion.fusion_core import FusionCore
+
+    S, T0 = 1_000_000_000, 1_700_000_000_000_000_000
+    c = FusionCore(read_values(lambda n, d: {"alarm.reject_timeout": 1.0}.get(n, d)), now=0.0)
+    p, q = np.array([0.1, 0.2, 0.3]), np.array([0.0, 0.0, 0.0, 1.0])
+    for k in range(240):   # 2 s of samples at 120 Hz, taken in a burst of 0.1 s
+        t = T0 + k * S // 120
+        c.on_pose("omc", "tool", t, np.full(3, np.nan) if bad == "nan_pose" else p, q, k * 0.1 / 240,
+                  t - 3600 * S if bad == "hour_ahead" else 0)
+    assert c.pipes["tool"].counts["rejected_nonfinite" if bad == "nan_pose" else "rejected_future"] == 240
+    rules = [a.rule for a in c.health["tool"].alarms(0.2)]
+    assert rules == (["rejected"] if bad == "nan_pose" else [])

@@ -303,10 +303,13 @@ def _alarms(tmp: Path) -> dict:
                 return [st for st in _statuses(lis, target)
                         if as_level(st.level) == level and all(w in st.message for w in words)]
             # liveness bounds only: the alarms are held 10 s (problem_hold) after their condition last held
+            def last_of(target):   # on a timeout: what the node said of the target last
+                return lambda: [(st.message, {kv.key: kv.value for kv in st.values}) for st in
+                                _statuses(lis, target)[-2:]]
             warn = wait_for(lambda: raised("tool", 1, "target 'tool'", "OMC body 'tool'", "compensation"), 30,
-                            what="WARN on the 1 m jump of tool")
+                            what="WARN on the 1 m jump of tool", detail=last_of("tool"))
             err = wait_for(lambda: raised("broken", 2, "target 'broken'", "OMC body 'broken'", "rejected"), 30,
-                           what="ERROR on every sample of broken rejected")
+                           what="ERROR on every sample of broken rejected", detail=last_of("broken"))
             # diagnostics of probe once the node has fused all of probe's samples (``last_stamp_ns``)
             last_probe = max(r["t_ns"] for r in rows if r["body"] == "probe")
             wait_for(lambda: [st for st in _statuses(lis, "probe") if _last_stamp(st) >= last_probe], 60,

@@ -54,13 +54,14 @@ class Listener(SpunNode):
         from diagnostic_msgs.msg import DiagnosticArray
         from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-        from fullperc_common.tf import static_qos
+        from fullperc_common.tf import static_listener_qos
 
         super().__init__(ctx, f"ros_conventions_listener_{next(_IDS)}")   # one rosout publisher each
         self.got: dict[str, list] = {t: [] for t in [*topics, "/diagnostics"]}
         deep = QoSProfile(depth=5000, reliability=ReliabilityPolicy.RELIABLE)
         for t, typ in {**topics, "/diagnostics": DiagnosticArray}.items():
-            self.node.create_subscription(typ, t, self.got[t].append, static_qos() if t == "/tf_static" else deep)
+            qos = static_listener_qos() if t == "/tf_static" else deep   # depth 100: both nodes' latched links
+            self.node.create_subscription(typ, t, self.got[t].append, qos)
         self.start()
 
     def diag(self, name: str = "fusion_node: target tool") -> list:
