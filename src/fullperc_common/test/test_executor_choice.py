@@ -19,6 +19,7 @@ from fullperc_common.node_main import run_node
 
 def test_choose_env_overrides_the_node_default():
     assert executor_choice.choose("fusion_node", {}) == "events"
+    assert executor_choice.choose("margin_node", {}) == "events"
     assert executor_choice.choose("omc_driver", {}) == "single"
     assert executor_choice.choose("fusion_node", {"FULLPERC_EXECUTOR": "single"}) == "single"
     assert executor_choice.choose("omc_driver", {"FULLPERC_EXECUTOR": " Events "}) == "events"

@@ -6,7 +6,8 @@ time of the labelled pose, frame_id) and the position of that pose. ``/fullperc/
 (visualization_msgs/MarkerArray, reliable + transient local, so late RViz instances get it) is published at start
 and again whenever a parameter changes. ``/fullperc/<target>/region_marker`` (visualization_msgs/Marker, a sphere at
 the labelled position in the pose's frame, coloured by the published label: BVV green, GVV blue, PVV red, UNKNOWN
-grey; the colours of the margin map) goes out with every Region, for RViz (docs/nodes.md "TF and RViz2").
+grey; the colours of the margin map) goes out with every Region while a subscriber is matched, for RViz
+(docs/nodes.md "TF and RViz2").
 ``/diagnostics`` reports the layout and, per target, the last label.
 
 Frames. The layout (cameras, OTS volume) is in ``omc``; fused poses are in ``base`` (``base_frame``: fusion_node's
@@ -63,6 +64,8 @@ from fullperc_fusion.margin.layout import Layout, LayoutError, default_layout_pa
 from fullperc_fusion.margin.map import REGION_COLORS, MarginMap, compute_margin_map
 from fullperc_fusion.margin.view_margin import BVV, GVV, PVV, REGION_NAMES, UNKNOWN, label_point
 from fullperc_msgs.msg import Region
+
+APPLY_PERIOD_S = 0.1   # [s] how soon a run-time layout change is applied (after the parameter set was answered)
 
 OK, WARN, ERROR = as_level(_diag.OK), as_level(_diag.WARN), as_level(_diag.ERROR)
 MAP_TOPIC = "fullperc/margin_map"   # relative: -r __ns:=/or1 gives /or1/fullperc/margin_map
@@ -219,7 +222,9 @@ class MarginNode(Node):
 
         self._pending: Layout | None = None
         self._map_dirty = True
-        self._guard = self.create_guard_condition(self.apply_pending)
+        # a changed layout is applied here after the set-parameters answer went out (a map takes ~0.1-1 s): polled by a
+        # timer, not woken by a guard condition, which rclpy 7.1's EventsExecutor cannot run (executor_choice)
+        self.create_timer(APPLY_PERIOD_S, self.apply_pending)
         self.add_on_set_parameters_callback(self.on_set_parameters)
         self.report_layout()
         self.publish_margin_map()
@@ -283,10 +288,12 @@ class MarginNode(Node):
             f.params = self.hysteresis
         with self._lock:
             self._pending = layout
-        self._guard.trigger()
         return SetParametersResult(successful=True)
 
     def apply_pending(self) -> None:
+        """The layout of an accepted parameter change, if one is pending: labels start afresh, the map is rebuilt."""
+        if self._pending is None:   # the timer's usual round: nothing to do (read without the lock: a stale None
+            return                  # only defers the change to the next round)
         with self._lock:
             layout, self._pending = self._pending, None
             if layout is not None:
@@ -367,7 +374,8 @@ class MarginNode(Node):
                            "cameras_seeing": lab.cameras_seeing, "label_changes": rf.changes,
                            "model_label_changes": rf.raw_changes})
         self.region_pubs[target].publish(out)
-        self.marker_pubs[target].publish(region_marker(out))
+        if self.marker_pubs[target].get_subscription_count():   # for RViz: built only while one is matched (volatile:
+            self.marker_pubs[target].publish(region_marker(out))   # a marker no reader is matched to reaches nobody)
 
 
     def close(self) -> None:
