@@ -8,8 +8,9 @@ directly, so a node fed at hundreds of messages per second spends less CPU outsi
 Why not everywhere: rclpy 7.1's EventsExecutor (Jazzy) cannot do three things our nodes use (tried in
 ``test/test_executor_choice.py``), and a later one changes signal handling:
 
-* guard conditions (``Node.create_guard_condition``; the drivers' device-thread hand-off uses them): it refuses
-  the node. Such a node runs on ``single`` (one line on stderr says so);
+* guard conditions (``Node.create_guard_condition``; our nodes use none: the drivers hand device-thread items
+  over with ``Executor.create_task``, ``fullperc_drivers.handoff.ExecutorWake``): it refuses the node. Such a node
+  runs on ``single`` (one line on stderr says so);
 * subscription callbacks taking ``(msg, info)``: it fails with ``SystemError``. :func:`adapt_for_events` wraps
   them so they get ``(msg, {})`` -- the message info (``received_timestamp``) is not available on ``events``;
 * ``async def`` service callbacks (``fusion_node``'s ``~/calibrate`` awaits the collection): it sends the
@@ -37,7 +38,7 @@ ENV = "FULLPERC_EXECUTOR"
 CHOICES = ("events", "single")
 # Nodes that spin on ``events`` unless FULLPERC_EXECUTOR says otherwise: their system tests pass on it and the
 # gain is measured (docs/performance.md "The executor"). Every other node: ``single``.
-DEFAULT_EVENTS = frozenset({"fusion_node", "margin_node"})
+DEFAULT_EVENTS = frozenset({"fusion_node", "margin_node", "omc_driver", "ndi_driver", "diana_state"})
 TASK_PERIOD_S = 0.02   # how often a pending ``async`` service callback is resumed on ``events``
 
 

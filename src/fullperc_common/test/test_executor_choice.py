@@ -19,10 +19,11 @@ from fullperc_common.node_main import run_node
 
 def test_choose_env_overrides_the_node_default():
     assert executor_choice.choose("fusion_node", {}) == "events"
-    assert executor_choice.choose("margin_node", {}) == "events"
-    assert executor_choice.choose("omc_driver", {}) == "single"
+    for node in ("margin_node", "omc_driver", "ndi_driver", "diana_state"):
+        assert executor_choice.choose(node, {}) == "events", node
+    assert executor_choice.choose("calibrate", {}) == "single"
     assert executor_choice.choose("fusion_node", {"FULLPERC_EXECUTOR": "single"}) == "single"
-    assert executor_choice.choose("omc_driver", {"FULLPERC_EXECUTOR": " Events "}) == "events"
+    assert executor_choice.choose("calibrate", {"FULLPERC_EXECUTOR": " Events "}) == "events"
     with pytest.raises(ValueError, match="FULLPERC_EXECUTOR='fast': must be one of events, single"):
         executor_choice.choose("fusion_node", {"FULLPERC_EXECUTOR": "fast"})
 

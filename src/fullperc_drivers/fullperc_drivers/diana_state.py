@@ -43,7 +43,7 @@ from .diana import JointSample
 from .diana.api import DianaApiBackend, DianaApiError
 from .diana.stream import DianaStreamBackend, DianaStreamPipeline, RawJointState
 from .diana_kinematics import DIANA7_MDH, JOINT_NAMES, DianaKinematics
-from .handoff import Handoff
+from .handoff import ExecutorWake, Handoff
 from .node_common import HEALTH_PERIOD_S, ConsoleThrottle, HealthReport, declare_health, make_qos
 
 
@@ -119,8 +119,8 @@ class DianaStateNode(Node):
         self.handoff = None
         if backend == "stream":
             self.pipeline = DianaStreamPipeline(ClockSync(window_s=window))
-            self._gc = self.create_guard_condition(self._drain)
-            self.handoff: Handoff[RawJointState] = Handoff(maxlen=256, notify=self._gc.trigger)
+            self._wake = ExecutorWake(self, self._drain)
+            self.handoff: Handoff[RawJointState] = Handoff(maxlen=256, notify=self._wake)
             self.backend = DianaStreamBackend(host, port, self.handoff.put)
             self.get_logger().info(f"Diana stream backend listening on UDP {self.backend.address}")
         else:
@@ -196,6 +196,8 @@ class DianaStateNode(Node):
             self.health.good("arm")
 
     def _update_diagnostics(self) -> None:
+        if self.handoff is not None:
+            self._wake.catch_up()   # what came before the node was spinning (ExecutorWake)
         be = self.backend
         if be.connected != self._connected:
             if be.connected:

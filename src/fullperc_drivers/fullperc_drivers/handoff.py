@@ -2,9 +2,9 @@
 
 Why: vendor SDKs call us on their own thread, and a blocking ``recv`` needs a thread too, but publishing
 and all node state belong to the executor thread. :class:`Handoff` is a bounded queue plus a wake-up
-callable (in the nodes: ``GuardCondition.trigger``, which is thread-safe and makes the executor run the
-drain callback). The producer side never raises: it is called from C through ctypes, where an exception
-would be lost or abort the process.
+callable (in the nodes: :class:`ExecutorWake`, which schedules the drain callback on the executor that spins the
+node). The producer side never raises: it is called from C through ctypes, where an exception would be lost or
+abort the process.
 
 :class:`UdpReceiver` is the socket-reader thread used by the stream backends: it blocks in ``recvfrom``
 (with a short timeout only so that ``close`` is prompt) and stamps each datagram with the host receive
@@ -60,6 +60,43 @@ class Handoff(Generic[T]):
     def __len__(self) -> int:
         with self._lock:
             return len(self._q)
+
+
+class ExecutorWake:
+    """``Handoff.notify`` of a node: ``drain`` runs on the executor that spins ``node``, called from any thread.
+
+    Why not a guard condition (rclpy's usual hand-off): rclpy 7.1's EventsExecutor runs none, so a node with one
+    spins on the SingleThreadedExecutor, which rebuilds its wait set in Python on every wake-up -- about half of a
+    driver's CPU when it wakes per device frame. ``Executor.create_task`` is thread-safe on both executors (it queues
+    the call and wakes the executor; checked in test_handoff.py). At most one drain is scheduled at a time: an item
+    handed over while one waits is taken by it. Before the node is spinning (no ``node.executor``) nothing is
+    scheduled: the node's periodic timer drains what came meanwhile (call :meth:`catch_up` there)."""
+
+    def __init__(self, node, drain: Callable[[], None]) -> None:
+        self._node = node
+        self._drain = drain
+        self._lock = threading.Lock()
+        self._scheduled = False
+
+    def __call__(self) -> None:
+        with self._lock:
+            if self._scheduled:
+                return
+            ex = self._node.executor
+            if ex is None:
+                return
+            self._scheduled = True
+        ex.create_task(self._run)
+
+    def _run(self) -> None:
+        with self._lock:
+            self._scheduled = False
+        self._drain()
+
+    def catch_up(self) -> None:
+        """On the executor: drain now if no drain is scheduled (what came before the node was spinning)."""
+        if not self._scheduled:
+            self._drain()
 
 
 class UdpReceiver:

@@ -51,7 +51,7 @@ from fullperc_common.share import share_path
 from fullperc_common.subscribers import SubscriberLog
 from fullperc_msgs.msg import TrackedBodies, TrackingQuality
 
-from .handoff import Handoff
+from .handoff import ExecutorWake, Handoff
 from .ndi.driver import DriverConfig, DriverEvent, FrameResult, NdiDriver, ToolConfig
 from .ndi.rom import EMULATOR_ROM_DIR, RomFileError
 from .node_common import HEALTH_PERIOD_S, ConsoleThrottle, HealthReport, declare_health, tracked_body
@@ -160,8 +160,8 @@ class NdiDriverNode(Node):
         self.published = 0
         self._dups_seen = 0
         # The driver thread only hands items over; publishing, logging and health run on the executor.
-        self._gc = self.create_guard_condition(self._drain)
-        self.handoff: Handoff[FrameResult | DriverEvent] = Handoff(maxlen=1024, notify=self._gc.trigger)
+        self._wake = ExecutorWake(self, self._drain)
+        self.handoff: Handoff[FrameResult | DriverEvent] = Handoff(maxlen=1024, notify=self._wake)
         # The driver's own log lines would reach stderr through Python's last-resort handler; the node says
         # everything the operator needs (throttled) through its ROS logger instead.
         logging.getLogger("fullperc.ndi").addHandler(logging.NullHandler())
@@ -247,6 +247,7 @@ class NdiDriverNode(Node):
             self.bodies_pub.publish(out)
 
     def _update_diag(self) -> None:
+        self._wake.catch_up()   # what came before the node was spinning (ExecutorWake)
         d = self.driver
         dups = d.counters.duplicate_frames
         if dups > self._dups_seen:

@@ -5,9 +5,10 @@ and quality fields of that frame's per-body messages, in the same order; sent fo
 published body.
 
 Thin ROS layer around the ROS-free core (:mod:`fullperc_drivers.nokov`): a backend thread (SDK callback or
-UDP reader) puts :class:`RawFrame` into a :class:`~fullperc_drivers.handoff.Handoff` and triggers a guard
-condition; the executor drains it, runs :class:`FramePipeline` (dedupe, gaps, mm -> m, capture stamp on the
-host clock) and publishes. Untracked bodies get a quality message with ``visible: false`` and no pose.
+UDP reader) puts :class:`RawFrame` into a :class:`~fullperc_drivers.handoff.Handoff`, which schedules a drain on
+the node's executor (:class:`~fullperc_drivers.handoff.ExecutorWake`); the executor drains it, runs
+:class:`FramePipeline` (dedupe, gaps, mm -> m, capture stamp on the host clock) and publishes. Untracked bodies
+get a quality message with ``visible: false`` and no pose.
 
 Health (``/diagnostics``, status ``omc_driver: omc``; the rule is in :mod:`fullperc_common.health`): ERROR when
 no new frame arrived for ``stale_timeout_s`` (not connected / frame number frozen / stream stopped, counted as a
@@ -34,7 +35,7 @@ from fullperc_common.subscribers import SubscriberLog
 from fullperc_msgs.msg import TrackedBodies, TrackingQuality
 
 from .clock_sync import ClockSync
-from .handoff import Handoff
+from .handoff import ExecutorWake, Handoff
 from .node_common import (
     HEALTH_PERIOD_S,
     ConsoleThrottle,
@@ -88,8 +89,8 @@ class OmcDriverNode(Node):
         self.health = Health(sorted(self.bodies or ()), health_cfg, item_kind="body", output="pose", frame="frame")
         self.console = ConsoleThrottle(self.get_logger, period_s=5.0)
         self.report = HealthReport(self.diag, "omc", self.health, self.console)
-        self._gc = self.create_guard_condition(self._drain)
-        self.handoff: Handoff[RawFrame] = Handoff(maxlen=256, notify=self._gc.trigger)
+        self._wake = ExecutorWake(self, self._drain)
+        self.handoff: Handoff[RawFrame] = Handoff(maxlen=256, notify=self._wake)
         self._pose_pubs: dict[str, object] = {}
         self._quality_pubs: dict[str, object] = {}
         self._bodies_pub = self.create_publisher(TrackedBodies, "omc/bodies", self.qos)
@@ -177,6 +178,7 @@ class OmcDriverNode(Node):
             self._bodies_pub.publish(out)
 
     def _update_diagnostics(self) -> None:
+        self._wake.catch_up()   # what came before the node was spinning (ExecutorWake)
         now = time.monotonic()
         c = self.pipeline.counters
         be = self.backend
