@@ -179,7 +179,7 @@ class DianaStateNode(Node):
             if self.pub_tool is not None:
                 p, q = T_to_pq(T @ self.kin.tool_offset)
                 self.pub_tool.publish(pose_stamped(s.stamp_ns, self.frame_id, p, q))
-            if self.tf is not None:
+            if self.tf is not None and self.tf.wanted():   # the links only while /tf has a reader (volatile: unseen)
                 self.tf.send([transform_stamped(s.stamp_ns, a, b, T_ab) for a, b, T_ab
                               in self.kin.link_transforms(s.q, self.frame_id, tool=self.publish_tool)])
             if s.vendor_tcp is not None:
