@@ -100,3 +100,28 @@ def test_the_echo_floor_publishes_four_messages_per_target_sample(rclpy_context,
         except subprocess.TimeoutExpired:
             proc.kill()
     assert proc.returncode == 0
+
+
+def test_graph_cpu_counts_every_descendant_by_its_executable(tmp_path) -> None:
+    """bench/graph_cpu.py (docs/performance.md "The executor"): a process's descendants at any depth, not its
+    siblings; a process named by the script it runs (``python .../fusion_node --ros-args ...``: fusion_node)."""
+    import subprocess
+    import time
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+    import graph_cpu
+
+    parents = {10: 1, 11: 10, 12: 11, 13: 1, 14: 12}
+    assert graph_cpu.family(10, parents) == {10, 11, 12, 14}
+    assert graph_cpu.family(13, parents) == {13}
+    script = tmp_path / "fake_node"
+    script.write_text("import time\ntime.sleep(30)\n")
+    p = subprocess.Popen([sys.executable, "-u", str(script), "--ros-args", "-p", "x:=1"])
+    try:
+        deadline = time.monotonic() + 10
+        while graph_cpu._exe_name(p.pid) != "fake_node" and time.monotonic() < deadline:
+            time.sleep(0.05)   # until the process has exec'd the interpreter with its arguments
+        assert graph_cpu._exe_name(p.pid) == "fake_node"
+    finally:
+        p.kill()
+        p.wait()
