@@ -30,6 +30,11 @@ Figures (CPU seconds of the node process while data flowed, per second of data a
                                    the same streams (OMC 240 Hz + OTS 400 Hz, base bodies, a pose reader), stubs for
                                    the publishers; baseline: node_cpu_per_target[pose], ratio = the share of the
                                    node's CPU that is its own work (the rest is rclpy's and DDS's per-message path)
+  echo_floor_cpu[pose,outputs=pose|none]  the echo floor's split (``echo_floor.py --outputs``): the same inputs, and
+                                   the fused pose only (``pose``: fusion_node's I/O with a pose consumer, without its
+                                   maths) or nothing (``none``: the input path alone); baseline: echo_floor_cpu[pose].
+                                   ``[outputs=pose]`` + node_core_cpu_per_target is what fusion_node[pose] would cost
+                                   with rclpy's per-message path as the naive node pays it
   gc_full_collection_ms            one full garbage collection with fusion_node's modules loaded, after
                                    ``node_main.settle_heap`` (what every node does once built); baseline: the same
                                    collection without it (a callback stalls that long when the collector runs one)
@@ -56,7 +61,9 @@ DURATION = float(os.environ.get("FULLPERC_BENCH_NODE_S", "8"))
 REPEATS = int(os.environ.get("FULLPERC_BENCH_REPEATS", "3"))
 TARGETS = ["tool"]
 CONSUMERS = {"pose": (), "every": ("pose_cov", "status", "/tf"), "array": ()}
-NODES = {"fusion": None, "echo": [sys.executable, str(HERE / "echo_floor.py"), "--targets", ",".join(TARGETS)]}
+ECHO = [sys.executable, str(HERE / "echo_floor.py"), "--targets", ",".join(TARGETS)]
+NODES = {"fusion": None, "echo": ECHO}
+SPLITS = {"pose": ECHO + ["--outputs", "pose"], "none": ECHO + ["--outputs", "none"]}   # the echo floor split
 VARIANTS = {"partner_wait=0": ["-p", "partner_wait:=0.0"],   # fusion_node with one setting changed, pose consumer
             "inputs=frames": ["-p", "inputs:=frames"]}
 GOAL_VARIANTS = ("inputs=frames",)   # the pose consumer's goal applies to these too
@@ -64,7 +71,8 @@ GOAL_VARIANTS = ("inputs=frames",)   # the pose consumer's goal applies to these
 
 def run(node: str, consumer: str) -> dict:
     extra = VARIANTS[node.split(":", 1)[1]] if node.startswith("fusion:") else []
-    res = run_live([target_params(TARGETS) + extra], TARGETS, None, DURATION, command=NODES.get(node),
+    command = SPLITS[node.split(":", 1)[1]] if node.startswith("echo:") else NODES.get(node)
+    res = run_live([target_params(TARGETS) + extra], TARGETS, None, DURATION, command=command,
                    consumers=CONSUMERS[consumer], array=consumer == "array", frames="inputs:=frames" in extra)
     return {"share": sum(res.node_cpu_s) / DURATION / len(TARGETS), "lost": sum(res.lost.values()),
             "sent": sum(res.sent.values()), "fused": res.fused_total, "consumed": res.consumed,
@@ -144,7 +152,7 @@ def gc_pause() -> None:
 def main() -> None:
     gc_pause()
     configs = [(n, c) for n in NODES for c in CONSUMERS if (n, c) != ("echo", "array")]   # the echo has no array
-    configs += [(f"fusion:{v}", "pose") for v in VARIANTS]
+    configs += [(f"fusion:{v}", "pose") for v in VARIANTS] + [(f"echo:{o}", "pose") for o in SPLITS]
     runs: dict[tuple[str, str], list[dict]] = {k: [] for k in configs}
     for r in range(REPEATS):
         for k in configs[r % len(configs):] + configs[:r % len(configs)]:
@@ -159,6 +167,10 @@ def main() -> None:
         emit(f"node_cpu_per_target[{c}]", share[("fusion", c)], "cores", baseline=floor, targets=len(TARGETS),
              seconds=DURATION, runs=runs[("fusion", c)], **goal)
     emit("node_core_cpu_per_target", core_cost(), "cores", baseline=share[("fusion", "pose")], targets=len(TARGETS))
+    for o in SPLITS:
+        k = (f"echo:{o}", "pose")
+        emit(f"echo_floor_cpu[pose,outputs={o}]", share[k], "cores", baseline=share[("echo", "pose")],
+             targets=len(TARGETS), seconds=DURATION, runs=runs[k])
     for v in VARIANTS:
         k = (f"fusion:{v}", "pose")
         emit(f"node_cpu_per_target[pose,{v}]", share[k], "cores", baseline=share[("echo", "pose")],

@@ -8,7 +8,11 @@ read: ``fullperc/<target>/pose``, ``pose_cov``, ``status`` (FusionStatus) and on
 the way a first ROS node is written (new message objects, rclpy's default executor), every one published whether or
 not anyone reads it, no maths. ``bench/bench_node_cost.py`` runs it beside fusion_node against the same publisher.
 
-Run: python bench/echo_floor.py --targets tool [--ros-args ...]   (stops on SIGINT)
+``--outputs`` splits that floor (``bench_node_cost.py``'s ``echo_floor_cpu[pose,outputs=pose|none]``): ``pose``
+publishes the fused pose only (what fusion_node sends to a consumer of the pose alone, without its maths), ``none``
+nothing (the input path alone: takes and deserialisation); the publishers exist either way.
+
+Run: python bench/echo_floor.py --targets tool [--outputs every|pose|none] [--ros-args ...]   (stops on SIGINT)
 """
 
 from __future__ import annotations
@@ -30,8 +34,9 @@ DEPTH = 2000   # fusion_node's qos_depth default
 
 
 class EchoFloor(Node):
-    def __init__(self, targets: list[str]) -> None:
+    def __init__(self, targets: list[str], outputs: str = "every") -> None:
         super().__init__("echo_floor")
+        self.outputs = outputs
         qos = QoSProfile(depth=DEPTH, reliability=ReliabilityPolicy.RELIABLE)
         self.out = {t: (self.create_publisher(PoseStamped, f"fullperc/{t}/pose", qos),
                         self.create_publisher(PoseWithCovarianceStamped, f"fullperc/{t}/pose_cov", qos),
@@ -45,9 +50,14 @@ class EchoFloor(Node):
                 self.create_subscription(PoseStamped, f"{src}/{t}/pose", lambda m, t=t: self.echo(t, m), qos)
 
     def echo(self, target: str, m: PoseStamped) -> None:
+        if self.outputs == "none":
+            return
         pose_pub, cov_pub, st_pub = self.out[target]
         ps = PoseStamped()
         ps.header.stamp, ps.header.frame_id, ps.pose = m.header.stamp, "base", m.pose
+        if self.outputs == "pose":
+            pose_pub.publish(ps)
+            return
         pc = PoseWithCovarianceStamped()
         pc.header, pc.pose.pose = ps.header, m.pose
         tr = TransformStamped()
@@ -68,9 +78,11 @@ def main(argv: list[str] | None = None) -> int:
     cut = argv.index("--ros-args") if "--ros-args" in argv else len(argv)
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--targets", default="tool", help="comma-separated target names (default: tool)")
+    ap.add_argument("--outputs", choices=("every", "pose", "none"), default="every",
+                    help="what is published per target sample (default: every -- the echo floor)")
     a = ap.parse_args(argv[:cut])
     rclpy.init(args=["echo_floor", *argv[cut:]])
-    node = EchoFloor([t for t in a.targets.split(",") if t])
+    node = EchoFloor([t for t in a.targets.split(",") if t], a.outputs)
     try:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):

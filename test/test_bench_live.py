@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 
@@ -34,6 +35,36 @@ def test_target_params_name_each_target_body_and_tool() -> None:
     args = target_params(["t0", "t1"])
     assert args[:2] == ["-p", "targets:=[t0, t1]"]
     assert "t1.omc_body:=t1" in args and "t1.ots_tool:=t1" in args
+
+
+@pytest.mark.parametrize("outputs, want", [("every", ["pose", "pose_cov", "/tf", "status"]), ("pose", ["pose"]),
+                                           ("none", [])])
+def test_the_echo_floors_split_publishes_what_it_names(outputs: str, want: list[str]) -> None:
+    """``echo_floor.py --outputs``, the split of bench_node_cost's floor: ``pose`` sends the pose alone, stamped as the
+    input came, ``none`` nothing; ``every`` (the floor) the four messages. The per-sample path alone, no DDS."""
+    from echo_floor import EchoFloor
+    from geometry_msgs.msg import PoseStamped
+
+    sent: list[tuple[str, object]] = []
+
+    class Pub:
+        def __init__(self, key: str) -> None:
+            self.key = key
+
+        def publish(self, m) -> None:
+            sent.append((self.key, m))
+
+    echo = object.__new__(EchoFloor)   # no rclpy node: only what echo() reads
+    echo.outputs, echo.tf = outputs, Pub("/tf")
+    echo.out = {"tool": (Pub("pose"), Pub("pose_cov"), Pub("status"))}
+    m = PoseStamped()
+    m.header.stamp.sec, m.header.stamp.nanosec, m.pose.position.x = 3, 7, 0.5
+    echo.echo("tool", m)
+    assert [k for k, _ in sent] == want
+    if "pose" in want:
+        ps = sent[0][1]
+        assert (ps.header.stamp.sec, ps.header.stamp.nanosec, ps.header.frame_id, ps.pose.position.x) == \
+            (3, 7, "base", 0.5)
 
 
 def test_the_echo_floor_publishes_four_messages_per_target_sample(rclpy_context, ros_env) -> None:

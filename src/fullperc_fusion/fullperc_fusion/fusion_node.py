@@ -222,7 +222,7 @@ class FusionNode(Node):
         guard; a topic acceptable again loses its queue (received while closed). True: one closed (or reopened)."""
         now, guard, logs = time.monotonic(), self.core.guard, []
         for topic in self._in.sub_of if topics is None else topics:
-            n = self.count_publishers(topic)
+            n = self._in.sub_of[topic].get_publisher_count()   # writers matched to our reader (input_guard)
             if topics is not None and n == self._pub_counts.get(topic) and not guard.unresolved(topic):
                 guard.touch(topic, now)
                 continue

@@ -29,7 +29,10 @@ discovery lists every topic's publishers with their node's name and namespace an
 
 How fusion_node feeds it: every input topic (pose and quality) is read every :data:`CHECK_PERIOD_S`, and each input
 callback counts the publishers of the topics in its batch before fusing any sample of it, re-reading a topic whose
-count changed or whose publisher has no name yet. A topic no check has looked at yet is open (the core's unit tests
+count changed or whose publisher has no name yet. The count is of the writers matched to the topic's reader
+(``Subscription.get_publisher_count``): a publisher's samples reach the reader only once it is matched, so a new one
+is counted before its first sample is taken; ~1 us per topic against ~5 us for the graph's ``count_publishers``, in
+every callback. A topic no check has looked at yet is open (the core's unit tests
 and offline use have no graph); fusion_node checks a topic before it fuses its first sample. ROS-free; every call
 takes ``now`` (monotonic seconds).
 """
