@@ -221,7 +221,6 @@ class MarginNode(Node):
         self.subscribers = SubscriberLog(self, lambda: self.region_pubs)
 
         self._pending: Layout | None = None
-        self._map_dirty = True
         # a changed layout is applied here after the set-parameters answer went out (a map takes ~0.1-1 s): polled by a
         # timer, not woken by a guard condition, which rclpy 7.1's EventsExecutor cannot run (executor_choice)
         self.create_timer(APPLY_PERIOD_S, self.apply_pending)
