@@ -32,9 +32,8 @@ callback counts the publishers of the topics in its batch before fusing any samp
 count changed or whose publisher has no name yet. The count is of the writers matched to the topic's reader
 (``Subscription.get_publisher_count``): a publisher's samples reach the reader only once it is matched, so a new one
 is counted before its first sample is taken; ~1 us per topic against ~5 us for the graph's ``count_publishers``, in
-every callback. A topic no check has looked at yet is open (the core's unit tests
-and offline use have no graph); fusion_node checks a topic before it fuses its first sample. ROS-free; every call
-takes ``now`` (monotonic seconds).
+every callback. A topic no check has looked at yet is open (the core's unit tests and offline use have no graph);
+fusion_node checks a topic before it fuses its first sample. ROS-free; every call takes ``now`` (monotonic seconds).
 """
 
 from __future__ import annotations
