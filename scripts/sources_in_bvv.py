@@ -5,9 +5,11 @@ task-seed. Where the Vega sees the target, fusion combines two devices whose err
 draw: the OMC's position-dependent error (lens residual, per-camera pose errors) and the local chain's (the Vega plus
 the calibrated static links). The two devices observe only the difference of their errors, so no causal filter can
 tell which of them is the better one in a given room -- it weighs them by their statistics over rooms. This script
-scores, per bag, the three against the truth in BVV: the OMC's own chain (``single_sources["global"]``, no filter),
-the local chain's (``single_sources["local"]``) and ``fullperc``'s output, and counts the bags where the raw OMC beats
-the raw local chain, and where ``fullperc`` is above the raw OMC. The truth scores; nothing here sets anything.
+scores, per bag, the three against the truth where the true path is in BVV *and* the Vega actually reports the target
+(``metrics.local_seen_mask``: the margin model's BVV can begin a second before the Vega's first sample): the OMC's own
+chain (``single_sources["global"]``, no filter), the local chain's (``single_sources["local"]``) and ``fullperc``'s
+output; and counts the bags where the raw OMC beats the raw local chain, and where ``fullperc`` is above the raw OMC.
+The truth scores; nothing here sets anything.
 
 Every position is compared with the true position linearly interpolated on the evaluation's truth grid
 (``series["grid_p"]``: joint-state stamps for the arm-held tool, the recorded truth for other targets), so the three
@@ -25,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fullperc_eval.evaluation.metrics import evaluate_bag
+from fullperc_eval.evaluation.metrics import evaluate_bag, local_seen_mask
 
 BVV = 1   # the margin model's label of "both devices see it" (metrics.LETTER)
 
@@ -41,9 +43,12 @@ def _true_at(grid_t: np.ndarray, grid_p: np.ndarray, grid_ok: np.ndarray, t_ns: 
     return grid_p[k - 1] * (1 - w) + grid_p[k] * w, ok
 
 
-def bvv_mae(bag: Path, target: str) -> dict[str, float] | None:
-    """MAE [mm] in BVV of the raw OMC chain, the raw local chain and ``fullperc`` in one bag; None: never in BVV."""
-    s = evaluate_bag(bag, target=target, progress=False).series
+def bvv_mae(bag: Path, target: str, fusion_config: Path | None = None) -> dict[str, float] | None:
+    """MAE [mm] in BVV, where the Vega reports the target, of the raw OMC chain, the raw local chain and ``fullperc`` in
+    one bag; None: no such sample.
+    ``fusion_config``: a fusion_node parameter file instead of the shipped ``fusion.yaml`` (e.g. the one
+    ``make accuracy --noise-model calibrated`` writes with the room's own noise model)."""
+    s = evaluate_bag(bag, target=target, progress=False, fusion_config=fusion_config).series
     grid_t, labels = s["grid_t_ns"], s["labels"]
     grid_p, grid_ok = s["grid_p"], np.asarray(s["grid_ok"], dtype=bool)
     tracks = {"omc": s["single_sources"]["global"], "local": s["single_sources"]["local"],
@@ -53,7 +58,8 @@ def bvv_mae(bag: Path, target: str) -> dict[str, float] | None:
         t = np.asarray(tr["t_ns"], dtype=np.int64)
         truth, ok = _true_at(grid_t, grid_p, grid_ok, t)
         lab = labels[np.clip(np.searchsorted(grid_t, t, side="right") - 1, 0, len(grid_t) - 1)]
-        sel = ok & (lab == BVV) & np.isfinite(tr["p"]).all(axis=1)
+        seen = local_seen_mask(t, tracks["local"]["t_ns"])
+        sel = ok & (lab == BVV) & seen & np.isfinite(tr["p"]).all(axis=1)
         if not sel.any():
             return None
         out[name] = float(np.linalg.norm(tr["p"][sel] - truth[sel], axis=1).mean() * 1e3)
@@ -72,11 +78,12 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("paths", nargs="+", type=Path, help="bag directories, or directories holding bags")
     ap.add_argument("--target", default="instrument", help="the target evaluated (default: instrument)")
+    ap.add_argument("--fusion-config", type=Path, help="a fusion_node parameter file (default: the shipped one)")
     a = ap.parse_args(argv)
     rows = []
     print(f"{'bag':40s} {'omc':>6s} {'local':>6s} {'fullperc':>8s}  [mm, BVV]")
     for bag in bags_under(a.paths):
-        r = bvv_mae(bag, a.target)
+        r = bvv_mae(bag, a.target, a.fusion_config)
         if r is None:
             continue
         rows.append(r)
