@@ -13,7 +13,8 @@ The truth scores; nothing here sets anything.
 
 Every position is compared with the true position linearly interpolated on the evaluation's truth grid
 (``series["grid_p"]``: joint-state stamps for the arm-held tool, the recorded truth for other targets), so the three
-are scored the same way; ``test_sources_in_bvv.py`` holds the OMC's and ``fullperc``'s figures to the evaluation's.
+are scored the same way; ``test_sources_in_bvv.py`` holds the OMC's and ``fullperc``'s figures to the evaluation's
+on a bag where the Vega reports the target all through BVV.
 
 Run: python scripts/sources_in_bvv.py --target instrument ~/.cache/fullperc/accuracy/spec-<hash>/seed{0..9}/*
      (bag directories, or directories holding bags)
@@ -47,7 +48,8 @@ def bvv_mae(bag: Path, target: str, fusion_config: Path | None = None) -> dict[s
     """MAE [mm] in BVV, where the Vega reports the target, of the raw OMC chain, the raw local chain and ``fullperc`` in
     one bag; None: no such sample.
     ``fusion_config``: a fusion_node parameter file instead of the shipped ``fusion.yaml`` (e.g. the one
-    ``make accuracy --noise-model calibrated`` writes with the room's own noise model)."""
+    ``python -m fullperc_eval.evaluation.accuracy --noise-model calibrated`` writes beside the seeds' bags, with the
+    room's own noise model)."""
     s = evaluate_bag(bag, target=target, progress=False, fusion_config=fusion_config).series
     grid_t, labels = s["grid_t_ns"], s["labels"]
     grid_p, grid_ok = s["grid_p"], np.asarray(s["grid_ok"], dtype=bool)
