@@ -16,10 +16,16 @@ from collections.abc import Callable
 from pathlib import Path
 
 
+def proc_stat(pid: int) -> list[str]:
+    """The fields of ``/proc/<pid>/stat`` after the command name (proc(5) field 3 on: state, ppid, ...); the name
+    is cut at its last ')' since it may hold spaces and parentheses. OSError where the process is gone."""
+    return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+
+
 def cpu_seconds(pid: int) -> float:
     """User + system CPU time of process ``pid`` [s] (Linux /proc; 0.0 where unavailable)."""
     try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        fields = proc_stat(pid)
         return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")   # utime, stime: proc(5) 14, 15
     except (OSError, IndexError, ValueError):
         return 0.0

@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from benchlib import cpu_seconds, emit  # noqa: E402
+from benchlib import cpu_seconds, emit, proc_stat  # noqa: E402
 
 PERIOD_S = 0.25
 
@@ -36,7 +36,7 @@ def _children() -> dict[int, int]:
     for d in os.listdir("/proc"):
         if d.isdigit():
             try:
-                out[int(d)] = int(Path(f"/proc/{d}/stat").read_text().rsplit(")", 1)[1].split()[1])
+                out[int(d)] = int(proc_stat(int(d))[1])   # ppid
             except (OSError, IndexError, ValueError):
                 pass
     return out

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fullperc_eval.evaluation.evaluate_all import find_bags
 from fullperc_eval.evaluation.metrics import evaluate_bag, local_seen_mask
 
 BVV = 1   # the margin model's label of "both devices see it" (metrics.LETTER)
@@ -69,11 +70,8 @@ def bvv_mae(bag: Path, target: str, fusion_config: Path | None = None) -> dict[s
 
 
 def bags_under(paths: list[Path]) -> list[Path]:
-    found = []
-    for p in paths:
-        found += [p] if (p / "metadata.yaml").exists() else sorted(q for q in p.iterdir()
-                                                                   if (q / "metadata.yaml").exists())
-    return found
+    """Each path that is a bag, and the bags in each that is not (``evaluate_all.find_bags``: in task order)."""
+    return [b for p in paths for b in ([p] if (p / "metadata.yaml").exists() else find_bags(p))]
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -31,7 +31,7 @@ def test_items_from_a_thread_are_drained_on_the_spinning_thread_in_order(rclpy_c
 
     wake = ExecutorWake(node, drain)
     h: Handoff[int] = Handoff(maxlen=10_000, notify=wake)
-    h.put(-1)   # before the node spins: nothing scheduled (no executor), taken by catch_up
+    h.put(-1)   # before the node spins: nothing scheduled (no executor); the item waits in the queue
     assert node.executor is None and h.drain() == [-1]
     ex = make_executor(kind, rclpy_context, lambda: None)
     ex.add_node(node)
