@@ -170,7 +170,8 @@ PARAMS: tuple[Param, ...] = (
     _filter_row("fullperc.bias_length", "bias_length", "float", *NONNEGATIVE, "m",
           "fullperc: distance over which the OMC position bias b decays once the local source lost the tool (0: off)"),
     _filter_row("fullperc.bias_field_std", "bias_field_std", "float", *NONNEGATIVE, "m",
-          "fullperc: per-axis std of the OMC's position error field (b's far from where it was learnt)"),
+          "fullperc: per-axis std of the OMC's position error field (b's far from where it was learnt; the output "
+          "covariance takes |b|/sqrt(3) where the learnt b is larger)"),
     _filter_row("fullperc.bias_field_length", "bias_field_length", "float", *NONNEGATIVE, "m",
           "fullperc: that field's correlation length; with bias_length 0 the output covariance adds the field's "
           "change since the local source lost the tool (0 = off)"),

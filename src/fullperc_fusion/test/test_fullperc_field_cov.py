@@ -52,6 +52,35 @@ def test_the_rule():
         FullpercParams(bias_field_length=-1.0).validate()
 
 
+def test_the_sill_is_at_least_what_the_learnt_bias_shows():
+    """The sill is max(s_f^2, |b|^2 / 3): a learnt b of millimetres (a ``paper`` room) sets it, one smaller than the
+    room's s_f leaves s_f^2; without b, s_f^2; switched off (s_f 0) it stays off whatever b is."""
+    pr = FullpercParams()
+    a, t_l = [0.0, 0.0, 0.5], 10 * S
+    lost = t_l + int(pr.local_lost_s * S) + 1
+    shape = 2.0 * (1.0 - math.exp(-0.1 / pr.bias_field_length))
+    big, small = [3e-3, -2e-3, 1e-3], [1e-4, 0.0, -1e-4]
+    assert field_var(lost, t_l, [0.1, 0.0, 0.5], a, pr, big) == pytest.approx(shape * 14e-6 / 3, rel=1e-12)
+    assert field_var(lost, t_l, [0.1, 0.0, 0.5], a, pr, small) == pytest.approx(shape * pr.bias_field_std**2, rel=1e-12)
+    assert field_var(lost, t_l, [0.1, 0.0, 0.5], a, pr) == pytest.approx(shape * pr.bias_field_std**2, rel=1e-12)
+    assert field_var(lost, t_l, [0.1, 0.0, 0.5], a, FullpercParams(bias_field_std=0.0), big) == 0.0
+    assert field_var(t_l, t_l, [0.1, 0.0, 0.5], a, pr, big) == 0.0   # the local source still sees it
+
+
+@pytest.mark.parametrize("form", [FullpercReference, FullpercFilter])
+def test_both_forms_add_the_sill_of_their_learnt_bias(form):
+    """On the outage stream with s_f far below the learnt b, the output's added variance is the rule's with the
+    filter's own b, anchor and stamp: each form passes its b."""
+    items = _bd._outage_stream(7, 1200)
+    pr = FullpercParams(bias_field_std=1e-6, bias_field_length=0.2)
+    on, off = form(pr), form(FullpercParams(bias_field_std=0.0))
+    x, y = _run(on, items)[-1], _run(off, items)[-1]
+    st = on.s if form is FullpercReference else on.state
+    assert float(st.b @ st.b) / 3 > 100 * pr.bias_field_std**2   # the learnt b sets the sill here
+    want = field_var(x.t_ns, st.t_local_ns, st.p, st.rot_anchor, pr, st.b)
+    assert want > 0.0 and x.P[0, 0] - y.P[0, 0] == pytest.approx(want, rel=1e-9)
+
+
 def _run(f, items):
     out = []
     for ms in items:

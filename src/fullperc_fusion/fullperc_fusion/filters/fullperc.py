@@ -484,7 +484,7 @@ class FullpercFilter(StepCompat):
 
     def _step(self, t: int, mg, ml, **kw) -> Step:
         x, P = self._x, self._P
-        fv = field_var(t, self._tl, x[0:3], self._ra, self.params)   # the output's only (fullperc_state.field_var)
+        fv = field_var(t, self._tl, x[0:3], self._ra, self.params, x[6:9])   # the output's only (fullperc_state)
         if fv > 0.0:
             P = P.copy()
             P[0, 0] += fv

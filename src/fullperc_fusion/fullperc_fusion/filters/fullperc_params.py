@@ -46,7 +46,8 @@ class FullpercParams(FilterParams):
                      distance): b's stationary std in that model, what b's variance returns to far away.
     bias_field_length  L_f [m], that field's correlation length. With ``bias_length`` 0 (b kept as learnt) the
                      output's position covariance adds the field's change since the local source last saw the tool,
-                     2 s_f^2 (1 - exp(-d / L_f)) per axis at the distance d from there (:func:`.fullperc_state.
+                     2 s^2 (1 - exp(-d / L_f)) per axis at the distance d from there, the sill s^2 the larger of
+                     s_f^2 and |b|^2 / 3 (the learnt b: this room's own draw of the field; :func:`.fullperc_state.
                      field_var`): the estimate is unchanged, its covariance says how far the learnt b may be off.
                      ``bias_length`` 0 by default (b kept as learnt, CBKF's rule); s_f and L_f the ``spec`` bags' fit
                      (0.341 mm, 0.296 m); a room's own noise-model file sets all three (``fit_noise_model --write``:

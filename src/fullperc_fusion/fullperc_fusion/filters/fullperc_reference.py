@@ -82,7 +82,7 @@ a Gauss-Markov process forgets it at the rate the sensor's error does, and the m
   away, left the output worse there than the raw OMC. Its length and std come from the raw (OMC - local chain)
   differences' semivariogram over distance (``fullperc_eval`` ``bias_variogram``), not from the truth. With
   ``bias_length`` 0 (b kept as learnt) the output's position covariance gets the field's change since a_r instead,
-  2 s_f^2 (1 - exp(-d / L_f)) per axis (:func:`.fullperc_state.field_var`; state and estimate unchanged). d is the
+  2 s^2 (1 - exp(-d / L_f)) per axis, s^2 = max(s_f^2, |b|^2 / 3) (:func:`.fullperc_state.field_var`). d is the
   distance from a_r, not the path length: the error is a function of where the tool is, so coming back towards a_r
   forgets nothing more, and d_max keeps the decay monotone (no variance given back).
 * gaps longer than ``max_gap_s`` re-initialise p, v, R, w from the next sample; b and beta (and their variances)
@@ -493,7 +493,7 @@ class FullpercReference(StepCompat):
         s = self.s
         src = (SOURCE_GLOBAL if mg is not None else 0) | (SOURCE_LOCAL if ml is not None else 0)
         P = s.P.copy()
-        P[P_, P_] += field_var(t, s.t_local_ns, s.p, s.rot_anchor, self.params) * _I3   # the output's only
+        P[P_, P_] += field_var(t, s.t_local_ns, s.p, s.rot_anchor, self.params, s.b) * _I3   # the output's only
         pose_cov = P[np.ix_(np.r_[P_, TH], np.r_[P_, TH])]   # the [p, theta] rows and columns
         return Step(t, s.p.copy(), s.v.copy(), s.b + s.g, P, src,
                     q=R_to_quat(s.R) if s.has_R else None, pose_cov=pose_cov if s.has_R else None,

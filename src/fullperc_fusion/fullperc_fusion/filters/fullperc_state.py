@@ -76,7 +76,7 @@ def hop_watched(t_ns: int, t_local_ns: int | None, with_local: bool, pr: Fullper
     return pr.hop_needs_local == "once" or (t_ns - t_local_ns) * 1e-9 <= pr.local_lost_s
 
 
-def field_var(t_ns: int, t_local_ns: int | None, p, anchor, pr: FullpercParams) -> float:
+def field_var(t_ns: int, t_local_ns: int | None, p, anchor, pr: FullpercParams, b=None) -> float:
     """The variance per axis [m^2] the OMC's position error field adds to the output at ``p`` once the local source
     has lost the tool (its newest sample, fused at ``anchor``, older than ``local_lost_s`` at ``t_ns``).
 
@@ -87,12 +87,21 @@ def field_var(t_ns: int, t_local_ns: int | None, p, anchor, pr: FullpercParams) 
     learnt, b may be off by e(x) - e(a) less the white part, variance 2 s_f^2 (1 - exp(-d / L_f)) per axis, which
     the filter's P (b a random walk in time) does not hold. It goes into the output's covariance only -- the
     estimate, whose best guess of the field is still b, is unchanged. 0 while the local source sees the tool, when
-    b itself decays with distance (``bias_length`` > 0: P holds that), or with s_f or L_f 0."""
+    b itself decays with distance (``bias_length`` > 0: P holds that), or with s_f or L_f 0.
+
+    The sill is the larger of s_f^2 and |b|^2 / 3 (``b``, the learnt bias, when given). Why: s_f is a room's fit
+    (the built-in one ``spec``'s, 0.341 mm), and b is the same field drawn once, in this room, where the Vega saw the
+    tool: for a zero-mean field E[b_i^2] = s_f^2 per axis, so |b|^2 / 3 is the room's own evidence of its sill. A room
+    whose OMC is off by millimetres there (``paper``: b of 1-6 mm) has a field of that size, and a covariance built
+    on 0.34 mm would claim a confidence the carried b does not have; the estimate is not touched either way."""
     if (pr.bias_length > 0.0 or pr.bias_field_std <= 0.0 or pr.bias_field_length <= 0.0 or anchor is None
             or t_local_ns is None or (t_ns - t_local_ns) * 1e-9 <= pr.local_lost_s):
         return 0.0
     d = math.dist(p, anchor)
-    return 2.0 * pr.bias_field_std**2 * -math.expm1(-d / pr.bias_field_length)
+    sill = pr.bias_field_std**2
+    if b is not None:
+        sill = max(sill, (b[0] * b[0] + b[1] * b[1] + b[2] * b[2]) / 3.0)
+    return 2.0 * sill * -math.expm1(-d / pr.bias_field_length)
 
 
 @dataclass
