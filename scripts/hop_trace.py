@@ -6,7 +6,9 @@ config given or the default) with every ``fullperc`` update logged, and prints
 * each update inside ``--from``/``--to`` [s from the first output] that flagged a hop (or every update with
   ``--all``): time, sources (1 OMC alone, 3 a pair), position / rotation hop, the global NIS, the OMC innovation
   [mm], the change of b and of g [mm], the velocity before and after the update and the true one [mm/s] (the Diana's
-  forward kinematics, finite differences);
+  forward kinematics, finite differences). With ``motion: auto`` each stamp is updated once per motion model (the
+  IMM, :mod:`fullperc_fusion.filters.fullperc_imm`): a stamp counts as a hop when any model flagged one, and its
+  line is that model's (else the last model's), named after the row (``model arm`` ...);
 * a summary: position and rotation hops per source layout, the velocity error's rms over the window [mm/s], the
   raw OMC error against the truth over the window (mean ± sd per axis [mm]), its frame-to-frame scatter (the std of
   consecutive differences / sqrt 2, per axis [mm]) next to the white std the OMC model gave those samples (median
@@ -24,6 +26,27 @@ import numpy as np
 
 import fullperc_fusion.filters.fullperc as ff
 from fullperc_eval.evaluation.metrics import evaluate_bag
+from fullperc_fusion.filters.motion import PRESETS
+
+
+def _model_name(params) -> str:
+    """The motion preset a filter runs as (one model of ``motion: auto``: :func:`.motion.with_preset`), else
+    ``fixed``."""
+    for name, fields in PRESETS.items():
+        if all(getattr(params, k) == v for k, v in fields.items()):
+            return name
+    return "fixed"
+
+
+def shown_updates(log: list[tuple]) -> dict[int, tuple]:
+    """The update shown per stamp, from the logged ones (stamp, ..., position hops [2], rotation hops [3], ...,
+    model name [10]): a rewind replays updates, so the last one of each stamp and model counts (what the outputs are);
+    of a stamp's models, the first that flagged a hop, else the last model's."""
+    per_model: dict[int, dict[str, tuple]] = {}
+    for rec in log:
+        per_model.setdefault(rec[0], {})[rec[10]] = rec
+    return {t: next((r for r in recs.values() if r[2] or r[3]), list(recs.values())[-1])
+            for t, recs in per_model.items()}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -44,7 +67,8 @@ def main(argv: list[str] | None = None) -> None:
         cov = next((m.cov for m in ms if m.source == ff.SOURCE_GLOBAL and m.cov is not None), None)
         white = float(np.sqrt(np.diag(cov)[0:3]).mean()) if cov is not None else np.nan
         log.append((st.t_ns, int(st.sources), self.hop_counts["position"] - hp, self.hop_counts["rotation"] - hr,
-                    st.nis_global, st.innovation.copy(), np.array(x0), np.array(self._x), white, lam))
+                    st.nis_global, st.innovation.copy(), np.array(x0), np.array(self._x), white, lam,
+                    _model_name(self.params)))
         return st
 
     ff.FullpercFilter.update = logged
@@ -56,14 +80,11 @@ def main(argv: list[str] | None = None) -> None:
     tg, pg = s["grid_t_ns"], s["grid_p"]
     vg = np.gradient(pg, tg * 1e-9, axis=0)
     t0 = s["outputs"]["omc"]["t_ns"][0]
-    # a rewind replays updates: keep the last update of each stamp (what the outputs are)
-    last = {}
-    for rec in log:
-        last[rec[0]] = rec
+    last = shown_updates(log)
     counts = {}
     dv, white, lams = [], [], []
     for t in sorted(last):
-        t_ns, src, hp, hr, nis, y, x0, x1, w, lam = last[t]
+        t_ns, src, hp, hr, nis, y, x0, x1, w, lam, model = last[t]
         r = (t_ns - t0) * 1e-9
         if not args.t_from <= r <= args.t_to:
             continue
@@ -78,7 +99,7 @@ def main(argv: list[str] | None = None) -> None:
         c[1] += hp
         c[2] += hr
         if hp or hr or args.all:
-            print(f"{r:8.3f} s src {src} hop p{hp} r{hr} NIS {nis:6.1f} y {np.round(y * 1e3, 2)} mm "
+            print(f"{r:8.3f} s src {src} hop p{hp} r{hr} model {model} NIS {nis:6.1f} y {np.round(y * 1e3, 2)} mm "
                   f"db {np.round((x1[6:9] - x0[6:9]) * 1e3, 2)} dg {np.round((x1[18:21] - x0[18:21]) * 1e3, 2)} mm "
                   f"v {np.round(x0[3:6] * 1e3, 1)} -> {np.round(x1[3:6] * 1e3, 1)} true {np.round(vt * 1e3, 1)} mm/s")
     print("updates, position hops, rotation hops in the window:", counts)
