@@ -92,7 +92,7 @@ def field_var(t_ns: int, t_local_ns: int | None, p, anchor, pr: FullpercParams, 
     The sill is the larger of s_f^2 and |b|^2 / 3 (``b``, the learnt bias, when given). Why: s_f is a room's fit
     (the built-in one ``spec``'s, 0.341 mm), and b is the same field drawn once, in this room, where the Vega saw the
     tool: for a zero-mean field E[b_i^2] = s_f^2 per axis, so |b|^2 / 3 is the room's own evidence of its sill. A room
-    whose OMC is off by millimetres there (``paper``: b of 1-6 mm) has a field of that size, and a covariance built
+    whose OMC is off by millimetres there (``paper``) has a field of that size, and a covariance built
     on 0.34 mm would claim a confidence the carried b does not have; the estimate is not touched either way."""
     if (pr.bias_length > 0.0 or pr.bias_field_std <= 0.0 or pr.bias_field_length <= 0.0 or anchor is None
             or t_local_ns is None or (t_ns - t_local_ns) * 1e-9 <= pr.local_lost_s):
