@@ -310,16 +310,35 @@ def structure_over_distance(e: np.ndarray, x: np.ndarray, t: np.ndarray, bins=DI
 def fit_gauss_markov(lags_s: np.ndarray, rms: np.ndarray, grid: tuple[float, float] = (0.05, 100.0)
                      ) -> tuple[float, float, float]:
     """(white std, systematic std, tau [s]) of D(L) = 2 w^2 + 2 s^2 (1 - exp(-L / tau)) fitted to the squared
-    rms increments (grid over tau within ``grid``, linear least squares for w^2 and s^2 at each tau). The same
-    form over distance (``lags_s`` in metres) gives a correlation length instead of a time."""
+    rms increments (grid over tau within ``grid``, linear least squares for w^2 and s^2 at each tau, the tau whose
+    fit has both non-negative and the smallest relative residual). The same form over distance (``lags_s`` in
+    metres) gives a correlation length instead of a time.
+
+    When no tau of the grid gives a least-squares fit with both variances non-negative -- increments that grow
+    faster than linearly with the lag to the last one, as a ``paper``-like room's position error can over a single
+    session (``test_sensor_stats.py`` holds one such curve) -- each tau's fit is taken under that
+    constraint instead (non-negative least squares), so a room's own recording still gives a model (there: tau at
+    the grid's end, a bias that behaves as a random walk over a session) rather than zeros, which no filter can
+    use (``omc_bias.sys_time`` must be > 0). Where the plain fit exists, as on every bag set the repository fits
+    (``test_model_constants.py``), the result is that fit."""
+    from scipy.optimize import nnls
+
     D = rms**2
     best = (np.inf, 0.0, 0.0, 0.0)
-    for tau in np.geomspace(grid[0], grid[1], 400):
+    taus = np.geomspace(grid[0], grid[1], 400)
+    for tau in taus:
         A = np.column_stack([2 * np.ones_like(lags_s), 2 * (1 - np.exp(-lags_s / tau))])
         coef, *_ = np.linalg.lstsq(A, D, rcond=None)
         if np.all(coef >= 0):
             res = float(np.sum((A @ coef - D) ** 2 / D**2))
             if res < best[0]:
+                best = (res, float(np.sqrt(coef[0])), float(np.sqrt(coef[1])), float(tau))
+    if not np.isfinite(best[0]):
+        for tau in taus:
+            A = np.column_stack([2 * np.ones_like(lags_s), 2 * (1 - np.exp(-lags_s / tau))])
+            coef = nnls(A, D)[0]
+            res = float(np.sum((A @ coef - D) ** 2 / D**2))
+            if coef[1] > 0 and res < best[0]:
                 best = (res, float(np.sqrt(coef[0])), float(np.sqrt(coef[1])), float(tau))
     return best[1], best[2], best[3]
 
