@@ -324,22 +324,31 @@ def fit_gauss_markov(lags_s: np.ndarray, rms: np.ndarray, grid: tuple[float, flo
     from scipy.optimize import nnls
 
     D = rms**2
-    best = (np.inf, 0.0, 0.0, 0.0)
-    taus = np.geomspace(grid[0], grid[1], 400)
-    for tau in taus:
-        A = np.column_stack([2 * np.ones_like(lags_s), 2 * (1 - np.exp(-lags_s / tau))])
-        coef, *_ = np.linalg.lstsq(A, D, rcond=None)
-        if np.all(coef >= 0):
-            res = float(np.sum((A @ coef - D) ** 2 / D**2))
-            if res < best[0]:
-                best = (res, float(np.sqrt(coef[0])), float(np.sqrt(coef[1])), float(tau))
+    designs = [(tau, np.column_stack([2 * np.ones_like(lags_s), 2 * (1 - np.exp(-lags_s / tau))]))
+               for tau in np.geomspace(grid[0], grid[1], 400)]
+
+    def best_of(solve) -> tuple[float, float, float, float]:
+        """(relative residual, w, s, tau) of the grid's best fit by ``solve`` (A -> coefficients, None: refused)."""
+        best = (np.inf, 0.0, 0.0, 0.0)
+        for tau, A in designs:
+            coef = solve(A)
+            if coef is not None:
+                res = float(np.sum((A @ coef - D) ** 2 / D**2))
+                if res < best[0]:
+                    best = (res, float(np.sqrt(coef[0])), float(np.sqrt(coef[1])), float(tau))
+        return best
+
+    def plain(A):
+        coef = np.linalg.lstsq(A, D, rcond=None)[0]
+        return coef if np.all(coef >= 0) else None
+
+    def constrained(A):
+        coef = nnls(A, D)[0]
+        return coef if coef[1] > 0 else None
+
+    best = best_of(plain)
     if not np.isfinite(best[0]):
-        for tau in taus:
-            A = np.column_stack([2 * np.ones_like(lags_s), 2 * (1 - np.exp(-lags_s / tau))])
-            coef = nnls(A, D)[0]
-            res = float(np.sum((A @ coef - D) ** 2 / D**2))
-            if coef[1] > 0 and res < best[0]:
-                best = (res, float(np.sqrt(coef[0])), float(np.sqrt(coef[1])), float(tau))
+        best = best_of(constrained)
     return best[1], best[2], best[3]
 
 
